@@ -1,0 +1,1 @@
+"""Synthetic bin scenes: bin geometry, object placement, virtual 3D camera."""

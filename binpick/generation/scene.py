@@ -1,0 +1,109 @@
+"""One synthetic bin scene: drop objects into the bin, render them, derive the training view."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from binpick.generation.bin import T_bin_from_cam, bin_meshes
+from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, visible_fractions
+from binpick.generation.placement import place_objects
+from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.io.part_model import PartModel
+from binpick.params import CameraParams, GenerateParams
+
+
+@dataclass(frozen=True)
+class ViewParams:
+    """How the network's view of a scene is made; the same settings as the scene import."""
+
+    n_points: int
+    voxel_size_m: float
+    normal_radius_m: float
+
+
+@dataclass(frozen=True)
+class SyntheticScene:
+    """A rendered scene with ground truth (spec: docs/data-format.md#scene).
+
+    xyz_m            : (H, W, 3) float32, camera frame, metres, NaN = no return
+    labels           : (H, W) int16, instance index, -1 = bin, floor or nothing
+    K                : (3, 3) float64 intrinsics of the organized frame
+    T_cam_from_model : (k, 4, 4) float64, ground-truth pose of instance i at index i
+    visible_fraction : (k,) float64, share of each instance's unoccluded image area that is visible
+    T_cam_from_bin   : (4, 4) float64
+    view_points_m    : (N, 3) float32, the network's view: part points, voxel-downsampled, camera frame
+    view_normals     : (N, 3) float32, normals estimated like at import, facing the camera
+    view_labels      : (N,) int16, instance index of each view point
+    """
+
+    xyz_m: np.ndarray
+    labels: np.ndarray
+    K: np.ndarray
+    T_cam_from_model: np.ndarray
+    visible_fraction: np.ndarray
+    T_cam_from_bin: np.ndarray
+    view_points_m: np.ndarray
+    view_normals: np.ndarray
+    view_labels: np.ndarray
+
+
+def make_view(
+    xyz_m: np.ndarray, labels: np.ndarray, view: ViewParams, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The network's view of an organized frame: labelled points, voxel grid, normals, N points.
+
+    xyz_m (H, W, 3) camera frame; labels (H, W). Returns points (N, 3) float32, normals (N, 3)
+    float32, labels (N,) int16. With fewer than N points, points are repeated at random.
+    """
+    flat_xyz = xyz_m.reshape(-1, 3)
+    flat_lab = labels.reshape(-1)
+    keep = np.isfinite(flat_xyz[:, 2]) & (flat_lab >= 0)
+    pts, lab = flat_xyz[keep], flat_lab[keep]
+    idx = voxel_downsample_indices(pts, view.voxel_size_m)
+    pts, lab = pts[idx], lab[idx]
+    if len(pts) == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int16)
+    normals = estimate_normals(pts, view.normal_radius_m)
+    pick = rng.choice(len(pts), size=view.n_points, replace=len(pts) < view.n_points)
+    return pts[pick].astype(np.float32), normals[pick], lab[pick].astype(np.int16)
+
+
+def generate_scene(
+    part: PartModel,
+    generate: GenerateParams,
+    camera: CameraParams,
+    view: ViewParams,
+    seed: int | np.random.SeedSequence,
+    n_objects: int | None = None,
+) -> SyntheticScene:
+    """Place objects (count drawn from the params unless given), render with noise, build the view."""
+    rng = np.random.default_rng(seed)
+    placement = generate.placement
+    if n_objects is None:
+        n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
+    placed = place_objects(part.points_m, n_objects, generate.bin, placement, rng)
+
+    T_bin_cam = T_bin_from_cam(camera.distance_m)
+    T_cam_bin = invert_T(T_bin_cam)
+    T_cam_model = T_cam_bin @ placed.T_bin_from_model
+    objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
+    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(generate.bin)]
+    intr = Intrinsics.from_params(camera)
+    clean = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
+    visible = visible_fractions(objects, clean.labels, intr)
+    noisy = apply_sensor_noise(clean, generate.noise, rng)
+    vp, vn, vl = make_view(noisy.xyz_m, noisy.labels, view, rng)
+    return SyntheticScene(
+        xyz_m=noisy.xyz_m,
+        labels=noisy.labels.astype(np.int16),
+        K=intr.K,
+        T_cam_from_model=T_cam_model,
+        visible_fraction=visible,
+        T_cam_from_bin=T_cam_bin,
+        view_points_m=vp,
+        view_normals=vn,
+        view_labels=vl,
+    )

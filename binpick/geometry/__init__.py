@@ -1,0 +1,1 @@
+"""Geometry kernels: rigid transforms, symmetries, planes, normals, neighbour search."""

@@ -1,0 +1,95 @@
+"""Point-cloud kernels on arrays; Open3D and SciPy are used inside and never leak out.
+
+All points are (n, 3) float32/float64 in metres, in whatever frame the caller uses; normals are
+(n, 3) unit vectors in the same frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+
+def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"expected {name} (n, 3), got {points.shape}")
+    return points
+
+
+def _o3d_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geometry.PointCloud:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    if normals is not None:
+        pcd.normals = o3d.utility.Vector3dVector(np.asarray(normals, dtype=np.float64))
+    return pcd
+
+
+def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
+    """Indices (m,) of one point per occupied voxel: the first point of each voxel, sorted.
+
+    Keeping real points (not voxel means) keeps their labels, colours and pixel positions exact.
+    """
+    points = _check_points(points)
+    if voxel_size_m <= 0 or len(points) == 0:
+        return np.arange(len(points))
+    keys = np.floor(points / voxel_size_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    _, first = np.unique(flat, return_index=True)
+    return np.sort(first)
+
+
+def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray | None = None, max_nn: int = 30) -> np.ndarray:
+    """(n, 3) float32 unit normals from local PCA, oriented toward `viewpoint` (default: origin,
+    the camera centre in the camera frame)."""
+    points = _check_points(points)
+    if len(points) == 0:
+        return np.zeros((0, 3), np.float32)
+    pcd = _o3d_cloud(points)
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m, max_nn=max_nn))
+    n = np.asarray(pcd.normals)
+    vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
+    flip = np.sum(n * (vp - points), axis=1) < 0
+    n[flip] *= -1
+    return n.astype(np.float32)
+
+
+def fit_plane_ransac(
+    points: np.ndarray, threshold_m: float, iterations: int, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC plane (Open3D). Returns (plane (4,) a, b, c, d with unit normal and
+    a x + b y + c z + d = 0, inlier mask (n,) bool)."""
+    points = _check_points(points)
+    if len(points) < 3:
+        raise ValueError("a plane needs at least 3 points")
+    o3d.utility.random.seed(int(seed))
+    plane, inliers = _o3d_cloud(points).segment_plane(
+        distance_threshold=threshold_m, ransac_n=3, num_iterations=iterations
+    )
+    plane = np.asarray(plane, dtype=np.float64)
+    plane /= np.linalg.norm(plane[:3])
+    mask = np.zeros(len(points), dtype=bool)
+    mask[np.asarray(inliers, dtype=np.int64)] = True
+    return plane, mask
+
+
+def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
+    """(n,) bool mask of points kept by statistical outlier removal (Open3D)."""
+    points = _check_points(points)
+    _, kept = _o3d_cloud(points).remove_statistical_outlier(nb_neighbors=neighbours, std_ratio=std_ratio)
+    mask = np.zeros(len(points), dtype=bool)
+    mask[np.asarray(kept, dtype=np.int64)] = True
+    return mask
+
+
+def nearest_neighbours(reference: np.ndarray, query: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Distances and indices of the k nearest `reference` points for each `query` point (kd-tree).
+
+    Returns (m,) arrays for k == 1, else (m, k).
+    """
+    reference = _check_points(reference, "reference")
+    query = _check_points(query, "query")
+    d, i = cKDTree(reference).query(query, k=k, workers=-1)
+    return d, i

@@ -1,0 +1,88 @@
+"""Rigid transforms as 4x4 homogeneous matrices.
+
+A transform is named by its frames: `T_cam_from_model @ p_model = p_cam`. Translations in metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Build a (4, 4) float64 transform from a (3, 3) rotation and a (3,) translation (metres)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.asarray(t, dtype=np.float64)
+    if R.shape != (3, 3) or t.shape != (3,):
+        raise ValueError(f"expected R (3, 3) and t (3,), got {R.shape} and {t.shape}")
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform (or a stack (..., 4, 4) of them)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape[-2:] != (4, 4):
+        raise ValueError(f"expected (..., 4, 4), got {T.shape}")
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    inv = np.zeros_like(T)
+    inv[..., :3, :3] = np.swapaxes(R, -1, -2)
+    inv[..., :3, 3] = -np.einsum("...ji,...j->...i", R, t)
+    inv[..., 3, 3] = 1.0
+    return inv
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a (4, 4) transform to (n, 3) points; returns (n, 3) in the dtype of `points`."""
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"expected points (n, 3), got {points.shape}")
+    T = np.asarray(T, dtype=np.float64)
+    return (points @ T[:3, :3].T + T[:3, 3]).astype(points.dtype, copy=False)
+
+
+def rotate_vectors(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:
+    """Apply only the rotation of a (4, 4) transform to (n, 3) direction vectors."""
+    vectors = np.asarray(vectors)
+    if vectors.ndim != 2 or vectors.shape[1] != 3:
+        raise ValueError(f"expected vectors (n, 3), got {vectors.shape}")
+    return (vectors @ np.asarray(T, dtype=np.float64)[:3, :3].T).astype(vectors.dtype, copy=False)
+
+
+def axis_angle_to_R(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by `angle_rad` about `axis` (any length > 0), Rodrigues' formula."""
+    axis = np.asarray(axis, dtype=np.float64)
+    norm = np.linalg.norm(axis)
+    if norm < 1e-12:
+        raise ValueError("rotation axis must not be zero")
+    k = axis / norm
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * (K @ K)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    """A (3, 3) rotation drawn uniformly from SO(3) (unit quaternion from a 4-D normal)."""
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    return quaternion_to_R(q)
+
+
+def quaternion_to_R(q: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation from a unit quaternion (w, x, y, z)."""
+    w, x, y, z = np.asarray(q, dtype=np.float64)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
+    """Angle of the relative rotation R_a^T R_b in degrees; works on stacks (..., 3, 3)."""
+    R_rel = np.swapaxes(np.asarray(R_a), -1, -2) @ np.asarray(R_b)
+    cos = (np.trace(R_rel, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))

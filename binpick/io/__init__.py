@@ -1,0 +1,4 @@
+"""File formats. One module owns each format, with symmetric load/save functions.
+
+The written spec of every format is docs/data-format.md.
+"""

@@ -1,0 +1,68 @@
+"""Synthetic scene files (`scene_NNNNNN.npz`) and their label images (`.png`).
+
+Spec: docs/data-format.md#scene.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from binpick.errors import InputError
+from binpick.generation.scene import SyntheticScene
+from binpick.io.atomic import atomic_path
+
+# Fixed colours so that instance i has the same colour in every image and recording.
+_PALETTE_SEED = 12345
+
+
+def instance_colours(n: int) -> np.ndarray:
+    """(n, 3) uint8 distinct, stable colours for instances 0..n-1."""
+    rng = np.random.default_rng(_PALETTE_SEED)
+    hues = (np.arange(n) * 0.618033988749895) % 1.0
+    sat = 0.65 + 0.35 * rng.random(n)
+    h6 = hues * 6.0
+    c = sat
+    x = c * (1 - np.abs(h6 % 2 - 1))
+    zero = np.zeros(n)
+    sector = h6.astype(int) % 6
+    table = [(c, x, zero), (x, c, zero), (zero, c, x), (zero, x, c), (x, zero, c), (c, zero, x)]
+    rgb = np.stack([np.choose(sector, [t[j] for t in table]) for j in range(3)], axis=1)
+    return (255 * (1 - sat[:, None] + rgb) * 0.9).clip(0, 255).astype(np.uint8)
+
+
+def label_image(labels: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 picture of a label image: instances coloured, -1 dark grey."""
+    labels = np.asarray(labels)
+    n = int(labels.max()) + 1 if labels.size and labels.max() >= 0 else 0
+    palette = np.concatenate([instance_colours(n), np.full((1, 3), 40, np.uint8)])
+    return palette[np.where(labels >= 0, labels, n)]
+
+
+def save_scene(path: str | Path, scene: SyntheticScene, png: bool = True) -> None:
+    """Write the scene (compressed npz, byte-identical for identical content) and its label PNG."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        np.savez_compressed(tmp, **{f.name: getattr(scene, f.name) for f in fields(SyntheticScene)})
+    if png:
+        with atomic_path(path.with_suffix(".png")) as tmp:
+            Image.fromarray(label_image(scene.labels)).save(tmp, format="PNG")
+
+
+def load_scene(path: str | Path) -> SyntheticScene:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "scene file not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return SyntheticScene(**{f.name: z[f.name] for f in fields(SyntheticScene)})
+    except (KeyError, ValueError, OSError) as exc:
+        raise InputError(path, f"not a binpick scene ({exc})") from None
+
+
+def list_scenes(folder: str | Path) -> list[Path]:
+    """Scene files of a split folder, sorted by name."""
+    return sorted(Path(folder).glob("scene_*.npz"))

@@ -1,0 +1,1 @@
+"""Evaluation metrics: instance segmentation and 6D pose."""

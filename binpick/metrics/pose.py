@@ -1,0 +1,64 @@
+"""6D pose error metrics (BOP conventions), symmetry-aware where the part has symmetries.
+
+Poses are (4, 4) T_cam_from_model in metres; model points (n, 3) in the model frame, metres;
+symmetries (m, 4, 4) transforms of the model frame onto itself (identity included).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from binpick.geometry.transforms import rotation_angle_deg, transform_points
+
+
+def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray, symmetries: np.ndarray | None = None) -> float:
+    """Smallest angle between the estimated rotation and any symmetric twin of the true one."""
+    syms = np.eye(4)[None] if symmetries is None else symmetries
+    R_gt = T_gt[:3, :3] @ syms[:, :3, :3]  # (m, 3, 3)
+    return float(rotation_angle_deg(np.broadcast_to(T_est[:3, :3], R_gt.shape), R_gt).min())
+
+
+def translation_error_m(T_est: np.ndarray, T_gt: np.ndarray, symmetries: np.ndarray | None = None) -> float:
+    """Smallest distance between estimated and true translations over symmetric twins."""
+    syms = np.eye(4)[None] if symmetries is None else symmetries
+    t_gt = (T_gt[None] @ syms)[:, :3, 3]
+    return float(np.linalg.norm(t_gt - T_est[:3, 3], axis=1).min())
+
+
+def add(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray) -> float:
+    """Average distance of corresponding model points (metres)."""
+    return float(np.linalg.norm(transform_points(T_est, model_points) - transform_points(T_gt, model_points), axis=1).mean())
+
+
+def add_s(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray) -> float:
+    """Average distance from each estimated model point to the closest true one (for symmetric parts)."""
+    d, _ = cKDTree(transform_points(T_gt, model_points)).query(transform_points(T_est, model_points))
+    return float(d.mean())
+
+
+def mssd(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray, symmetries: np.ndarray) -> float:
+    """Maximum symmetry-aware surface distance (BOP): min over symmetries of the max point distance."""
+    est = transform_points(T_est, model_points)
+    best = np.inf
+    for S in symmetries:
+        best = min(best, float(np.linalg.norm(est - transform_points(T_gt @ S, model_points), axis=1).max()))
+    return best
+
+
+def pose_errors(
+    T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray, symmetries: np.ndarray, diameter_m: float
+) -> dict[str, float]:
+    """All errors of one estimate. ADD-S replaces ADD for symmetric parts (more than one symmetry)."""
+    symmetric = len(symmetries) > 1
+    add_value = add_s(T_est, T_gt, model_points) if symmetric else add(T_est, T_gt, model_points)
+    rot = rotation_error_deg(T_est, T_gt, symmetries)
+    trans = translation_error_m(T_est, T_gt, symmetries)
+    return {
+        "rot_err_deg": rot,
+        "trans_err_mm": 1000.0 * trans,
+        "add_mm": 1000.0 * add_value,
+        "mssd_mm": 1000.0 * mssd(T_est, T_gt, model_points, symmetries),
+        "add_ok": float(add_value < 0.1 * diameter_m),
+        "ok_5deg_5mm": float(rot < 5.0 and trans < 0.005),
+    }

@@ -1,0 +1,1 @@
+"""FPCC instance segmentation (Xu et al., Neurocomputing 2022) in PyTorch."""

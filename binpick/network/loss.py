@@ -1,0 +1,66 @@
+"""FPCC losses: attention-weighted hinge embedding loss and smooth-L1 centre-score loss.
+
+Pairs are formed between a random subset of anchor points and all points, which keeps the cost
+at anchors x N instead of N x N while every point still gets gradient as a pair member.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+
+def centre_score_targets(points: torch.Tensor, labels: torch.Tensor, d_max_m: float, form: str) -> torch.Tensor:
+    """Ground-truth centre score of each point, (N,) in [0, 1].
+
+    points (N, 3) metres; labels (N,) int64 instance indices (>= 0). The centre of an instance is
+    the mean of its points. linear: 1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
+    """
+    n_inst = int(labels.max()) + 1
+    sums = torch.zeros(n_inst, 3, dtype=points.dtype, device=points.device).index_add_(0, labels, points)
+    counts = torch.bincount(labels, minlength=n_inst).clamp_min(1).to(points.dtype)
+    centres = sums / counts[:, None]
+    ratio = (points - centres[labels]).norm(dim=1) / d_max_m
+    if form == "squared":
+        ratio = ratio**2
+    elif form != "linear":
+        raise ValueError(f"unknown centre score form {form!r}")
+    return (1.0 - ratio).clamp(0.0, 1.0)
+
+
+def fpcc_loss(
+    embedding: torch.Tensor,
+    centre: torch.Tensor,
+    points: torch.Tensor,
+    labels: torch.Tensor,
+    d_max_m: float,
+    eps1: float,
+    eps2: float,
+    centre_weight: float,
+    form: str,
+    n_anchors: int,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, dict[str, float]]:
+    """Loss of one batch.
+
+    embedding (B, N, D), centre (B, N) predicted; points (B, N, 3) metres; labels (B, N) int64.
+    Pairs farther apart than 2 * d_max (a true, not a squared, distance) are ignored.
+    """
+    B, N, _ = embedding.shape
+    emb_terms, ctr_terms = [], []
+    for b in range(B):
+        target = centre_score_targets(points[b], labels[b], d_max_m, form)
+        ctr_terms.append(F.smooth_l1_loss(centre[b], target))
+        m = min(n_anchors, N)
+        anchors = torch.randperm(N, generator=generator, device="cpu")[:m].to(embedding.device)
+        valid = torch.cdist(points[b, anchors], points[b]) <= 2.0 * d_max_m  # (m, N)
+        attention = (target[anchors, None] + target[None, :]).clamp(max=1.0)  # (m, N)
+        same = labels[b, anchors, None] == labels[b][None, :]
+        d_f = torch.cdist(embedding[b, anchors], embedding[b])  # (m, N)
+        hinge = torch.where(same, F.relu(d_f - eps1), F.relu(eps2 - d_f))
+        w = valid.to(hinge.dtype) * attention
+        emb_terms.append((w * hinge).sum() / w.sum().clamp_min(1.0))
+    emb = torch.stack(emb_terms).mean()
+    ctr = torch.stack(ctr_terms).mean()
+    total = emb + centre_weight * ctr
+    return total, {"loss": total.item(), "embedding_loss": emb.item(), "centre_loss": ctr.item()}

@@ -1,0 +1,164 @@
+"""The FPCC training loop: setup, data, model, optimiser, epochs with validation, checkpoints,
+early stopping, resume after interruption. Reads top to bottom; no tracking calls inside
+(the caller receives each epoch's metrics through `on_epoch`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from binpick.network.checkpoint import read_checkpoint, save_checkpoint
+from binpick.network.loss import fpcc_loss
+from binpick.network.model import FPCC, FPCCConfig, input_features
+from binpick.params import TrainParams
+
+log = logging.getLogger(__name__)
+
+LAST = "last.pt"
+BEST = "best.pt"
+
+
+@dataclass(frozen=True)
+class Views:
+    """Training views of S scenes: points (S, N, 3) float32 metres, normals (S, N, 3), labels (S, N) int64."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    labels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device):
+    """Draw n_points of each view, rotate about the camera axis at random (augment), to tensors."""
+    P, Nn, L = [], [], []
+    for s in idx:
+        pick = rng.choice(views.points.shape[1], size=n_points, replace=False) if views.points.shape[1] > n_points else np.arange(views.points.shape[1])
+        p, n = views.points[s, pick].astype(np.float64), views.normals[s, pick].astype(np.float64)
+        if augment:
+            a = rng.uniform(0, 2 * np.pi)
+            R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+            c = p.mean(axis=0)
+            p, n = (p - c) @ R.T + c, n @ R.T
+        P.append(p)
+        Nn.append(n)
+        L.append(views.labels[s, pick])
+    as_t = lambda a, dt: torch.as_tensor(np.stack(a), dtype=dt, device=device)  # noqa: E731
+    return as_t(P, torch.float32), as_t(Nn, torch.float32), as_t(L, torch.int64)
+
+
+def _loss(model: FPCC, points, normals, labels, params: TrainParams, d_max_m: float, gen: torch.Generator):
+    emb, ctr = model(input_features(points, normals, params.features, d_max_m), points)
+    return fpcc_loss(
+        emb, ctr, points, labels, d_max_m, params.eps1, params.eps2, params.centre_loss_weight,
+        params.centre_score_form, params.loss_anchors, gen,
+    )
+
+
+def train_fpcc(
+    train: Views,
+    val: Views,
+    params: TrainParams,
+    d_max_m: float,
+    seed: int,
+    checkpoint_dir: str | Path,
+    extra: dict[str, Any],
+    on_epoch: Callable[[int, dict[str, float]], None] | None = None,
+    device: torch.device | None = None,
+    progress: bool = True,
+) -> tuple[FPCC, dict[str, float]]:
+    """Train, keeping `last.pt` (resume point) and `best.pt` (lowest validation loss) in checkpoint_dir.
+
+    Returns the best network and its metrics. A `last.pt` written with the same config resumes.
+    """
+    device = device or default_device()
+    checkpoint_dir = Path(checkpoint_dir)
+    checkpoint_dir.mkdir(parents=True, exist_ok=True)
+    torch.manual_seed(seed)
+    config = FPCCConfig(
+        backbone=params.backbone, k_neighbours=params.k_neighbours, width=params.width, embedding_dim=params.embedding_dim
+    )
+    model = FPCC(config).to(device)
+    optimiser = torch.optim.Adam(model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
+    extra = {**extra, "train_params": params.model_dump(), "d_max_m": d_max_m, "seed": seed}
+
+    start_epoch, best_val, best_epoch = 0, math.inf, -1
+    last = checkpoint_dir / LAST
+    if last.is_file():
+        state = read_checkpoint(last, device)
+        if state["config"] == config.to_dict() and state["extra"].get("train_params") == params.model_dump() and state["extra"].get("seed") == seed:
+            model.load_state_dict(state["model"])
+            optimiser.load_state_dict(state["optimiser"])
+            start_epoch = state["epoch"] + 1
+            best_val, best_epoch = state["metrics"]["best_val_loss"], state["metrics"]["best_epoch"]
+            log.info("resuming from %s at epoch %d", last, start_epoch)
+        else:
+            log.info("ignoring %s: it was written with other settings", last)
+
+    steps = max(1, len(train) // params.batch_size)
+    metrics: dict[str, float] = {}
+    epochs_run = start_epoch
+    bar = tqdm(range(start_epoch, params.epochs), desc="train", unit="epoch", disable=not progress, initial=start_epoch, total=params.epochs)
+    for epoch in bar:
+        # Every epoch draws from its own seed, so a resumed run sees the same batches.
+        rng = np.random.default_rng([seed, epoch])
+        gen = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+        model.train()
+        order = rng.permutation(len(train))
+        sums: dict[str, float] = {}
+        for step in range(steps):
+            batch = _batch(train, order[step * params.batch_size : (step + 1) * params.batch_size], params.n_points, rng, True, device)
+            loss, parts = _loss(model, *batch, params, d_max_m, gen)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            for k, v in parts.items():
+                sums[k] = sums.get(k, 0.0) + v / steps
+
+        model.eval()
+        val_sums: dict[str, float] = {}
+        with torch.no_grad():
+            val_rng = np.random.default_rng([seed, 10**9])  # the same validation draw every epoch
+            for start in range(0, len(val), params.batch_size):
+                idx = np.arange(start, min(start + params.batch_size, len(val)))
+                _, parts = _loss(model, *_batch(val, idx, params.n_points, val_rng, False, device), params, d_max_m, torch.Generator().manual_seed(seed))
+                for k, v in parts.items():
+                    val_sums[k] = val_sums.get(k, 0.0) + v * len(idx) / len(val)
+
+        epochs_run = epoch + 1
+        val_loss = val_sums["loss"]
+        if val_loss < best_val:
+            best_val, best_epoch = val_loss, epoch
+        metrics = {
+            **{f"train_{k}": v for k, v in sums.items()},
+            **{f"val_{k}": v for k, v in val_sums.items()},
+            "best_val_loss": best_val,
+            "best_epoch": best_epoch,
+        }
+        if best_epoch == epoch:
+            save_checkpoint(checkpoint_dir / BEST, model, None, epoch, metrics, extra)
+        save_checkpoint(last, model, optimiser, epoch, metrics, extra)
+        bar.set_postfix(loss=f"{sums['loss']:.3f}", val=f"{val_loss:.3f}")
+        if on_epoch is not None:
+            on_epoch(epoch, metrics)
+        if epoch - best_epoch >= params.patience_epochs:
+            log.info("early stop at epoch %d: no validation improvement for %d epochs", epoch, params.patience_epochs)
+            break
+
+    best_state = read_checkpoint(checkpoint_dir / BEST, device)
+    model.load_state_dict(best_state["model"])
+    model.eval()
+    return model, {**best_state["metrics"], "epochs_run": float(epochs_run)}

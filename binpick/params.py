@@ -1,0 +1,328 @@
+"""Typed, validated settings from params.yaml.
+
+params.yaml has one section per stage. Two layers override a section, in this order:
+  1. the active profile: `profiles.<profile>.<section>` (every profile lists every section, `{}`
+     when it changes nothing, so that DVC can track exactly the keys a stage uses);
+  2. the part: `parts.<part>.<section>` for the per-part stages.
+Lengths are in metres and angles in degrees, and the key names say so.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from binpick.errors import InputError, ParamsError
+
+# Sections a profile or a part may override. `tracking` is deliberately absent: where runs are
+# logged changes no result, so DVC does not track it.
+SECTIONS = (
+    "ingest",
+    "camera",
+    "generate",
+    "train",
+    "evaluate",
+    "scene_import",
+    "segment",
+    "register",
+    "demo_capture",
+)
+PER_PART_SECTIONS = ("ingest", "generate", "train", "evaluate", "segment", "register")
+
+
+class _Strict(BaseModel):
+    # populate_by_name: the `register` section is the attribute `registration`, because
+    # `register` is taken by Python's ABC machinery on every pydantic model.
+    model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
+
+
+class SymmetryParams(_Strict):
+    """Proper rotational symmetry of a part, in the model frame of its CAD file."""
+
+    kind: Literal["none", "n_fold", "revolution"] = "none"
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    order: int = Field(1, ge=1, description="n of an n-fold symmetry (rotations by 360/n deg)")
+    # A point on the symmetry axis, model frame, metres. The axis passes through it.
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @model_validator(mode="after")
+    def _check(self) -> SymmetryParams:
+        if self.kind == "n_fold" and self.order < 2:
+            raise ValueError("an n_fold symmetry needs order >= 2")
+        if sum(a * a for a in self.axis) < 1e-12:
+            raise ValueError("symmetry axis must not be zero")
+        return self
+
+
+class PartParams(_Strict):
+    """One part: its CAD file, the unit of that file and its symmetry, plus section overrides."""
+
+    mesh: str
+    unit: Literal["mm", "m", "in", "auto"] = "auto"
+    symmetry: SymmetryParams = SymmetryParams()
+    ingest: dict[str, Any] = {}
+    generate: dict[str, Any] = {}
+    train: dict[str, Any] = {}
+    evaluate: dict[str, Any] = {}
+    segment: dict[str, Any] = {}
+    registration: dict[str, Any] = Field({}, alias="register")
+
+
+class CaptureParams(_Strict):
+    """One capture file to process, and the part that is in it."""
+
+    file: str
+    part: str
+    unit: Literal["mm", "m", "in"] = "mm"
+
+
+class IngestParams(_Strict):
+    n_surface_points: int = Field(20000, ge=100, description="dense surface sample of the part model")
+    # Sizes outside these bounds are almost certainly a wrong unit.
+    min_extent_m: float = Field(0.002, gt=0)
+    max_extent_m: float = Field(2.0, gt=0)
+
+
+class CameraParams(_Strict):
+    """Pinhole camera looking straight down at the bin (OpenCV frame: x right, y down, z forward).
+
+    Defaults approximate a Zivid One+ Small (1920 x 1200) at 0.5 m.
+    """
+
+    width_px: int = Field(1920, ge=16)
+    height_px: int = Field(1200, ge=16)
+    fx_px: float = Field(2660.0, gt=0)
+    fy_px: float = Field(2660.0, gt=0)
+    cx_px: float = 960.0
+    cy_px: float = 600.0
+    # Render at 1/downscale of the resolution (intrinsics scaled accordingly), for fast data sets.
+    downscale: int = Field(1, ge=1)
+    distance_m: float = Field(0.5, gt=0, description="camera centre above the bin floor")
+
+
+class BinParams(_Strict):
+    inner_x_m: float = Field(0.30, gt=0)
+    inner_y_m: float = Field(0.20, gt=0)
+    wall_height_m: float = Field(0.08, ge=0)
+    wall_thickness_m: float = Field(0.01, gt=0)
+
+
+class NoiseParams(_Strict):
+    """Sensor model: depth noise along the ray grows with distance; grazing rays return nothing."""
+
+    depth_sigma_m: float = Field(0.0002, ge=0, description="noise std at zero range")
+    depth_sigma_per_m2: float = Field(0.0004, ge=0, description="added std per squared metre of range")
+    max_incidence_deg: float = Field(80.0, gt=0, le=90)
+    dropout_fraction: float = Field(0.0, ge=0, lt=1)
+
+
+class PlacementParams(_Strict):
+    n_objects_min: int = Field(3, ge=1)
+    n_objects_max: int = Field(10, ge=1)
+    # mostly_lying: tilt about x/y drawn from a normal clipped to (0.25 pi, 0.75 pi).
+    orientation: Literal["uniform", "mostly_lying"] = "uniform"
+    heightmap_cell_m: float = Field(0.001, gt=0, description="grid of the drop-placement height maps")
+    candidates_per_object: int = Field(8, ge=1, description="random poses tried; the lowest resting wins")
+    max_pile_height_m: float = Field(0.25, gt=0, description="an object resting higher means the bin is full")
+
+    @model_validator(mode="after")
+    def _check(self) -> PlacementParams:
+        if self.n_objects_max < self.n_objects_min:
+            raise ValueError("n_objects_max must be >= n_objects_min")
+        return self
+
+
+class GenerateParams(_Strict):
+    n_train: int = Field(200, ge=1)
+    n_val: int = Field(20, ge=1)
+    n_test: int = Field(20, ge=1)
+    view_points: int = Field(4096, ge=64, description="points in the training view of a scene")
+    workers: int = Field(0, ge=0, description="processes; 0 = one per CPU core")
+    placement: PlacementParams = PlacementParams()
+    bin: BinParams = BinParams()
+    noise: NoiseParams = NoiseParams()
+
+
+class TrainParams(_Strict):
+    backbone: Literal["dgcnn", "pointnet"] = "dgcnn"
+    k_neighbours: int = Field(16, ge=2)
+    width: int = Field(64, ge=8, description="channels of the EdgeConv layers")
+    embedding_dim: int = Field(128, ge=2)
+    features: Literal["normals", "normalised_xyz"] = "normals"
+    n_points: int = Field(4096, ge=64)
+    batch_size: int = Field(4, ge=1)
+    epochs: int = Field(50, ge=1)
+    learning_rate: float = Field(1e-3, gt=0)
+    weight_decay: float = Field(1e-4, ge=0)
+    patience_epochs: int = Field(10, ge=1, description="early stopping on the validation loss")
+    # d_max of the paper; null = half the part diameter.
+    d_max_m: float | None = Field(None, gt=0)
+    centre_score_form: Literal["linear", "squared"] = "linear"
+    # Hinge margins in embedding space, 0 < eps1 < eps2 (no unit).
+    eps1: float = Field(0.5, gt=0)
+    eps2: float = Field(1.5, gt=0)
+    centre_loss_weight: float = Field(1.0, ge=0)
+    loss_anchors: int = Field(1024, ge=16, description="anchor points per scene for the pair loss")
+
+    @model_validator(mode="after")
+    def _check(self) -> TrainParams:
+        if not self.eps1 < self.eps2:
+            raise ValueError("train.eps1 must be smaller than train.eps2")
+        return self
+
+
+class EvaluateParams(_Strict):
+    iou_threshold: float = Field(0.5, gt=0, le=1)
+
+
+class SceneImportParams(_Strict):
+    min_range_m: float = Field(0.2, ge=0)
+    max_range_m: float = Field(2.0, gt=0)
+    # Region of interest in the camera frame; null = no crop.
+    roi_min_m: tuple[float, float, float] | None = None
+    roi_max_m: tuple[float, float, float] | None = None
+    plane_threshold_m: float = Field(0.003, gt=0)
+    plane_ransac_iterations: int = Field(1000, ge=10)
+    remove_walls: bool = True
+    max_walls: int = Field(4, ge=0)
+    wall_min_fraction: float = Field(0.02, ge=0, le=1, description="smallest wall, share of points")
+    keep_above_plane_m: float = Field(0.004, ge=0, description="points lower than this are floor")
+    voxel_size_m: float = Field(0.002, ge=0, description="0 = no downsampling")
+    normal_radius_m: float = Field(0.006, gt=0)
+    outlier_neighbours: int = Field(0, ge=0, description="statistical outlier removal; 0 = off")
+    outlier_std_ratio: float = Field(2.0, gt=0)
+    # A scene whose extent exceeds this is reported as a unit error (1000x too large).
+    max_scene_extent_m: float = Field(10.0, gt=0)
+
+
+class SegmentParams(_Strict):
+    n_points: int = Field(4096, ge=64, description="points per network pass; the rest get labels by propagation")
+    centre_threshold: float = Field(0.5, gt=0, lt=1)
+    # Radius of the non-maximum suppression of centres; null = 0.25 * part diameter.
+    nms_radius_m: float | None = Field(None, gt=0)
+    # A point farther than this from every centre in embedding space is noise (-1).
+    embedding_threshold: float = Field(1.0, gt=0)
+    min_points: int = Field(30, ge=1, description="smaller instances become noise")
+
+
+class RegisterParams(_Strict):
+    sample_step_rel: float = Field(0.05, gt=0, description="model/scene subsampling, share of diameter")
+    distance_step_rel: float = Field(0.05, gt=0, description="PPF distance bin, share of diameter")
+    angle_bins: int = Field(30, ge=4)
+    scene_ref_fraction: float = Field(0.2, gt=0, le=1)
+    cluster_rotation_deg: float = Field(15.0, gt=0)
+    cluster_translation_rel: float = Field(0.1, gt=0)
+    icp_iterations: int = Field(30, ge=0)
+    score_inlier_rel: float = Field(0.02, gt=0, description="scene point within this of the model counts")
+    min_score: float = Field(0.3, ge=0, le=1)
+
+
+class DemoCaptureParams(_Strict):
+    n_objects: int = Field(8, ge=1)
+    seed: int = 1_000_003
+
+
+class TrackingParams(_Strict):
+    # null: a sqlite store in the project (mlflow.db). Any MLflow URI otherwise.
+    mlflow_uri: str | None = None
+
+
+class Params(_Strict):
+    seed: int = 0
+    profile: str
+    parts: dict[str, PartParams]
+    captures: dict[str, CaptureParams] = {}
+    ingest: IngestParams = IngestParams()
+    camera: CameraParams = CameraParams()
+    generate: GenerateParams = GenerateParams()
+    train: TrainParams = TrainParams()
+    evaluate: EvaluateParams = EvaluateParams()
+    scene_import: SceneImportParams = SceneImportParams()
+    segment: SegmentParams = SegmentParams()
+    registration: RegisterParams = Field(RegisterParams(), alias="register")
+    demo_capture: DemoCaptureParams = DemoCaptureParams()
+    tracking: TrackingParams = TrackingParams()
+
+    @field_validator("parts")
+    @classmethod
+    def _part_names(cls, parts: dict[str, PartParams]) -> dict[str, PartParams]:
+        for name in parts:
+            if not name.replace("_", "").replace("-", "").isalnum():
+                raise ValueError(f"part name {name!r} may hold only letters, digits, '_' and '-'")
+        return parts
+
+    @model_validator(mode="after")
+    def _captures_name_parts(self) -> Params:
+        for name, capture in self.captures.items():
+            if capture.part not in self.parts:
+                raise ValueError(f"capture {name!r} names part {capture.part!r}, which is not in parts")
+        return self
+
+
+def deep_merge(base: dict[str, Any], override: dict[str, Any]) -> dict[str, Any]:
+    """Return `base` with `override` applied; nested mappings merge, other values replace."""
+    merged = copy.deepcopy(base)
+    for key, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(key), dict):
+            merged[key] = deep_merge(merged[key], value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def resolve(raw: dict[str, Any], part: str | None = None) -> dict[str, Any]:
+    """Apply the active profile and, when `part` is given, that part's overrides to the sections."""
+    profile = raw.get("profile")
+    profiles = raw.get("profiles") or {}
+    if profile not in profiles:
+        raise ParamsError(f"profile {profile!r} is not defined under 'profiles' (have: {sorted(profiles)})")
+    missing = [s for s in SECTIONS if s not in (profiles[profile] or {})]
+    if missing:
+        # DVC tracks profiles.<profile>.<section>, so a missing key would make `dvc repro` fail.
+        raise ParamsError(f"profiles.{profile} must list every section (use {{}}); missing: {missing}")
+    resolved = {k: v for k, v in raw.items() if k != "profiles"}
+    for section in SECTIONS:
+        resolved[section] = deep_merge(raw.get(section) or {}, profiles[profile][section] or {})
+    if part is not None:
+        parts = raw.get("parts") or {}
+        if part not in parts:
+            raise ParamsError(f"part {part!r} is not listed under 'parts' (have: {sorted(parts)})")
+        for section in PER_PART_SECTIONS:
+            resolved[section] = deep_merge(resolved[section], (parts[part] or {}).get(section) or {})
+    return resolved
+
+
+def _one_line(err: ValidationError) -> str:
+    first = err.errors()[0]
+    where = ".".join(str(p) for p in first["loc"])
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{where}: {first['msg']}{more}"
+
+
+def load_raw(path: str | Path) -> dict[str, Any]:
+    """Read params.yaml as plain data."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "params file not found")
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(raw, dict):
+        raise InputError(path, "expected a mapping of sections")
+    return raw
+
+
+def load_params(path: str | Path = "params.yaml", part: str | None = None) -> Params:
+    """Load, resolve and validate params; a bad key or value fails here with one line."""
+    raw = load_raw(path)
+    try:
+        return Params.model_validate(resolve(raw, part))
+    except ParamsError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
+    except ValidationError as exc:
+        raise ParamsError(f"{path}: {_one_line(exc)}") from None
