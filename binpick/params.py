@@ -73,11 +73,13 @@ class PartParams(_Strict):
 
 
 class CaptureParams(_Strict):
-    """One capture file to process, and the part that is in it."""
+    """One capture file to process, and the part that is in it; `truth` optionally names a pose
+    file with the ground truth ('' when there is none, as for every real capture)."""
 
     file: str
     part: str
     unit: Literal["mm", "m", "in"] = "mm"
+    truth: str = ""
 
 
 class IngestParams(_Strict):
@@ -222,8 +224,11 @@ class RegisterParams(_Strict):
 
 
 class DemoCaptureParams(_Strict):
+    """The built-in demo capture: a synthetic bin rendered at full camera resolution."""
+
+    part: str = "t_joint"
     n_objects: int = Field(8, ge=1)
-    seed: int = 1_000_003
+    downscale: int = Field(1, ge=1, description="replaces camera.downscale for the demo capture")
 
 
 class TrackingParams(_Strict):

@@ -26,7 +26,7 @@ class ViewParams:
 
 @dataclass(frozen=True)
 class SyntheticScene:
-    """A rendered scene with ground truth (spec: docs/data-format.md#scene).
+    """A rendered scene with ground truth (spec: data/README.md#scene).
 
     xyz_m            : (H, W, 3) float32, camera frame, metres, NaN = no return
     labels           : (H, W) int16, instance index, -1 = bin, floor or nothing

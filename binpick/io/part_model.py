@@ -1,6 +1,6 @@
 """Part model files (`part.npz`): the ingested CAD model in metres, ready for every stage.
 
-Spec: docs/data-format.md#part-model.
+Spec: data/README.md#part-model.
 """
 
 from __future__ import annotations

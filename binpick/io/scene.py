@@ -1,6 +1,6 @@
 """Synthetic scene files (`scene_NNNNNN.npz`) and their label images (`.png`).
 
-Spec: docs/data-format.md#scene.
+Spec: data/README.md#scene.
 """
 
 from __future__ import annotations

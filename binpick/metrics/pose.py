@@ -62,3 +62,51 @@ def pose_errors(
         "add_ok": float(add_value < 0.1 * diameter_m),
         "ok_5deg_5mm": float(rot < 5.0 and trans < 0.005),
     }
+
+
+# Ground-truth parts less visible than this are not expected to be found (a robot would not pick
+# them either); they still may be matched.
+MIN_VISIBLE_FRACTION = 0.5
+
+
+def scene_pose_metrics(
+    T_est: np.ndarray,
+    T_gt: np.ndarray,
+    visible_fraction: np.ndarray,
+    model_points: np.ndarray,
+    symmetries: np.ndarray,
+    diameter_m: float,
+) -> tuple[dict[str, float], list[dict[str, float]]]:
+    """Match estimates to ground truth one-to-one (Hungarian on centre distance, accepted below
+    half a diameter) and summarise.
+
+    T_est (e, 4, 4), T_gt (g, 4, 4), visible_fraction (g,). Returns the summary and per-estimate
+    errors (empty dict where unmatched). Recall counts ground truth with at least
+    MIN_VISIBLE_FRACTION visible.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    centre = model_points.mean(axis=0)
+    per_est: list[dict[str, float]] = [{} for _ in range(len(T_est))]
+    pickable = visible_fraction >= MIN_VISIBLE_FRACTION
+    if len(T_est) and len(T_gt):
+        c_est = np.stack([T[:3, :3] @ centre + T[:3, 3] for T in T_est])
+        c_gt = np.stack([T[:3, :3] @ centre + T[:3, 3] for T in T_gt])
+        cost = np.linalg.norm(c_est[:, None] - c_gt[None], axis=2)
+        for e, g in zip(*linear_sum_assignment(cost)):
+            if cost[e, g] < 0.5 * diameter_m:
+                per_est[e] = {**pose_errors(T_est[e], T_gt[g], model_points, symmetries, diameter_m), "gt_index": float(g)}
+    matched = [m for m in per_est if m]
+    found_ok = {int(m["gt_index"]) for m in matched if m["add_ok"]}
+    n_pickable = int(pickable.sum())
+    summary = {
+        "n_estimates": float(len(T_est)),
+        "n_ground_truth": float(len(T_gt)),
+        "n_pickable": float(n_pickable),
+        "pose_precision": float(len([m for m in matched if m["add_ok"]]) / len(T_est)) if len(T_est) else 0.0,
+        "pose_recall": float(sum(1 for g in found_ok if pickable[g]) / n_pickable) if n_pickable else 0.0,
+        "rot_err_deg_median": float(np.median([m["rot_err_deg"] for m in matched])) if matched else float("nan"),
+        "trans_err_mm_median": float(np.median([m["trans_err_mm"] for m in matched])) if matched else float("nan"),
+        "add_mm_median": float(np.median([m["add_mm"] for m in matched])) if matched else float("nan"),
+    }
+    return summary, per_est

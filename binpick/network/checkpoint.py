@@ -1,7 +1,7 @@
 """FPCC checkpoints (`.pt`): config, weights, optimiser, epoch, metrics, and what inference needs.
 
 A checkpoint rebuilds its network on its own: `load_checkpoint(path)` needs nothing else.
-Spec: docs/data-format.md#checkpoint.
+Spec: data/README.md#checkpoint.
 """
 
 from __future__ import annotations

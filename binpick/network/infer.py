@@ -10,6 +10,7 @@ import torch
 
 from binpick.geometry.pointcloud import nearest_neighbours
 from binpick.network.model import FPCC, input_features
+from binpick.params import SegmentParams
 
 
 @dataclass(frozen=True)
@@ -96,3 +97,19 @@ def segment_scene(
         return seen
     _, nearest = nearest_neighbours(points[pick], points, k=1)
     return seen[nearest]
+
+
+# The paper ties the suppression radius to object size; a quarter diameter keeps two touching
+# parts apart while the candidates of one part (within 0.2 diameters of its centre at the
+# default threshold) fall inside one radius or one embedding neighbourhood.
+NMS_RADIUS_PER_DIAMETER = 0.25
+
+
+def cluster_params(segment: SegmentParams, diameter_m: float) -> ClusterParams:
+    """Clustering settings from the segment params, with size-derived defaults filled in."""
+    return ClusterParams(
+        centre_threshold=segment.centre_threshold,
+        nms_radius_m=segment.nms_radius_m if segment.nms_radius_m is not None else NMS_RADIUS_PER_DIAMETER * diameter_m,
+        embedding_threshold=segment.embedding_threshold,
+        min_points=segment.min_points,
+    )

@@ -1,0 +1,106 @@
+"""Turn a raw capture (camera frame, metres) into the clean scene the segmentation needs:
+valid points in range and region, the support plane and optionally the bin walls removed,
+optional outlier removal, a voxel grid, normals facing the camera."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from binpick.errors import BinpickError
+from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, statistical_outliers, voxel_downsample_indices
+from binpick.io.cloud import CleanCloud
+from binpick.params import SceneImportParams
+
+log = logging.getLogger(__name__)
+
+MIN_PLANE_FRACTION = 0.05  # a support plane holds at least this share of the points
+WALL_MAX_COS_TO_FLOOR = 0.3  # walls stand within ~17 degrees of perpendicular to the floor
+MIN_POINTS = 10
+
+
+def clean_capture(
+    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: SceneImportParams, seed: int
+) -> CleanCloud:
+    """Clean a capture.
+
+    xyz_m : (n, 3) float, camera frame, metres, NaN where nothing was measured (n = H * W for an
+            organized frame of shape `frame_shape`, row-major).
+    rgb   : (n, 3) uint8 or None.
+    Raises BinpickError when nothing usable is left or the scene is implausibly large.
+    """
+    xyz = np.asarray(xyz_m, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"expected xyz (n, 3), got {xyz.shape}")
+    n_total = len(xyz)
+    index = np.arange(n_total)
+    valid = np.all(np.isfinite(xyz), axis=1)
+    if not valid.any():
+        raise BinpickError("the capture holds no valid point (all NaN or empty)")
+    rng_m = np.linalg.norm(np.where(valid[:, None], xyz, 0.0), axis=1)
+    extent = float(np.max(np.ptp(xyz[valid], axis=0)))
+    if extent > params.max_scene_extent_m:
+        raise BinpickError(
+            f"the scene is {extent:.4g} m across, more than max_scene_extent_m={params.max_scene_extent_m}: "
+            "is the unit right (millimetres read as metres)?"
+        )
+    keep = valid & (rng_m >= params.min_range_m) & (rng_m <= params.max_range_m)
+    if params.roi_min_m is not None and params.roi_max_m is not None:
+        keep &= np.all((xyz >= params.roi_min_m) & (xyz <= params.roi_max_m), axis=1)
+    n_valid = int(keep.sum())
+    if n_valid < MIN_POINTS:
+        raise BinpickError(f"only {n_valid} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
+    pts, idx = xyz[keep], index[keep]
+
+    floor = np.full(4, np.nan)
+    removed_floor = 0
+    plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed)
+    if inliers.mean() >= MIN_PLANE_FRACTION:
+        if plane[3] < 0:  # orient the normal toward the camera at the origin
+            plane = -plane
+        floor = plane
+        above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
+        removed_floor = int((~above).sum())
+        pts, idx = pts[above], idx[above]
+        log.info("floor plane %s removed %.1f%% of the points", np.round(plane, 4).tolist(), 100.0 * removed_floor / n_valid)
+    else:
+        log.warning("no support plane found (largest plane holds %.1f%% of the points); nothing removed", 100 * inliers.mean())
+
+    walls: list[np.ndarray] = []
+    removed_walls = 0
+    if params.remove_walls and np.isfinite(floor).all():
+        for w in range(params.max_walls):
+            if len(pts) < MIN_POINTS:
+                break
+            plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w)
+            if inliers.sum() < params.wall_min_fraction * n_valid or abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR:
+                break
+            walls.append(plane)
+            removed_walls += int(inliers.sum())
+            pts, idx = pts[~inliers], idx[~inliers]
+        if walls:
+            log.info("removed %d wall planes, %.1f%% of the points", len(walls), 100.0 * removed_walls / n_valid)
+
+    removed_outliers = 0
+    if params.outlier_neighbours > 0 and len(pts) > params.outlier_neighbours:
+        kept = statistical_outliers(pts, params.outlier_neighbours, params.outlier_std_ratio)
+        removed_outliers = int((~kept).sum())
+        pts, idx = pts[kept], idx[kept]
+    if len(pts) < MIN_POINTS:
+        raise BinpickError(f"only {len(pts)} points are left after removing the floor and walls")
+
+    sub = voxel_downsample_indices(pts, params.voxel_size_m)
+    pts, idx = pts[sub], idx[sub]
+    normals = estimate_normals(pts, params.normal_radius_m)
+    organized = frame_shape is not None
+    return CleanCloud(
+        points_m=pts.astype(np.float32),
+        normals=normals,
+        rgb=(np.asarray(rgb)[idx] if rgb is not None else np.zeros((len(idx), 3))).astype(np.uint8),
+        pixel_index=idx.astype(np.int64) if organized else np.full(len(idx), -1, np.int64),
+        frame_shape=np.asarray(frame_shape if organized else (0, 0), dtype=np.int64),
+        floor_plane=floor,
+        wall_planes=np.asarray(walls, dtype=np.float64).reshape(-1, 4),
+        removed_fraction=np.array([removed_floor, removed_walls, removed_outliers], dtype=np.float64) / n_valid,
+    )

@@ -1,0 +1,104 @@
+"""The `binpick` command."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from binpick.env import configure_environment, project_root
+from binpick.errors import BinpickError
+from binpick.log import setup_logging
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=__doc__)
+log = logging.getLogger("binpick")
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging")) -> None:
+    configure_environment()
+    setup_logging(verbose)
+
+
+@app.command("default-part")
+def default_part(out: Path = typer.Option(Path("data/parts/t_joint.stl"), help="STL to write (millimetres)")) -> None:
+    """Write the built-in T-joint pipe part as an STL file (millimetres)."""
+    from binpick.io.mesh import save_mesh
+    from binpick.parts import build_t_joint_mesh
+
+    mesh = build_t_joint_mesh()
+    save_mesh(out, mesh.vertices, mesh.faces)
+    typer.echo(f"wrote {out} ({len(mesh.faces)} faces, {mesh.extents.round(1).tolist()} mm)")
+
+
+def review_commands(root: Path, capture: str = "demo") -> list[str]:
+    """The commands that open the latest results (loopback only)."""
+    bin_dir = Path(sys.executable).parent
+    return [
+        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{root / 'data' / 'mlflow' / 'mlflow.db'} --host 127.0.0.1 --port 5000",
+        f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
+    ]
+
+
+def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
+    ev, reg = results.get("evaluate", {}), results.get("register", {})
+
+    def f(d: dict[str, float], key: str, fmt: str = "{:.3f}") -> str:
+        return fmt.format(d[key]) if key in d else "n/a"
+
+    rows = [
+        ("segmentation precision (IoU >= 0.5, test scenes)", f(ev, "precision")),
+        ("segmentation recall (IoU >= 0.5, test scenes)", f(ev, "recall")),
+        ("parts found in the demo capture", f"{f(reg, 'n_found', '{:.0f}')} of {f(reg, 'n_ground_truth', '{:.0f}')} ({f(reg, 'n_pickable', '{:.0f}')} at least half visible)"),
+        ("pose recall (ADD < 0.1 d, half-visible parts)", f(reg, "pose_recall")),
+        ("pose precision (ADD < 0.1 d)", f(reg, "pose_precision")),
+        ("rotation error, median", f(reg, "rot_err_deg_median", "{:.2f} deg")),
+        ("translation error, median", f(reg, "trans_err_mm_median", "{:.2f} mm")),
+        ("wall time", f"{minutes:.1f} min"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"  {name:<{width}}  {value}" for name, value in rows)
+
+
+@app.command()
+def demo() -> None:
+    """Run the main job on the built-in part through the Prefect flow and print a summary."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from flows.dvc_tasks import StageFailed
+    from flows.pipeline import demo as demo_flow
+
+    t0 = time.perf_counter()
+    try:
+        results = demo_flow(root)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    typer.echo("\nbinpick demo: the built-in part, trained and found in a rendered bin\n")
+    typer.echo(summary_table(results, (time.perf_counter() - t0) / 60.0))
+    typer.echo("\nReview the run:")
+    for cmd in review_commands(root):
+        typer.echo(f"  {cmd}")
+
+
+@app.command()
+def review(capture: str = typer.Option("demo", help="capture whose recording to show")) -> None:
+    """Print the commands that open the latest run in the MLflow UI and the rerun viewer."""
+    root = project_root()
+    rrd = root / "data" / "results" / capture / "scene.rrd"
+    if not rrd.is_file():
+        _fail(f"{rrd}: no recording yet (run `make demo` or `dvc repro register@{capture}` first)")
+    for cmd in review_commands(root, capture):
+        typer.echo(cmd)
+
+
+if __name__ == "__main__":
+    app()

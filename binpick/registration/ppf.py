@@ -1,0 +1,269 @@
+"""Point pair feature matching (Drost, Ulrich, Navab, Ilic, CVPR 2010), vectorised in NumPy.
+
+Model side: every ordered pair of subsampled model points gives the feature
+F = (||d||, angle(n1, d), angle(n2, d), angle(n1, n2)), quantised into a key; pairs are stored
+sorted by key with the reference point and the angle alpha_m. Scene side: each reference point is
+paired with its neighbours within the model diameter, matching model pairs vote for
+(model point, alpha), peaks become poses, poses are clustered in SE(3) with rotation AND
+translation thresholds (symmetry-aware), the best clusters are re-scored against the scene and
+refined with point-to-plane ICP on the exact CAD normals.
+
+Frames: model points in the part's model frame, scene points in the camera frame, metres.
+Poses are T_cam_from_model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.geometry.transforms import invert_T, rotation_angle_deg, transform_points
+from binpick.params import RegisterParams
+
+TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
+PEAKS_PER_REFERENCE = 2
+
+
+@dataclass(frozen=True)
+class PPFModel:
+    """A trained PPF model.
+
+    points_m (M, 3), normals (M, 3): subsampled model surface, model frame.
+    keys (P,) int64 sorted; ref_index (P,) int32 model reference point of each pair; alpha (P,)
+    float32 angle alpha_m of each pair, radians in (-pi, pi].
+    dense_points_m, dense_normals: the full surface sample, for scoring and ICP.
+    symmetries (m, 4, 4): transforms of the model frame onto itself, identity first.
+    """
+
+    points_m: np.ndarray
+    normals: np.ndarray
+    keys: np.ndarray
+    ref_index: np.ndarray
+    alpha: np.ndarray
+    dense_points_m: np.ndarray
+    dense_normals: np.ndarray
+    symmetries: np.ndarray
+    diameter_m: float
+    distance_step_m: float
+    angle_bins: int
+
+
+@dataclass(frozen=True)
+class PoseEstimate:
+    """T_cam_from_model (4, 4); score in [0, 1] (share of the matched surface that agrees)."""
+
+    T_cam_from_model: np.ndarray
+    score: float
+    votes: float
+
+
+def _align_to_x(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) transforms that move each point to the origin and turn its normal onto +x."""
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    x = np.array([1.0, 0.0, 0.0])
+    axis = np.cross(n, x)  # (n, 3)
+    s = np.linalg.norm(axis, axis=1)
+    c = n @ x
+    k = axis / np.where(s > 1e-12, s, 1.0)[:, None]
+    # Normals along -x need any perpendicular axis; +x needs none.
+    anti = (s <= 1e-12) & (c < 0)
+    k[anti] = np.array([0.0, 0.0, 1.0])
+    K = np.zeros((len(n), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    sin = np.where(anti, 0.0, s)[:, None, None]
+    cos = np.where(anti, -1.0, c)[:, None, None]
+    R = np.eye(3)[None] + sin * K + (1 - cos) * (K @ K)
+    T = np.zeros((len(n), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = -np.einsum("nij,nj->ni", R, points)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _features(p1: np.ndarray, n1: np.ndarray, p2: np.ndarray, n2: np.ndarray) -> np.ndarray:
+    """(n, 4) point pair features: distance (m) and three angles (rad) in [0, pi]."""
+    d = p2 - p1
+    dist = np.linalg.norm(d, axis=1)
+    du = d / np.maximum(dist, 1e-12)[:, None]
+
+    def angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0))
+
+    return np.stack([dist, angle(n1, du), angle(n2, du), angle(n1, n2)], axis=1)
+
+
+def _keys(F: np.ndarray, distance_step_m: float, angle_bins: int) -> np.ndarray:
+    q_d = np.floor(F[:, 0] / distance_step_m).astype(np.int64)
+    q_a = np.minimum((F[:, 1:] / np.pi * angle_bins).astype(np.int64), angle_bins - 1)
+    return ((q_d * angle_bins + q_a[:, 0]) * angle_bins + q_a[:, 1]) * angle_bins + q_a[:, 2]
+
+
+def _alpha(T_align: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Angle about +x that brings each aligned partner point into the half-plane y > 0, z = 0."""
+    p = np.einsum("nij,nj->ni", T_align[:, :3, :3], points) + T_align[:, :3, 3]
+    return np.arctan2(-p[:, 2], p[:, 1])
+
+
+def _pairs_within(points: np.ndarray, refs: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Index pairs (ref, other), other != ref, with distance <= radius."""
+    tree = cKDTree(points)
+    lists = tree.query_ball_point(points[refs], r=radius)
+    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
+    first = np.repeat(refs, counts)
+    second = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
+    keep = first != second
+    return first[keep], second[keep]
+
+
+def train_ppf(
+    dense_points_m: np.ndarray, dense_normals: np.ndarray, diameter_m: float, symmetries: np.ndarray, params: RegisterParams
+) -> PPFModel:
+    """Build the PPF table of a part from its dense surface sample (model frame, metres)."""
+    if dense_points_m.ndim != 2 or dense_points_m.shape[1] != 3 or dense_normals.shape != dense_points_m.shape:
+        raise ValueError("expected dense points and normals (n, 3)")
+    idx = voxel_downsample_indices(dense_points_m, params.sample_step_rel * diameter_m)
+    pts = dense_points_m[idx].astype(np.float64)
+    nrm = dense_normals[idx].astype(np.float64)
+    M = len(pts)
+    i, j = np.meshgrid(np.arange(M), np.arange(M), indexing="ij")
+    i, j = i[i != j], j[i != j]
+    step = params.distance_step_rel * diameter_m
+    keys = _keys(_features(pts[i], nrm[i], pts[j], nrm[j]), step, params.angle_bins)
+    T_align = _align_to_x(pts, nrm)
+    alpha = _alpha(T_align[i], pts[j])
+    order = np.argsort(keys, kind="stable")
+    return PPFModel(
+        points_m=pts,
+        normals=nrm,
+        keys=keys[order],
+        ref_index=i[order].astype(np.int32),
+        alpha=alpha[order].astype(np.float32),
+        dense_points_m=np.asarray(dense_points_m, dtype=np.float64),
+        dense_normals=np.asarray(dense_normals, dtype=np.float64),
+        symmetries=symmetries,
+        diameter_m=float(diameter_m),
+        distance_step_m=step,
+        angle_bins=params.angle_bins,
+    )
+
+
+def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -> list[tuple[np.ndarray, float]]:
+    """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference."""
+    first, second = _pairs_within(pts, refs, model.diameter_m)
+    if len(first) == 0:
+        return []
+    keys = _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), model.distance_step_m, model.angle_bins)
+    lo = np.searchsorted(model.keys, keys, side="left")
+    hi = np.searchsorted(model.keys, keys, side="right")
+    counts = hi - lo
+    if counts.sum() == 0:
+        return []
+    pair_of_match = np.repeat(np.arange(len(keys)), counts)
+    model_pair = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
+    T_s = _align_to_x(pts, nrm)
+    alpha_s = _alpha(T_s[first], pts[second])
+    A = model.angle_bins
+    alpha = model.alpha[model_pair] - alpha_s[pair_of_match]
+    alpha_bin = np.floor((alpha + np.pi) / (2 * np.pi) * A).astype(np.int64) % A
+    ref_slot = np.searchsorted(refs, first[pair_of_match])
+    M = len(model.points_m)
+    acc = np.bincount((ref_slot * M + model.ref_index[model_pair]) * A + alpha_bin, minlength=len(refs) * M * A)
+    acc = acc.reshape(len(refs), M * A)
+    T_m = _align_to_x(model.points_m, model.normals)
+    candidates = []
+    top = np.argsort(-acc, axis=1)[:, :PEAKS_PER_REFERENCE]
+    for r, ref in enumerate(refs):
+        for flat in top[r]:
+            votes = float(acc[r, flat])
+            if votes <= 0:
+                continue
+            m_r, a_bin = divmod(int(flat), A)
+            a = -np.pi + (a_bin + 0.5) * 2 * np.pi / A
+            Rx = np.eye(4)
+            Rx[1:3, 1:3] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+            candidates.append((invert_T(T_s[ref]) @ Rx @ T_m[m_r], votes))
+    return candidates
+
+
+def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams) -> list[tuple[np.ndarray, float]]:
+    """Greedy SE(3) clustering: a pose joins the first cluster whose best pose (or a symmetric twin)
+    is within the rotation AND the translation threshold. Returns (best pose, summed votes),
+    strongest first."""
+    order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])
+    trans_thr = params.cluster_translation_rel * model.diameter_m
+    reps: list[np.ndarray] = []  # (m, 4, 4) symmetric twins of each cluster's best pose
+    votes: list[float] = []
+    for k in order:
+        T, v = candidates[k]
+        for c, twins in enumerate(reps):
+            close_t = np.linalg.norm(twins[:, :3, 3] - T[:3, 3], axis=1) < trans_thr
+            if close_t.any() and (rotation_angle_deg(twins[close_t, :3, :3], T[:3, :3]) < params.cluster_rotation_deg).any():
+                votes[c] += v
+                break
+        else:
+            reps.append(T[None] @ model.symmetries)
+            votes.append(v)
+    ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
+    return [(reps[c][0], votes[c]) for c in ranked]
+
+
+def score_pose(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float) -> float:
+    """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
+    point within inlier_m, and the share of scene points within inlier_m of the model."""
+    p = transform_points(T_cam_from_model, model.dense_points_m)
+    n = model.dense_normals @ T_cam_from_model[:3, :3].T
+    facing = np.sum(n * p, axis=1) < 0  # the camera sits at the origin
+    if not facing.any() or len(scene_points) == 0:
+        return 0.0
+    d_model, _ = cKDTree(scene_points).query(p[facing], distance_upper_bound=inlier_m)
+    d_scene, _ = cKDTree(p).query(scene_points, distance_upper_bound=inlier_m)
+    return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+def refine_icp(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int) -> np.ndarray:
+    """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals)."""
+    if iterations == 0 or len(scene_points) < 6:
+        return T_cam_from_model
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, dtype=np.float64)))
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m))
+    target.normals = o3d.utility.Vector3dVector(model.dense_normals)
+    result = o3d.pipelines.registration.registration_icp(
+        source,
+        target,
+        max_distance_m,
+        invert_T(T_cam_from_model),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations),
+    )
+    return invert_T(np.asarray(result.transformation))
+
+
+def match_segment(
+    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator
+) -> PoseEstimate | None:
+    """The best pose of the part on one segment (camera frame points and normals), or None."""
+    if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
+        raise ValueError("expected scene points and normals (n, 3)")
+    idx = voxel_downsample_indices(scene_points, params.sample_step_rel * model.diameter_m)
+    if len(idx) < 3:
+        return None
+    pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
+    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
+    refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
+    candidates = _vote(model, pts, nrm, refs)
+    if not candidates:
+        return None
+    inlier = params.score_inlier_rel * model.diameter_m
+    best: PoseEstimate | None = None
+    for T, votes in _cluster(candidates, model, params)[:TOP_CLUSTERS]:
+        T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations)
+        T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations)
+        score = score_pose(model, T, scene_points, inlier)
+        if best is None or score > best.score:
+            best = PoseEstimate(T_cam_from_model=T, score=score, votes=votes)
+    return best

@@ -1,0 +1,1 @@
+"""Prefect flows. They sequence DVC stages and hold no numerics and no file-format knowledge."""

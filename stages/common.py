@@ -1,0 +1,94 @@
+"""What every stage shares: the CLI wrapper (one error line, non-zero exit), params, MLflow
+runs, metrics files. Stages import this; kernels never do."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from binpick.env import configure_environment, project_root
+from binpick.errors import BinpickError
+from binpick.io.atomic import write_text
+from binpick.log import setup_logging
+
+log = logging.getLogger("binpick.stage")
+
+
+def parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--params", default="params.yaml", help="settings file (default: params.yaml)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:
+    """Wrap a stage's main: a BinpickError becomes one line on stderr and exit code 2."""
+
+    def wrapped(argv: Sequence[str] | None = None) -> int:
+        configure_environment()
+        try:
+            return main(argv)
+        except BinpickError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("error: interrupted", file=sys.stderr)
+            return 130
+
+    wrapped.__doc__ = main.__doc__
+    return wrapped
+
+
+def start(args: argparse.Namespace) -> None:
+    setup_logging(args.verbose)
+
+
+def write_metrics(path: str | Path, metrics: dict[str, Any]) -> None:
+    """A metrics JSON for DVC (`dvc metrics show`), written atomically, keys sorted."""
+    write_text(path, json.dumps(metrics, indent=1, sort_keys=True) + "\n")
+
+
+def tracking_uri(configured: str | None) -> str:
+    """The MLflow store: the configured URI, else a sqlite file in the project (absolute path,
+    as MLflow requires)."""
+    if configured:
+        return configured
+    return f"sqlite:///{project_root() / 'data' / 'mlflow' / 'mlflow.db'}"
+
+
+@contextlib.contextmanager
+def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags: dict[str, str] | None = None) -> Iterator[Any]:
+    """An MLflow run in `experiment`, artifacts under <project>/data/mlflow/artifacts for the local store."""
+    import mlflow
+
+    if not configured_uri:
+        (project_root() / "data" / "mlflow").mkdir(parents=True, exist_ok=True)
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    mlflow.set_tracking_uri(tracking_uri(configured_uri))
+    if mlflow.get_experiment_by_name(experiment) is None:
+        location = None if configured_uri else (project_root() / "data" / "mlflow" / "artifacts").as_uri()
+        mlflow.create_experiment(experiment, artifact_location=location)
+    mlflow.set_experiment(experiment)
+    with mlflow.start_run(run_name=run_name, tags=tags or {}) as run:
+        yield run
+
+
+def flat_params(prefix: str, model: Any) -> dict[str, Any]:
+    """Flatten a params model into MLflow's 'section.key' form."""
+    out: dict[str, Any] = {}
+
+    def walk(p: str, v: Any) -> None:
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(f"{p}.{k}", x)
+        else:
+            out[p] = v
+
+    walk(prefix, model.model_dump(by_alias=True) if hasattr(model, "model_dump") else model)
+    return out

@@ -1,0 +1,59 @@
+"""Stage `import_scene`: a capture file becomes a clean scene (metres, camera frame): invalid and
+out-of-range points dropped, floor and bin walls removed, voxel grid, normals."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from binpick.cleaning import clean_capture
+from binpick.errors import BinpickError
+from binpick.io.capture import load_capture
+from binpick.io.cloud import save_cloud
+from binpick.params import Params, load_params
+from binpick.seeding import derive_int
+from stages.common import entry, parser, start, write_metrics
+
+log = logging.getLogger("binpick.stage.import_scene")
+
+
+def run(params: Params, capture_path: Path, unit: str, out: Path, metrics_path: Path | None = None) -> dict[str, float]:
+    t0 = time.perf_counter()
+    capture = load_capture(capture_path, unit)
+    try:
+        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.scene_import, derive_int(params.seed, "import", str(capture_path)))
+    except BinpickError as exc:
+        raise BinpickError(f"{capture_path}: {exc}") from None
+    save_cloud(out, cloud)
+    metrics = {
+        "import_s": time.perf_counter() - t0,
+        "n_points_in": float(len(capture.xyz_m)),
+        "n_points_out": float(len(cloud.points_m)),
+        "removed_floor_fraction": float(cloud.removed_fraction[0]),
+        "removed_walls_fraction": float(cloud.removed_fraction[1]),
+        "n_walls": float(len(cloud.wall_planes)),
+        **{f"floor_plane_{k}": float(v) for k, v in zip("abcd", cloud.floor_plane)},
+    }
+    if metrics_path is not None:
+        write_metrics(metrics_path, metrics)
+    log.info("%s: %d points -> %d after cleaning (%.2f s)", capture_path, len(capture.xyz_m), len(cloud.points_m), metrics["import_s"])
+    return metrics
+
+
+@entry
+def main(argv: Sequence[str] | None = None) -> int:
+    p = parser(__doc__)
+    p.add_argument("--capture", required=True, type=Path, help="capture file (.ply)")
+    p.add_argument("--unit", default="mm", help="unit of the capture's coordinates (default mm, as Zivid writes)")
+    p.add_argument("--out", required=True, type=Path, help="clean cloud to write (.npz)")
+    p.add_argument("--metrics", type=Path)
+    args = p.parse_args(argv)
+    start(args)
+    run(load_params(args.params), args.capture, args.unit, args.out, args.metrics)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,114 @@
+"""Stage `register`: the part's CAD model fitted onto every segment by PPF matching and ICP,
+a pose and a score per part; errors against ground truth when the capture has it; a rerun
+recording of the result."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from binpick.io.cloud import PoseRecord, load_cloud, load_poses, load_segments, save_poses
+from binpick.io.part_model import load_part_model
+from binpick.io.ppf_model import load_ppf_model
+from binpick.metrics.pose import scene_pose_metrics
+from binpick.params import Params, load_params
+from binpick.registration.ppf import match_segment
+from binpick.seeding import derive_seed
+from stages.common import entry, mlflow_run, parser, start, write_metrics
+from stages.recording import write_scene_recording
+
+log = logging.getLogger("binpick.stage.register")
+
+
+def run(
+    params: Params,
+    name: str,
+    cloud_path: Path,
+    segments_path: Path,
+    ppf_path: Path,
+    part_model_path: Path,
+    out: Path,
+    truth_path: Path | None = None,
+    metrics_path: Path | None = None,
+    rrd_path: Path | None = None,
+) -> dict[str, float]:
+    cloud = load_cloud(cloud_path)
+    labels = load_segments(segments_path)
+    if len(labels) != len(cloud.points_m):
+        from binpick.errors import InputError
+
+        raise InputError(segments_path, f"has {len(labels)} labels for {len(cloud.points_m)} cloud points")
+    ppf = load_ppf_model(ppf_path)
+    part = load_part_model(part_model_path)
+    rng = np.random.default_rng(derive_seed(params.seed, "register", name))
+    estimates: list[PoseRecord] = []
+    per_instance_ms: list[float] = []
+    t0 = time.perf_counter()
+    for seg in range(int(labels.max()) + 1 if len(labels) else 0):
+        mask = labels == seg
+        t = time.perf_counter()
+        est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params.registration, rng)
+        per_instance_ms.append(1000.0 * (time.perf_counter() - t))
+        if est is not None and est.score >= params.registration.min_score:
+            estimates.append(PoseRecord(est.T_cam_from_model, est.score, seg))
+    register_s = time.perf_counter() - t0
+    save_poses(out, part.name, estimates)
+    metrics: dict[str, float] = {
+        "register_s": register_s,
+        "ms_per_instance_median": float(np.median(per_instance_ms)) if per_instance_ms else 0.0,
+        "n_segments": float(len(per_instance_ms)),
+        "n_found": float(len(estimates)),
+        "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
+    }
+    truth = None
+    if truth_path is not None:
+        _, truth = load_poses(truth_path)
+        summary, _ = scene_pose_metrics(
+            np.array([e.T_cam_from_model for e in estimates]).reshape(-1, 4, 4),
+            np.array([t.T_cam_from_model for t in truth]).reshape(-1, 4, 4),
+            np.array([(t.extra or {}).get("visible_fraction", 1.0) for t in truth]),
+            ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+        )
+        metrics.update(summary)
+    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part.name, "dvc_stage": f"register@{name}"}):
+        import mlflow
+
+        mlflow.log_metrics({k: v for k, v in metrics.items() if np.isfinite(v)})
+        for k, e in enumerate(estimates):
+            mlflow.log_metric("pose_score", e.score, step=k)
+    if rrd_path is not None:
+        write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {"register": register_s})
+    if metrics_path is not None:
+        write_metrics(metrics_path, metrics)
+    log.info("%s: %d poses from %d segments in %.2f s", name, len(estimates), len(per_instance_ms), register_s)
+    return metrics
+
+
+@entry
+def main(argv: Sequence[str] | None = None) -> int:
+    p = parser(__doc__)
+    p.add_argument("--name", required=True, help="capture name (for seeds, runs and recordings)")
+    p.add_argument("--part", required=True)
+    p.add_argument("--cloud", required=True, type=Path)
+    p.add_argument("--segments", required=True, type=Path)
+    p.add_argument("--ppf", required=True, type=Path, help="the part's PPF model (.npz)")
+    p.add_argument("--part-model", required=True, type=Path, help="the part model (.npz)")
+    p.add_argument("--out", required=True, type=Path, help="poses to write (.json)")
+    p.add_argument("--truth", default="", help="ground-truth poses (.json), '' for none")
+    p.add_argument("--metrics", type=Path)
+    p.add_argument("--rrd", type=Path, help="rerun recording to write")
+    args = p.parse_args(argv)
+    start(args)
+    run(
+        load_params(args.params, args.part), args.name, args.cloud, args.segments, args.ppf, args.part_model, args.out,
+        Path(args.truth) if args.truth else None, args.metrics, args.rrd,
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

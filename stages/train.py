@@ -1,0 +1,82 @@
+"""Stage `train`: the part's FPCC network, trained on its generated scenes."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from binpick.io.part_model import load_part_model
+from binpick.io.scene import list_scenes, load_scene
+from binpick.network.train import BEST, Views, default_device, train_fpcc
+from binpick.params import Params, load_params
+from binpick.seeding import derive_int
+from stages.common import entry, flat_params, mlflow_run, parser, start, write_metrics
+
+log = logging.getLogger("binpick.stage.train")
+
+
+def load_views(folder: Path) -> Views:
+    """The training views of every scene in a split folder."""
+    scenes = [load_scene(p) for p in list_scenes(folder)]
+    if not scenes:
+        from binpick.errors import InputError
+
+        raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
+    return Views(
+        points=np.stack([s.view_points_m for s in scenes]),
+        normals=np.stack([s.view_normals for s in scenes]),
+        labels=np.stack([s.view_labels for s in scenes]).astype(np.int64),
+    )
+
+
+def d_max(params: Params, diameter_m: float) -> float:
+    """d_max of the centre score: from params, else half the part diameter."""
+    return params.train.d_max_m if params.train.d_max_m is not None else diameter_m / 2.0
+
+
+def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
+    part = load_part_model(part_model_path)
+    train_views, val_views = load_views(scenes / "train"), load_views(scenes / "val")
+    dm = d_max(params, part.diameter_m)
+    extra = {"part": part.name, "part_diameter_m": part.diameter_m, "features": params.train.features}
+    device = default_device()
+    log.info("%s: training on %d scenes (%d validation) on %s", part.name, len(train_views), len(val_views), device)
+    with mlflow_run(f"part-{part.name}", f"train-{part.name}", params.tracking.mlflow_uri, {"dvc_stage": f"train@{part.name}"}) as run_:
+        import mlflow
+
+        mlflow.log_params({**flat_params("train", params.train), "train.d_max_m_resolved": dm, "seed": params.seed, "device": str(device)})
+        _, metrics = train_fpcc(
+            train_views, val_views, params.train, dm, derive_int(params.seed, "train", part.name), work, extra,
+            on_epoch=lambda epoch, m: mlflow.log_metrics(m, step=epoch), device=device, progress=progress,
+        )
+        out.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(work / BEST, out)
+        mlflow.log_artifact(str(out), artifact_path="model")
+        metrics = {**metrics, "mlflow_run_id": run_.info.run_id}
+    if metrics_path is not None:
+        write_metrics(metrics_path, metrics)
+    log.info("%s: best validation loss %.4f at epoch %d -> %s", part.name, metrics["best_val_loss"], metrics["best_epoch"], out)
+    return metrics
+
+
+@entry
+def main(argv: Sequence[str] | None = None) -> int:
+    p = parser(__doc__)
+    p.add_argument("--part", required=True)
+    p.add_argument("--model", required=True, type=Path, help="part model (.npz)")
+    p.add_argument("--scenes", required=True, type=Path, help="data set folder of the generate stage")
+    p.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt)")
+    p.add_argument("--work", required=True, type=Path, help="folder for resumable checkpoints")
+    p.add_argument("--metrics", type=Path)
+    args = p.parse_args(argv)
+    start(args)
+    run(load_params(args.params, args.part), args.model, args.scenes, args.out, args.work, args.metrics)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
