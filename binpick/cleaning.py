@@ -48,10 +48,14 @@ def clean_capture(
     keep = valid & (rng_m >= params.min_range_m) & (rng_m <= params.max_range_m)
     if params.roi_min_m is not None and params.roi_max_m is not None:
         keep &= np.all((xyz >= params.roi_min_m) & (xyz <= params.roi_max_m), axis=1)
-    n_valid = int(keep.sum())
-    if n_valid < MIN_POINTS:
-        raise BinpickError(f"only {n_valid} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
+    if int(keep.sum()) < MIN_POINTS:
+        raise BinpickError(f"only {int(keep.sum())} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
     pts, idx = xyz[keep], index[keep]
+    # The voxel grid comes first: planes are fitted at the density the segmentation works at,
+    # shares are shares of that, and RANSAC runs on thousands instead of millions of points.
+    sub = voxel_downsample_indices(pts, params.voxel_size_m)
+    pts, idx = pts[sub], idx[sub]
+    n_valid = len(pts)
 
     floor = np.full(4, np.nan)
     removed_floor = 0
@@ -90,8 +94,6 @@ def clean_capture(
     if len(pts) < MIN_POINTS:
         raise BinpickError(f"only {len(pts)} points are left after removing the floor and walls")
 
-    sub = voxel_downsample_indices(pts, params.voxel_size_m)
-    pts, idx = pts[sub], idx[sub]
     normals = estimate_normals(pts, params.normal_radius_m)
     organized = frame_shape is not None
     return CleanCloud(

@@ -142,7 +142,6 @@ class GenerateParams(_Strict):
     n_train: int = Field(200, ge=1)
     n_val: int = Field(20, ge=1)
     n_test: int = Field(20, ge=1)
-    view_points: int = Field(4096, ge=64, description="points in the training view of a scene")
     workers: int = Field(0, ge=0, description="processes; 0 = one per CPU core")
     placement: PlacementParams = PlacementParams()
     bin: BinParams = BinParams()
@@ -155,7 +154,7 @@ class TrainParams(_Strict):
     width: int = Field(64, ge=8, description="channels of the EdgeConv layers")
     embedding_dim: int = Field(128, ge=2)
     features: Literal["normals", "normalised_xyz"] = "normals"
-    n_points: int = Field(4096, ge=64)
+    n_points: int = Field(4096, ge=64, description="points per training crop (nearest neighbours of a seed)")
     batch_size: int = Field(4, ge=1)
     epochs: int = Field(50, ge=1)
     learning_rate: float = Field(1e-3, gt=0)
@@ -202,7 +201,7 @@ class SceneImportParams(_Strict):
 
 
 class SegmentParams(_Strict):
-    n_points: int = Field(4096, ge=64, description="points per network pass; the rest get labels by propagation")
+    n_points: int = Field(4096, ge=64, description="points per network pass; larger scenes are covered by blocks")
     centre_threshold: float = Field(0.5, gt=0, lt=1)
     # Radius of the non-maximum suppression of centres; null = 0.25 * part diameter.
     nms_radius_m: float | None = Field(None, gt=0)

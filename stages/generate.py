@@ -31,7 +31,6 @@ _WORKER: dict = {}
 def view_params(params: Params) -> ViewParams:
     """The network's view is cleaned like an imported capture: same voxel grid and normal radius."""
     return ViewParams(
-        n_points=params.generate.view_points,
         voxel_size_m=params.scene_import.voxel_size_m,
         normal_radius_m=params.scene_import.normal_radius_m,
     )

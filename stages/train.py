@@ -27,9 +27,9 @@ def load_views(folder: Path) -> Views:
 
         raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
     return Views(
-        points=np.stack([s.view_points_m for s in scenes]),
-        normals=np.stack([s.view_normals for s in scenes]),
-        labels=np.stack([s.view_labels for s in scenes]).astype(np.int64),
+        points=[s.view_points_m for s in scenes],
+        normals=[s.view_normals for s in scenes],
+        labels=[s.view_labels.astype(np.int64) for s in scenes],
     )
 
 

@@ -17,9 +17,9 @@ from binpick.params import CameraParams, GenerateParams
 
 @dataclass(frozen=True)
 class ViewParams:
-    """How the network's view of a scene is made; the same settings as the scene import."""
+    """How the network's view of a scene is made; the same settings as the scene import, so that
+    training sees the point density that inference sees."""
 
-    n_points: int
     voxel_size_m: float
     normal_radius_m: float
 
@@ -34,7 +34,7 @@ class SyntheticScene:
     T_cam_from_model : (k, 4, 4) float64, ground-truth pose of instance i at index i
     visible_fraction : (k,) float64, share of each instance's unoccluded image area that is visible
     T_cam_from_bin   : (4, 4) float64
-    view_points_m    : (N, 3) float32, the network's view: part points, voxel-downsampled, camera frame
+    view_points_m    : (N, 3) float32, the network's view: every part point on the voxel grid, camera frame
     view_normals     : (N, 3) float32, normals estimated like at import, facing the camera
     view_labels      : (N,) int16, instance index of each view point
     """
@@ -50,13 +50,12 @@ class SyntheticScene:
     view_labels: np.ndarray
 
 
-def make_view(
-    xyz_m: np.ndarray, labels: np.ndarray, view: ViewParams, rng: np.random.Generator
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The network's view of an organized frame: labelled points, voxel grid, normals, N points.
+def make_view(xyz_m: np.ndarray, labels: np.ndarray, view: ViewParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The network's view of an organized frame: the labelled points on the voxel grid, with
+    normals estimated as at import.
 
     xyz_m (H, W, 3) camera frame; labels (H, W). Returns points (N, 3) float32, normals (N, 3)
-    float32, labels (N,) int16. With fewer than N points, points are repeated at random.
+    float32, labels (N,) int16.
     """
     flat_xyz = xyz_m.reshape(-1, 3)
     flat_lab = labels.reshape(-1)
@@ -67,8 +66,7 @@ def make_view(
     if len(pts) == 0:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int16)
     normals = estimate_normals(pts, view.normal_radius_m)
-    pick = rng.choice(len(pts), size=view.n_points, replace=len(pts) < view.n_points)
-    return pts[pick].astype(np.float32), normals[pick], lab[pick].astype(np.int16)
+    return pts.astype(np.float32), normals, lab.astype(np.int16)
 
 
 def generate_scene(
@@ -95,7 +93,7 @@ def generate_scene(
     clean = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
     visible = visible_fractions(objects, clean.labels, intr)
     noisy = apply_sensor_noise(clean, generate.noise, rng)
-    vp, vn, vl = make_view(noisy.xyz_m, noisy.labels, view, rng)
+    vp, vn, vl = make_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
         xyz_m=noisy.xyz_m,
         labels=noisy.labels.astype(np.int16),

@@ -8,9 +8,13 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from binpick.geometry.pointcloud import nearest_neighbours
+from binpick.network.blocks import cover
 from binpick.network.model import FPCC, input_features
 from binpick.params import SegmentParams
+
+
+# Share of a block instance's points that must already belong to one instance for the two to merge.
+MERGE_OVERLAP = 0.3
 
 
 @dataclass(frozen=True)
@@ -82,21 +86,41 @@ def segment_scene(
     params: ClusterParams,
     rng: np.random.Generator,
 ) -> np.ndarray:
-    """Labels (M,) int32 for every one of the M scene points (camera frame, metres).
+    """Labels (M,) int32 for every one of the M scene points (camera frame, metres, on the voxel
+    grid the network was trained at).
 
-    The network sees n_points of them drawn at random; every other point takes the label of its
-    nearest seen point (label propagation), so no point is left out.
+    Scenes larger than n_points are covered by blocks of n_points neighbours (see blocks.cover).
+    Each point keeps the label of the block whose seed is nearest to it (where it had the most
+    context); an instance of a block joins the instance that already holds most of its points
+    (MERGE_OVERLAP of them or more), else it is new.
     """
     M = len(points)
     if M == 0:
         return np.zeros(0, np.int32)
-    pick = np.sort(rng.choice(M, size=n_points, replace=False)) if M > n_points else np.arange(M)
-    emb, ctr = predict(model, points[pick], normals[pick], features, length_scale_m)
-    seen = cluster(points[pick], emb, ctr, params)
-    if len(pick) == M:
-        return seen
-    _, nearest = nearest_neighbours(points[pick], points, k=1)
-    return seen[nearest]
+    labels = np.full(M, -1, np.int32)
+    best_dist = np.full(M, np.inf)
+    n_instances = 0
+    for seed, idx in cover(points, n_points, rng):
+        emb, ctr = predict(model, points[idx], normals[idx], features, length_scale_m)
+        local = cluster(points[idx], emb, ctr, params)
+        mapping = np.full(int(local.max()) + 2, -1, np.int32)  # local id -> global id; last slot: noise
+        for j in range(int(local.max()) + 1):
+            before = labels[idx[local == j]]
+            before = before[before >= 0]
+            if len(before) >= MERGE_OVERLAP * np.count_nonzero(local == j):
+                mapping[j] = np.bincount(before).argmax()
+            else:
+                mapping[j] = n_instances
+                n_instances += 1
+        dist = np.linalg.norm(points[idx] - points[seed], axis=1)
+        closer = dist < best_dist[idx]
+        labels[idx[closer]] = mapping[np.where(local >= 0, local, -1)][closer]
+        best_dist[idx[closer]] = dist[closer]
+    # Renumber 0..k-1 (a merged or fully overwritten instance leaves a gap).
+    present = np.unique(labels[labels >= 0])
+    remap = np.full(n_instances + 1, -1, np.int32)
+    remap[present] = np.arange(len(present), dtype=np.int32)
+    return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1).astype(np.int32)
 
 
 # The paper ties the suppression radius to object size; a quarter diameter keeps two touching

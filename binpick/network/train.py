@@ -4,6 +4,7 @@ early stopping, resume after interruption. Reads top to bottom; no tracking call
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 from collections.abc import Callable
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from binpick.network.blocks import crop
 from binpick.network.checkpoint import read_checkpoint, save_checkpoint
 from binpick.network.loss import fpcc_loss
 from binpick.network.model import FPCC, FPCCConfig, input_features
@@ -28,14 +30,23 @@ BEST = "best.pt"
 
 @dataclass(frozen=True)
 class Views:
-    """Training views of S scenes: points (S, N, 3) float32 metres, normals (S, N, 3), labels (S, N) int64."""
+    """Training views of S scenes, each of its own size N_s: points (N_s, 3) float32 metres,
+    normals (N_s, 3) float32, labels (N_s,) int64."""
 
-    points: np.ndarray
-    normals: np.ndarray
-    labels: np.ndarray
+    points: list[np.ndarray]
+    normals: list[np.ndarray]
+    labels: list[np.ndarray]
 
     def __len__(self) -> int:
         return len(self.points)
+
+    def fingerprint(self) -> str:
+        """A hash of the content: a checkpoint resumes only on the data it was trained on."""
+        h = hashlib.sha256()
+        for arrays in (self.points, self.normals, self.labels):
+            for a in arrays:
+                h.update(np.ascontiguousarray(a).tobytes())
+        return h.hexdigest()
 
 
 def default_device() -> torch.device:
@@ -43,11 +54,11 @@ def default_device() -> torch.device:
 
 
 def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device):
-    """Draw n_points of each view, rotate about the camera axis at random (augment), to tensors."""
+    """A crop of n_points from each view, rotated about the camera axis at random (augment), as tensors."""
     P, Nn, L = [], [], []
     for s in idx:
-        pick = rng.choice(views.points.shape[1], size=n_points, replace=False) if views.points.shape[1] > n_points else np.arange(views.points.shape[1])
-        p, n = views.points[s, pick].astype(np.float64), views.normals[s, pick].astype(np.float64)
+        pick = crop(views.points[s], n_points, rng)
+        p, n = views.points[s][pick].astype(np.float64), views.normals[s][pick].astype(np.float64)
         if augment:
             a = rng.uniform(0, 2 * np.pi)
             R = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
@@ -55,7 +66,7 @@ def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generato
             p, n = (p - c) @ R.T + c, n @ R.T
         P.append(p)
         Nn.append(n)
-        L.append(views.labels[s, pick])
+        L.append(views.labels[s][pick])
     as_t = lambda a, dt: torch.as_tensor(np.stack(a), dtype=dt, device=device)  # noqa: E731
     return as_t(P, torch.float32), as_t(Nn, torch.float32), as_t(L, torch.int64)
 
@@ -93,20 +104,24 @@ def train_fpcc(
     )
     model = FPCC(config).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
-    extra = {**extra, "train_params": params.model_dump(), "d_max_m": d_max_m, "seed": seed}
+    extra = {
+        **extra, "train_params": params.model_dump(), "d_max_m": d_max_m, "seed": seed,
+        "data_fingerprint": train.fingerprint() + val.fingerprint(),
+    }
 
     start_epoch, best_val, best_epoch = 0, math.inf, -1
     last = checkpoint_dir / LAST
     if last.is_file():
         state = read_checkpoint(last, device)
-        if state["config"] == config.to_dict() and state["extra"].get("train_params") == params.model_dump() and state["extra"].get("seed") == seed:
+        same_run = all(state["extra"].get(k) == extra[k] for k in ("train_params", "seed", "data_fingerprint", "d_max_m"))
+        if state["config"] == config.to_dict() and same_run:
             model.load_state_dict(state["model"])
             optimiser.load_state_dict(state["optimiser"])
             start_epoch = state["epoch"] + 1
             best_val, best_epoch = state["metrics"]["best_val_loss"], state["metrics"]["best_epoch"]
             log.info("resuming from %s at epoch %d", last, start_epoch)
         else:
-            log.info("ignoring %s: it was written with other settings", last)
+            log.info("ignoring %s: it was written with other settings or data", last)
 
     steps = max(1, len(train) // params.batch_size)
     metrics: dict[str, float] = {}
