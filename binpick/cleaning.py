@@ -16,6 +16,9 @@ from binpick.params import SceneImportParams
 log = logging.getLogger(__name__)
 
 MIN_PLANE_FRACTION = 0.05  # a support plane holds at least this share of the points
+# ... and has at most this share behind it, seen from the camera: a slab through a heap of
+# objects has as many points behind it as in front.
+MAX_BEHIND_FRACTION = 0.25
 WALL_MAX_COS_TO_FLOOR = 0.3  # walls stand within ~17 degrees of perpendicular to the floor
 MIN_POINTS = 10
 
@@ -60,16 +63,20 @@ def clean_capture(
     floor = np.full(4, np.nan)
     removed_floor = 0
     plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed)
-    if inliers.mean() >= MIN_PLANE_FRACTION:
-        if plane[3] < 0:  # orient the normal toward the camera at the origin
-            plane = -plane
+    if plane[3] < 0:  # orient the normal toward the camera at the origin
+        plane = -plane
+    behind = np.mean(pts @ plane[:3] + plane[3] < -params.plane_threshold_m)
+    if inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION:
         floor = plane
         above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
         removed_floor = int((~above).sum())
         pts, idx = pts[above], idx[above]
         log.info("floor plane %s removed %.1f%% of the points", np.round(plane, 4).tolist(), 100.0 * removed_floor / n_valid)
     else:
-        log.warning("no support plane found (largest plane holds %.1f%% of the points); nothing removed", 100 * inliers.mean())
+        log.warning(
+            "no support plane found (best plane holds %.1f%% of the points, %.1f%% lie behind it); nothing removed",
+            100 * inliers.mean(), 100 * behind,
+        )
 
     walls: list[np.ndarray] = []
     removed_walls = 0

@@ -216,8 +216,7 @@ def score_pose(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.n
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
     point within inlier_m, and the share of scene points within inlier_m of the model."""
     p = transform_points(T_cam_from_model, model.dense_points_m)
-    n = model.dense_normals @ T_cam_from_model[:3, :3].T
-    facing = np.sum(n * p, axis=1) < 0  # the camera sits at the origin
+    facing = _facing(model, T_cam_from_model)
     if not facing.any() or len(scene_points) == 0:
         return 0.0
     d_model, _ = cKDTree(scene_points).query(p[facing], distance_upper_bound=inlier_m)
@@ -225,13 +224,28 @@ def score_pose(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.n
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
 
 
+def _facing(model: PPFModel, T_cam_from_model: np.ndarray) -> np.ndarray:
+    """(n,) mask of dense model points whose normal faces the camera (at the origin) at this pose."""
+    p = transform_points(T_cam_from_model, model.dense_points_m)
+    n = model.dense_normals @ T_cam_from_model[:3, :3].T
+    return np.sum(n * p, axis=1) < 0
+
+
 def refine_icp(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int) -> np.ndarray:
-    """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals)."""
+    """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals).
+
+    Only model points facing the camera at the starting pose are targets: a thin wall's inner
+    surface lies within a few millimetres of its outer one, and matching the camera's view of the
+    outside to the inside holds ICP in a wrong minimum.
+    """
     if iterations == 0 or len(scene_points) < 6:
         return T_cam_from_model
+    facing = _facing(model, T_cam_from_model)
+    if facing.sum() < 6:
+        return T_cam_from_model
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, dtype=np.float64)))
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m))
-    target.normals = o3d.utility.Vector3dVector(model.dense_normals)
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m[facing]))
+    target.normals = o3d.utility.Vector3dVector(model.dense_normals[facing])
     result = o3d.pipelines.registration.registration_icp(
         source,
         target,

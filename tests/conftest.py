@@ -1,0 +1,42 @@
+"""Shared fixtures. Real third-party data is read from ../shared/data beside the project and
+tests that need it skip, saying so, when it is absent."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from binpick.env import configure_environment
+
+ROOT = Path(__file__).resolve().parents[1]
+SHARED_DATA = ROOT.parent / "shared" / "data"
+
+configure_environment(ROOT)
+os.environ.setdefault("TQDM_DISABLE", "1")
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    if not (SHARED_DATA / "MANIFEST.md").is_file():
+        pytest.skip(f"real third-party data not found at {SHARED_DATA} (it lives beside the project, not in it)")
+    return SHARED_DATA
+
+
+@pytest.fixture(scope="session")
+def t_joint():
+    """The built-in part as a part model (metres)."""
+    from binpick.parts import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+
+    mesh = build_t_joint_mesh()
+    mesh.apply_scale(1e-3)
+    return make_part_model(DEFAULT_PART_NAME, mesh, T_JOINT_SYMMETRY, 20000, np.random.default_rng(0), "mm")
+
+
+@pytest.fixture(scope="session")
+def params():
+    from binpick.params import load_params
+
+    return load_params(ROOT / "params.yaml", "t_joint")

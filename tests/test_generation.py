@@ -1,0 +1,121 @@
+import hashlib
+
+import numpy as np
+import trimesh
+
+from binpick.generation.bin import T_bin_from_cam, bin_meshes
+from binpick.generation.camera import Intrinsics, apply_sensor_noise, render
+from binpick.generation.placement import place_objects
+from binpick.generation.scene import ViewParams, generate_scene
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.io.scene import load_scene, save_scene
+from binpick.params import BinParams, CameraParams, GenerateParams, NoiseParams, PlacementParams
+
+VIEW = ViewParams(voxel_size_m=0.002, normal_radius_m=0.006)
+
+
+def _max_penetration_m(part, poses, n_check=3000):
+    """Deepest point of any object inside any other (exact mesh tests)."""
+    mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces)
+    pts = part.points_m[:n_check].astype(np.float64)
+    worst = 0.0
+    for i, Ti in enumerate(poses):
+        p_world = transform_points(Ti, pts)
+        for j, Tj in enumerate(poses):
+            if i == j:
+                continue
+            local = transform_points(invert_T(Tj), p_world)
+            inside = mesh.contains(local)
+            if inside.any():
+                _, d, _ = trimesh.proximity.closest_point(mesh, local[inside])
+                worst = max(worst, float(d.max()))
+    return worst
+
+
+def test_drop_placement_has_no_interpenetration_and_stays_in_the_bin(t_joint):
+    bin_params = BinParams()
+    placed = place_objects(t_joint.points_m, 15, bin_params, PlacementParams(), np.random.default_rng(5))
+    poses = placed.T_bin_from_model
+    assert len(poses) == 15
+    assert _max_penetration_m(t_joint, poses) <= 0.001
+    for T in poses:
+        p = transform_points(T, t_joint.points_m)
+        assert p[:, 2].min() >= -1e-9
+        assert np.all(np.abs(p[:, 0]) <= bin_params.inner_x_m / 2 + 1e-9)
+        assert np.all(np.abs(p[:, 1]) <= bin_params.inner_y_m / 2 + 1e-9)
+
+
+def test_a_full_bin_keeps_the_objects_that_fit(t_joint):
+    small = BinParams(inner_x_m=0.1, inner_y_m=0.1)
+    placed = place_objects(t_joint.points_m, 200, small, PlacementParams(max_pile_height_m=0.06), np.random.default_rng(0))
+    assert 0 < len(placed.T_bin_from_model) < 200
+    assert placed.n_requested == 200
+
+
+def test_camera_sees_the_floor_at_its_distance():
+    cam = CameraParams(downscale=8)
+    intr = Intrinsics.from_params(cam)
+    T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
+    meshes = [(transform_points(T_cam_bin, m.vertices), m.faces) for m in bin_meshes(BinParams(wall_height_m=0.0))]
+    r = render(meshes, [-1] * len(meshes), intr)
+    assert (intr.height, intr.width) == r.labels.shape
+    z = r.xyz_m[..., 2]
+    assert np.isfinite(z).all() and np.allclose(z[intr.height // 2, intr.width // 2], cam.distance_m, atol=1e-6)
+    assert np.allclose(r.normals[np.isfinite(z)], [0, 0, -1], atol=1e-6)
+    assert (r.labels == -1).all()
+
+
+def test_noise_grows_with_range_and_grazing_returns_drop():
+    rng = np.random.default_rng(0)
+    H, W = 200, 200
+    dirs = Intrinsics(W, H, 200.0, 200.0, 99.5, 99.5).ray_directions()
+    out = []
+    for depth in (0.5, 1.5):
+        xyz = (dirs * depth).astype(np.float32)
+        normals = np.broadcast_to(np.array([0, 0, -1], np.float32), xyz.shape).copy()
+        from binpick.generation.camera import Render
+
+        noisy = apply_sensor_noise(Render(xyz, normals, np.zeros((H, W), np.int32)), NoiseParams(max_incidence_deg=89.0), rng)
+        out.append(np.nanstd((noisy.xyz_m - xyz)[..., 2]))
+    expected = [0.0002 + 0.0004 * d**2 for d in (0.5, 1.5)]
+    assert np.allclose(out, expected, rtol=0.1)
+    xyz = (dirs * 0.5).astype(np.float32)
+    side = np.broadcast_to(np.array([1, 0, 0], np.float32), xyz.shape).copy()  # seen edge-on
+    from binpick.generation.camera import Render
+
+    noisy = apply_sensor_noise(Render(xyz, side, np.zeros((H, W), np.int32)), NoiseParams(), rng)
+    assert np.isnan(noisy.xyz_m[H // 2, W // 2]).all()
+
+
+def test_labelled_points_lie_on_their_object_at_the_true_pose(t_joint):
+    gen = GenerateParams()
+    scene = generate_scene(t_joint, gen, CameraParams(downscale=4), VIEW, seed=11, n_objects=10)
+    mesh = trimesh.Trimesh(t_joint.mesh_vertices_m, t_joint.mesh_faces)
+    xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
+    # Noise std at this range; 5 sigma along the ray is the bound.
+    depth = np.nanmax(xyz[:, 2])
+    bound = 5 * (gen.noise.depth_sigma_m + gen.noise.depth_sigma_per_m2 * depth**2) * 1.1
+    checked = 0
+    for i, T in enumerate(scene.T_cam_from_model):
+        pts = xyz[(labels == i) & np.isfinite(xyz[:, 2])]
+        if len(pts) == 0:
+            continue
+        sample = pts[:: max(1, len(pts) // 300)]
+        _, d, _ = trimesh.proximity.closest_point(mesh, transform_points(invert_T(T), sample.astype(np.float64)))
+        assert d.max() < bound, (i, d.max(), bound)
+        checked += 1
+    assert checked >= 5
+    assert (scene.visible_fraction >= 0).all() and (scene.visible_fraction <= 1.0 + 1e-9).all()
+    assert set(np.unique(scene.view_labels)) <= set(range(len(scene.T_cam_from_model)))
+
+
+def test_same_seed_gives_byte_identical_scene_files(tmp_path, t_joint):
+    digests = []
+    for k in range(2):
+        scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=8), VIEW, seed=3)
+        save_scene(tmp_path / f"s{k}.npz", scene)
+        digests.append(hashlib.sha256((tmp_path / f"s{k}.npz").read_bytes()).hexdigest())
+    assert digests[0] == digests[1]
+    other = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=8), VIEW, seed=4)
+    assert not np.array_equal(other.labels, load_scene(tmp_path / "s0.npz").labels)
+    assert (tmp_path / "s0.png").is_file()

@@ -1,0 +1,78 @@
+import numpy as np
+import pytest
+
+from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, voxel_downsample_indices
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.geometry.transforms import (
+    axis_angle_to_R,
+    invert_T,
+    make_T,
+    random_rotation,
+    rotation_angle_deg,
+    transform_points,
+)
+from binpick.params import SymmetryParams
+
+
+def test_invert_and_compose():
+    rng = np.random.default_rng(1)
+    T = make_T(random_rotation(rng), rng.normal(size=3))
+    assert np.allclose(invert_T(T) @ T, np.eye(4))
+    p = rng.normal(size=(10, 3))
+    assert np.allclose(transform_points(invert_T(T), transform_points(T, p)), p)
+
+
+def test_random_rotation_is_proper_and_angle_known():
+    R = random_rotation(np.random.default_rng(2))
+    assert np.allclose(R @ R.T, np.eye(3)) and np.isclose(np.linalg.det(R), 1.0)
+    R30 = axis_angle_to_R(np.array([1.0, 2.0, 3.0]), np.radians(30))
+    assert np.isclose(rotation_angle_deg(R, R @ R30), 30.0)
+
+
+def test_symmetry_transforms_map_axis_points_to_themselves():
+    S = symmetry_transforms(SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=2, origin_m=(0.01, 0, 0)))
+    assert S.shape == (2, 4, 4) and np.allclose(S[0], np.eye(4))
+    # A point on the axis stays; a point off the axis goes to its mirror about the axis.
+    assert np.allclose(transform_points(S[1], np.array([[0.01, 0.5, 0.0]])), [[0.01, 0.5, 0.0]])
+    assert np.allclose(transform_points(S[1], np.array([[0.02, 0.0, 0.0]])), [[0.0, 0.0, 0.0]])
+    assert len(symmetry_transforms(SymmetryParams(kind="revolution"))) == 360
+    assert len(symmetry_transforms(SymmetryParams())) == 1
+
+
+def test_ransac_recovers_a_tilted_plane_among_outliers():
+    rng = np.random.default_rng(3)
+    normal = np.array([0.1, -0.2, 1.0])
+    normal /= np.linalg.norm(normal)
+    d = -0.5
+    u = np.cross(normal, [1, 0, 0])
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    pts = rng.uniform(-0.2, 0.2, (3000, 1)) * u + rng.uniform(-0.2, 0.2, (3000, 1)) * v - d * normal
+    pts += rng.normal(0, 0.0005, (3000, 1)) * normal
+    outliers = rng.uniform(-0.3, 0.3, (1000, 3)) + [0, 0, 0.3]
+    plane, inliers = fit_plane_ransac(np.vstack([pts, outliers]), 0.003, 500, seed=0)
+    sign = np.sign(plane[:3] @ normal)
+    assert np.allclose(sign * plane[:3], normal, atol=0.01)
+    assert abs(sign * plane[3] - d) < 0.002
+    assert inliers[:3000].mean() > 0.99 and inliers[3000:].mean() < 0.1
+
+
+def test_voxel_downsample_keeps_one_point_per_voxel():
+    pts = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002], [0.011, 0.0, 0.0], [0.0, 0.0, 0.025]])
+    idx = voxel_downsample_indices(pts, 0.01)
+    assert idx.tolist() == [0, 2, 3]
+
+
+def test_normals_face_the_camera():
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-0.1, 0.1, (2000, 2))
+    pts = np.column_stack([xy, np.full(2000, 0.5)])  # a plane 0.5 m in front of the camera
+    n = estimate_normals(pts, 0.01)
+    assert np.allclose(n, [0, 0, -1], atol=1e-3)
+
+
+def test_kernels_reject_bad_shapes():
+    with pytest.raises(ValueError):
+        transform_points(np.eye(4), np.zeros((3, 2)))
+    with pytest.raises(ValueError):
+        voxel_downsample_indices(np.zeros(3), 0.1)

@@ -1,0 +1,91 @@
+import numpy as np
+import pytest
+
+from binpick.cleaning import clean_capture
+from binpick.errors import BinpickError, InputError
+from binpick.io.capture import load_capture
+from binpick.io.cloud import PoseRecord, load_cloud, load_poses, save_cloud, save_poses
+from binpick.io.ply import PointCloudData, load_ply, save_ply
+from binpick.params import SceneImportParams
+
+
+def _bin_frame(H=240, W=320, f=300.0, floor_m=0.5, rng=None):
+    """An organized frame: a floor 0.5 m away, a 60 x 40 x 30 mm box on it, some NaN."""
+    rng = rng or np.random.default_rng(0)
+    u, v = np.meshgrid(np.arange(W), np.arange(H))
+    d = np.stack([(u - W / 2) / f, (v - H / 2) / f, np.ones_like(u, dtype=float)], -1)
+    z = np.full((H, W), floor_m)
+    x, y = d[..., 0] * (floor_m - 0.03), d[..., 1] * (floor_m - 0.03)
+    on_box = (np.abs(x) < 0.03) & (np.abs(y) < 0.02)
+    z[on_box] = floor_m - 0.03
+    xyz = d * z[..., None] + rng.normal(0, 0.0002, (H, W, 1)) * d
+    xyz[rng.random((H, W)) < 0.05] = np.nan
+    return xyz.reshape(-1, 3).astype(np.float32), on_box.reshape(-1)
+
+
+def test_cleaning_recovers_the_floor_and_keeps_the_object():
+    xyz, on_box = _bin_frame()
+    cloud = clean_capture(xyz, None, (240, 320), SceneImportParams(remove_walls=False), seed=0)
+    a, b, c, d = cloud.floor_plane
+    assert np.allclose([a, b, c], [0, 0, -1], atol=0.01) and abs(d - 0.5) < 0.002
+    assert d > 0  # oriented toward the camera
+    kept_on_box = on_box[cloud.pixel_index]
+    assert kept_on_box.mean() > 0.99
+    # The box top is 60 x 40 mm: about 600 cells of a 2 mm grid.
+    assert 400 < len(cloud.points_m) < 800
+    assert np.all(cloud.normals[:, 2] < 0)
+    assert 0.5 < cloud.removed_fraction[0] < 1.0
+
+
+def test_cleaning_errors_and_warnings():
+    xyz, _ = _bin_frame()
+    with pytest.raises(BinpickError, match="no valid point"):
+        clean_capture(np.full((100, 3), np.nan, np.float32), None, None, SceneImportParams(), 0)
+    with pytest.raises(BinpickError, match="unit"):
+        clean_capture(xyz * 1000, None, None, SceneImportParams(), 0)  # millimetres read as metres
+    # A scene with no plane: a random blob; nothing is removed, NaN floor reported.
+    blob = np.random.default_rng(1).normal([0, 0, 0.5], 0.03, (5000, 3)).astype(np.float32)
+    cloud = clean_capture(blob, None, None, SceneImportParams(), 0)
+    assert np.isnan(cloud.floor_plane).all() and (cloud.pixel_index == -1).all()
+
+
+def test_organized_ply_roundtrip_keeps_nan_and_shape(tmp_path):
+    xyz, _ = _bin_frame(H=20, W=30)
+    rgb = np.random.default_rng(0).integers(0, 255, (600, 3)).astype(np.uint8)
+    save_ply(tmp_path / "c.ply", PointCloudData(xyz * 1000, rgb, None, (20, 30)))
+    back = load_ply(tmp_path / "c.ply")
+    assert back.shape == (20, 30)
+    assert np.array_equal(np.isnan(back.xyz), np.isnan(xyz * 1000))
+    assert np.allclose(back.xyz, xyz * 1000, equal_nan=True) and np.array_equal(back.rgb, rgb)
+    cap = load_capture(tmp_path / "c.ply", "mm")
+    assert np.allclose(cap.xyz_m, xyz, equal_nan=True, atol=1e-6)
+
+
+def test_bad_capture_files(tmp_path):
+    xyz, _ = _bin_frame(H=20, W=30)
+    save_ply(tmp_path / "c.ply", PointCloudData(xyz, None, None, (20, 30)))
+    data = (tmp_path / "c.ply").read_bytes()
+    (tmp_path / "cut.ply").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="cut.ply"):
+        load_capture(tmp_path / "cut.ply", "mm")
+    (tmp_path / "x.txt").write_text("1 2 3")
+    with pytest.raises(InputError, match="unsupported capture format"):
+        load_capture(tmp_path / "x.txt", "mm")
+    with pytest.raises(InputError, match="not found"):
+        load_capture(tmp_path / "none.ply", "mm")
+
+
+def test_cloud_and_pose_files_roundtrip(tmp_path):
+    xyz, _ = _bin_frame()
+    cloud = clean_capture(xyz, None, (240, 320), SceneImportParams(), 0)
+    save_cloud(tmp_path / "cloud.npz", cloud)
+    back = load_cloud(tmp_path / "cloud.npz")
+    assert np.array_equal(back.points_m, cloud.points_m) and np.array_equal(back.pixel_index, cloud.pixel_index)
+    T = np.eye(4)
+    T[:3, 3] = [0.01, 0.02, 0.5]
+    save_poses(tmp_path / "p.json", "t_joint", [PoseRecord(T, 0.9, 3, {"visible_fraction": 0.5})])
+    part, poses = load_poses(tmp_path / "p.json")
+    assert part == "t_joint" and np.allclose(poses[0].T_cam_from_model, T) and poses[0].segment == 3
+    (tmp_path / "bad.json").write_text('{"part": "x"}')
+    with pytest.raises(InputError, match="bad.json"):
+        load_poses(tmp_path / "bad.json")

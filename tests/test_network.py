@@ -1,0 +1,140 @@
+import numpy as np
+import pytest
+import torch
+
+from binpick.network.blocks import cover, crop
+from binpick.network.checkpoint import load_checkpoint, save_checkpoint
+from binpick.network.infer import ClusterParams, cluster, segment_scene
+from binpick.network.loss import centre_score_targets, fpcc_loss
+from binpick.network.model import FPCC, FPCCConfig, input_features, knn_indices
+from binpick.network.train import Views, train_fpcc
+from binpick.params import TrainParams
+
+
+def test_knn_matches_brute_force():
+    xyz = torch.rand(2, 300, 3)
+    idx = knn_indices(xyz, 8)
+    d = torch.cdist(xyz, xyz)
+    brute = d.topk(8, dim=-1, largest=False).values
+    got = torch.gather(d, 2, idx)
+    assert torch.allclose(got, brute)
+
+
+@pytest.mark.parametrize("backbone", ["dgcnn", "pointnet"])
+def test_forward_shapes(backbone):
+    model = FPCC(FPCCConfig(backbone=backbone, k_neighbours=8, width=16, embedding_dim=12))
+    p = torch.rand(2, 256, 3) * 0.1
+    emb, ctr = model(input_features(p, torch.nn.functional.normalize(torch.randn(2, 256, 3), dim=-1), "normals", 0.03), p)
+    assert emb.shape == (2, 256, 12) and ctr.shape == (2, 256)
+    assert ctr.min() >= 0 and ctr.max() <= 1
+
+
+def test_centre_score_targets_linear_and_squared():
+    pts = torch.tensor([[0.0, 0, 0], [0.02, 0, 0], [0.01, 0, 0], [1.0, 0, 0]])
+    lab = torch.tensor([0, 0, 0, 1])
+    lin = centre_score_targets(pts, lab, 0.02, "linear")
+    sq = centre_score_targets(pts, lab, 0.02, "squared")
+    assert torch.allclose(lin, torch.tensor([0.5, 0.5, 1.0, 1.0]))
+    assert torch.allclose(sq, torch.tensor([0.75, 0.75, 1.0, 1.0]))
+
+
+def test_loss_ignores_far_pairs_with_a_true_distance():
+    # Two instances 1 m apart with identical embeddings: beyond 2 * d_max every pair is masked, so
+    # only the same-instance pull (zero here) remains.
+    pts = torch.tensor([[[0.0, 0, 0], [0.001, 0, 0], [1.0, 0, 0], [1.001, 0, 0]]])
+    lab = torch.tensor([[0, 0, 1, 1]])
+    emb = torch.zeros(1, 4, 3)
+    ctr = centre_score_targets(pts[0], lab[0], 0.05, "linear")[None]
+    total, parts = fpcc_loss(emb, ctr, pts, lab, 0.05, 0.5, 1.5, 1.0, "linear", 4)
+    assert parts["embedding_loss"] == 0.0 and parts["centre_loss"] == 0.0
+    # Now closer than 2 * d_max: the push term must be active.
+    pts_near = pts.clone()
+    pts_near[0, 2:, 0] = torch.tensor([0.05, 0.051])
+    _, parts = fpcc_loss(emb, ctr, pts_near, lab, 0.05, 0.5, 1.5, 1.0, "linear", 4)
+    assert parts["embedding_loss"] > 0.5
+
+
+def test_cluster_recovers_handmade_instances():
+    pts = np.array([[0, 0, 0], [0.01, 0, 0], [0.2, 0, 0], [0.21, 0, 0], [0.5, 0, 0]], float)
+    emb = np.array([[0, 0], [0.1, 0], [3, 0], [3.1, 0], [10, 10]], float)
+    ctr = np.array([0.9, 0.2, 0.8, 0.3, 0.1])
+    labels = cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 1))
+    assert labels.tolist() == [0, 0, 1, 1, -1]
+    assert (cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 3)) == -1).all()  # all too small
+
+
+class _OracleNet(torch.nn.Module):
+    """Stands in for a trained network: embeds a point by which of three x-bands it lies in and
+    scores it by closeness to its band's middle. Lets block merging be tested exactly."""
+
+    config = FPCCConfig()
+
+    def __init__(self):
+        super().__init__()
+        self.dummy = torch.nn.Parameter(torch.zeros(1))
+
+    def forward(self, features, xyz):
+        band = torch.div(xyz[..., 0] + 0.05, 0.1, rounding_mode="floor")  # -> 0, 1, 2
+        emb = torch.stack([band * 3.0, torch.zeros_like(band)], dim=-1)
+        ctr = 1.0 - (xyz[..., 0] - (band * 0.1)).abs() / 0.05
+        return emb, ctr.clamp(0, 1)
+
+
+def test_block_inference_labels_every_point_and_merges_across_blocks():
+    rng = np.random.default_rng(0)
+    pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (700, 3)) for b in range(3)])
+    normals = np.tile([0.0, 0.0, -1.0], (len(pts), 1))
+    truth = np.repeat(np.arange(3), 700)
+    labels = segment_scene(_OracleNet(), pts, normals, "normals", 0.03, 500, ClusterParams(0.8, 0.03, 1.0, 10), rng)
+    assert len(cover(pts, 500, np.random.default_rng(1))) > 3  # really several blocks
+    assert (labels >= 0).all()
+    # Same partition as the truth, up to renumbering.
+    pairs = set(zip(labels.tolist(), truth.tolist()))
+    assert len(pairs) == 3 and len({a for a, _ in pairs}) == 3
+
+
+def test_crop_is_contiguous_and_pads_small_scenes():
+    pts = np.random.default_rng(0).uniform(0, 1, (1000, 3))
+    idx = crop(pts, 100, np.random.default_rng(1))
+    assert len(np.unique(idx)) == 100
+    small = crop(pts[:40], 100, np.random.default_rng(1))
+    assert len(small) == 100 and set(small.tolist()) == set(range(40))
+
+
+def _toy_views(n_scenes, rng):
+    """Scenes of two to four flat square patches 5 cm apart, each its own instance."""
+    P, N, L = [], [], []
+    for _ in range(n_scenes):
+        k = rng.integers(2, 5)
+        pts = np.concatenate([rng.uniform([0.05 * i, 0, 0.5], [0.05 * i + 0.03, 0.03, 0.5], (100, 3)) for i in range(k)])
+        P.append(pts.astype(np.float32))
+        N.append(np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)))
+        L.append(np.repeat(np.arange(k), 100))
+    return Views(P, N, L)
+
+
+def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path):
+    rng = np.random.default_rng(0)
+    train, val = _toy_views(6, rng), _toy_views(2, rng)
+    params = TrainParams(width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=3, loss_anchors=64, patience_epochs=10)
+    full, m_full = train_fpcc(train, val, params, 0.02, 5, tmp_path / "a", {"part": "toy"}, progress=False)
+    train_fpcc(train, val, params.model_copy(update={"epochs": 2}), 0.02, 5, tmp_path / "b", {"part": "toy"}, progress=False)
+    # Stand-in for a run that crashed after two epochs: the two-epoch run's last.pt, relabelled
+    # with the three-epoch params. Training on must then end exactly where the full run ended.
+    state = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
+    state["extra"]["train_params"] = params.model_dump()
+    torch.save(state, tmp_path / "b" / "last.pt")
+    resumed, m_res = train_fpcc(train, val, params, 0.02, 5, tmp_path / "b", {"part": "toy"}, progress=False)
+    for a, b in zip(full.state_dict().values(), resumed.state_dict().values()):
+        assert torch.equal(a, b)
+    assert m_full["best_val_loss"] == m_res["best_val_loss"]
+
+
+def test_checkpoint_rebuilds_the_network_alone(tmp_path):
+    model = FPCC(FPCCConfig(k_neighbours=4, width=8, embedding_dim=6)).eval()
+    save_checkpoint(tmp_path / "m.pt", model, None, 3, {"loss": 1.0}, {"d_max_m": 0.02})
+    back, state = load_checkpoint(tmp_path / "m.pt")
+    x = torch.rand(1, 64, 3)
+    f = input_features(x, torch.nn.functional.normalize(torch.randn(1, 64, 3), dim=-1), "normals", 0.02)
+    assert torch.equal(model(f, x)[0], back(f, x)[0])
+    assert state["epoch"] == 3 and state["extra"]["d_max_m"] == 0.02

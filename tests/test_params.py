@@ -1,0 +1,82 @@
+from pathlib import Path
+
+import pytest
+import yaml
+
+from binpick.errors import InputError, ParamsError
+from binpick.params import SECTIONS, deep_merge, load_params, load_raw, resolve
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_project_params_load_with_quick_profile_and_part():
+    raw = load_raw(ROOT / "params.yaml")
+    p = load_params(ROOT / "params.yaml", "t_joint")
+    assert p.profile == "quick"
+    assert p.generate.n_train == raw["profiles"]["quick"]["generate"]["n_train"]
+    assert p.camera.downscale == raw["profiles"]["quick"]["camera"]["downscale"]
+    # Untouched by the profile: the section's own value.
+    assert p.registration.angle_bins == raw["register"]["angle_bins"]
+    assert p.parts["t_joint"].symmetry.order == 2
+
+
+def test_every_profile_lists_every_section():
+    raw = load_raw(ROOT / "params.yaml")
+    for name, profile in raw["profiles"].items():
+        assert set(SECTIONS) <= set(profile), name
+
+
+def test_part_overrides_apply_after_profile():
+    raw = {
+        "profile": "q",
+        "profiles": {"q": {s: {} for s in SECTIONS} | {"train": {"epochs": 3, "width": 16}}},
+        "parts": {"a": {"mesh": "a.stl", "train": {"epochs": 9}}, "b": {"mesh": "b.stl"}},
+    }
+    a = resolve(raw, "a")
+    b = resolve(raw, "b")
+    assert a["train"] == {"epochs": 9, "width": 16}
+    assert b["train"] == {"epochs": 3, "width": 16}
+
+
+def test_deep_merge_nested():
+    assert deep_merge({"a": {"x": 1, "y": 2}, "b": 1}, {"a": {"y": 3}}) == {"a": {"x": 1, "y": 3}, "b": 1}
+
+
+def _write(tmp_path, raw):
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+def _minimal():
+    return {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}}}
+
+
+def test_misspelt_key_fails_at_load_with_one_line(tmp_path):
+    raw = _minimal() | {"train": {"epoch": 3}}
+    with pytest.raises(ParamsError) as err:
+        load_params(_write(tmp_path, raw), "a")
+    msg = str(err.value)
+    assert "train.epoch" in msg and "\n" not in msg
+
+
+def test_bad_value_and_missing_profile_section(tmp_path):
+    raw = _minimal() | {"train": {"eps1": 2.0, "eps2": 1.0}}
+    with pytest.raises(ParamsError, match="eps1"):
+        load_params(_write(tmp_path, raw), "a")
+    raw = _minimal()
+    del raw["profiles"]["q"]["train"]
+    with pytest.raises(ParamsError, match="missing"):
+        load_params(_write(tmp_path, raw))
+
+
+def test_register_section_is_the_registration_attribute(tmp_path):
+    raw = _minimal() | {"register": {"min_score": 0.7}}
+    assert load_params(_write(tmp_path, raw)).registration.min_score == 0.7
+
+
+def test_unknown_part_and_missing_file(tmp_path):
+    with pytest.raises(ParamsError, match="not listed"):
+        load_params(_write(tmp_path, _minimal()), "zzz")
+    with pytest.raises(InputError, match="not found"):
+        load_params(tmp_path / "nope.yaml")
