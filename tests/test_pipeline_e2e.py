@@ -1,0 +1,79 @@
+"""The whole pipeline through the Prefect demo flow driving DVC, on a copy of the project with a
+tiny profile: every stage runs for real, `dvc status` is clean afterwards, a deleted output is
+restored by `dvc repro`."""
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import yaml
+
+from tests.conftest import ROOT
+
+TINY = {
+    "ingest": {"n_surface_points": 8000},
+    "camera": {"downscale": 8},
+    "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "workers": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
+    "train": {"n_points": 512, "width": 8, "embedding_dim": 8, "k_neighbours": 8, "epochs": 2, "batch_size": 2, "loss_anchors": 128},
+    "evaluate": {},
+    "scene_import": {},
+    "segment": {"n_points": 512},
+    "register": {},
+    "demo_capture": {"n_objects": 4, "downscale": 4},
+}
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory):
+    root = tmp_path_factory.mktemp("project")
+    for name in ("binpick", "stages", "flows", ".dvc"):
+        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache"))
+    for name in ("dvc.yaml", "pyproject.toml", ".gitignore"):
+        shutil.copy(ROOT / name, root / name)
+    (root / "data" / "parts").mkdir(parents=True)
+    shutil.copy(ROOT / "data" / "parts" / "t_joint.stl", root / "data" / "parts")
+    params = yaml.safe_load((ROOT / "params.yaml").read_text())
+    params["profiles"]["tiny"] = TINY
+    params["profile"] = "tiny"
+    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    subprocess.run(["git", "init", "-q"], cwd=root, check=True)
+    return root
+
+
+def _dvc(root, *args):
+    from flows.dvc_tasks import dvc_env
+
+    return subprocess.run([sys.executable, "-m", "dvc", *args], cwd=root, env=dvc_env(), capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_demo_flow_runs_every_stage_and_dvc_is_clean_after(project):
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.pipeline import demo
+
+    with prefect_test_harness(server_startup_timeout=120):
+        results = demo(project)
+
+    ingest = json.loads((project / "data/metrics/t_joint/ingest.json").read_text())
+    assert np.isclose(ingest["diameter_mm"], 68.352, atol=0.01)  # the built part's known diameter
+    assert results["evaluate"]["n_scenes"] == 2
+    # The demo capture: its floor plane is the bin floor, 0.5 m below the camera.
+    assert abs(results["import"]["floor_plane_d"] - 0.5) < 0.003
+    truth = json.loads((project / "data/captures/demo/truth.json").read_text())
+    assert len(truth["poses"]) == 4
+    assert results["register"]["n_ground_truth"] == 4
+    assert (project / "data/results/demo/scene.rrd").stat().st_size > 0
+    assert (project / "data/fpcc/t_joint/model.pt").is_file()
+
+    status = _dvc(project, "status")
+    assert status.returncode == 0 and "up to date" in status.stdout, status.stdout + status.stderr
+
+    (project / "data/results/demo/poses.json").unlink()
+    rerun = _dvc(project, "repro")
+    assert rerun.returncode == 0, rerun.stderr
+    assert (project / "data/results/demo/poses.json").is_file()
+    assert "Running stage 'train@t_joint'" not in rerun.stdout  # only the missing output's stage ran
