@@ -16,7 +16,7 @@ from binpick.io.part_model import load_part_model
 from binpick.io.ppf_model import load_ppf_model
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params, load_params
-from binpick.registration.ppf import match_segment
+from binpick.registration.ppf import PoseEstimate, match_segment, suppress_duplicates
 from binpick.seeding import derive_seed
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 from stages.recording import write_scene_recording
@@ -45,7 +45,7 @@ def run(
     ppf = load_ppf_model(ppf_path)
     part = load_part_model(part_model_path)
     rng = np.random.default_rng(derive_seed(params.seed, "register", name))
-    estimates: list[PoseRecord] = []
+    found: list[tuple[int, PoseEstimate]] = []
     per_instance_ms: list[float] = []
     t0 = time.perf_counter()
     for seg in range(int(labels.max()) + 1 if len(labels) else 0):
@@ -54,13 +54,16 @@ def run(
         est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params.registration, rng)
         per_instance_ms.append(1000.0 * (time.perf_counter() - t))
         if est is not None and est.score >= params.registration.min_score:
-            estimates.append(PoseRecord(est.T_cam_from_model, est.score, seg))
+            found.append((seg, est))
+    kept = suppress_duplicates(ppf, [e for _, e in found], params.registration)
+    estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
     register_s = time.perf_counter() - t0
     save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
         "register_s": register_s,
         "ms_per_instance_median": float(np.median(per_instance_ms)) if per_instance_ms else 0.0,
         "n_segments": float(len(per_instance_ms)),
+        "n_duplicates_suppressed": float(len(found) - len(kept)),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }

@@ -49,3 +49,13 @@ def test_score_drops_for_a_wrong_pose(t_joint, ppf):
     # About z: the main pipe lies along x, and turning about x would map it onto itself.
     wrong = score_pose(ppf, T @ make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.6), np.zeros(3)), visible, 0.0015)
     assert good > 0.9 and wrong < 0.5
+
+
+def test_duplicate_poses_are_suppressed_up_to_symmetry(ppf):
+    from binpick.registration.ppf import PoseEstimate, suppress_duplicates
+
+    T = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
+    twin = T @ ppf.symmetries[1]  # the same physical pose, written the other way round
+    other = make_T(np.eye(3), np.array([0.1, 0.0, 0.5]))
+    ests = [PoseEstimate(twin, 0.6, 10), PoseEstimate(T, 0.7, 10), PoseEstimate(other, 0.5, 10)]
+    assert suppress_duplicates(ppf, ests, RegisterParams()) == [1, 2]

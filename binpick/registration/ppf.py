@@ -196,20 +196,19 @@ def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params
     strongest first."""
     order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])
     trans_thr = params.cluster_translation_rel * model.diameter_m
-    reps: list[np.ndarray] = []  # (m, 4, 4) symmetric twins of each cluster's best pose
+    reps: list[np.ndarray] = []  # the best pose of each cluster
     votes: list[float] = []
     for k in order:
         T, v = candidates[k]
-        for c, twins in enumerate(reps):
-            close_t = np.linalg.norm(twins[:, :3, 3] - T[:3, 3], axis=1) < trans_thr
-            if close_t.any() and (rotation_angle_deg(twins[close_t, :3, :3], T[:3, :3]) < params.cluster_rotation_deg).any():
+        for c, rep in enumerate(reps):
+            if same_pose(model, rep, T, params.cluster_rotation_deg, trans_thr):
                 votes[c] += v
                 break
         else:
-            reps.append(T[None] @ model.symmetries)
+            reps.append(T)
             votes.append(v)
     ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
-    return [(reps[c][0], votes[c]) for c in ranked]
+    return [(reps[c], votes[c]) for c in ranked]
 
 
 def score_pose(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float) -> float:
@@ -281,3 +280,23 @@ def match_segment(
         if best is None or score > best.score:
             best = PoseEstimate(T_cam_from_model=T, score=score, votes=votes)
     return best
+
+
+def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
+    """Whether two poses of the part agree within the thresholds, up to the part's symmetries."""
+    twins = T_a[None] @ model.symmetries
+    close_t = np.linalg.norm(twins[:, :3, 3] - T_b[:3, 3], axis=1) < translation_m
+    return bool(close_t.any() and (rotation_angle_deg(twins[close_t, :3, :3], T_b[:3, :3]) < rotation_deg).any())
+
+
+def suppress_duplicates(model: PPFModel, estimates: list[PoseEstimate], params: RegisterParams) -> list[int]:
+    """Indices of the estimates kept by non-maximum suppression, best score first: an estimate
+    that repeats the pose of a better one (one part split into two segments) is dropped."""
+    order = sorted(range(len(estimates)), key=lambda k: -estimates[k].score)
+    kept: list[int] = []
+    trans_thr = params.cluster_translation_rel * model.diameter_m
+    for k in order:
+        T = estimates[k].T_cam_from_model
+        if not any(same_pose(model, estimates[j].T_cam_from_model, T, params.cluster_rotation_deg, trans_thr) for j in kept):
+            kept.append(k)
+    return kept
