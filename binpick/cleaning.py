@@ -10,6 +10,7 @@ import numpy as np
 
 from binpick.errors import BinpickError
 from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, statistical_outliers, voxel_downsample_indices
+from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.params import SceneImportParams
 
@@ -33,27 +34,32 @@ def clean_capture(
     rgb   : (n, 3) uint8 or None.
     Raises BinpickError when nothing usable is left or the scene is implausibly large.
     """
-    xyz = np.asarray(xyz_m, dtype=np.float64)
+    xyz = np.asarray(xyz_m)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"expected xyz (n, 3), got {xyz.shape}")
-    n_total = len(xyz)
-    index = np.arange(n_total)
-    valid = np.all(np.isfinite(xyz), axis=1)
-    if not valid.any():
+    # Work on valid pixels only from here: a Zivid frame is millions of pixels, many empty.
+    index = np.flatnonzero(np.isfinite(xyz).all(axis=1))
+    if len(index) == 0:
         raise BinpickError("the capture holds no valid point (all NaN or empty)")
-    rng_m = np.linalg.norm(np.where(valid[:, None], xyz, 0.0), axis=1)
-    extent = float(np.max(np.ptp(xyz[valid], axis=0)))
+    xyz = xyz[index].astype(np.float64)
+    lo, hi = xyz.min(axis=0), xyz.max(axis=0)
+    extent = float(np.max(hi - lo))
     if extent > params.max_scene_extent_m:
         raise BinpickError(
             f"the scene is {extent:.4g} m across, more than max_scene_extent_m={params.max_scene_extent_m}: "
             "is the unit right (millimetres read as metres)?"
         )
-    keep = valid & (rng_m >= params.min_range_m) & (rng_m <= params.max_range_m)
+    range2 = np.einsum("ij,ij->i", xyz, xyz)
+    keep = (range2 >= params.min_range_m**2) & (range2 <= params.max_range_m**2)
     if params.roi_min_m is not None and params.roi_max_m is not None:
-        keep &= np.all((xyz >= params.roi_min_m) & (xyz <= params.roi_max_m), axis=1)
+        in_roi = xyz
+        if params.T_cam_from_roi is not None:
+            in_roi = transform_points(invert_T(np.asarray(params.T_cam_from_roi, dtype=np.float64)), xyz)
+        keep &= np.all((in_roi >= params.roi_min_m) & (in_roi <= params.roi_max_m), axis=1)
     if int(keep.sum()) < MIN_POINTS:
         raise BinpickError(f"only {int(keep.sum())} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
     pts, idx = xyz[keep], index[keep]
+    del xyz
     # The voxel grid comes first: planes are fitted at the density the segmentation works at,
     # shares are shares of that, and RANSAC runs on thousands instead of millions of points.
     sub = voxel_downsample_indices(pts, params.voxel_size_m)
@@ -62,11 +68,13 @@ def clean_capture(
 
     floor = np.full(4, np.nan)
     removed_floor = 0
-    plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed)
+    plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed, params.plane_ransac_confidence)
     if plane[3] < 0:  # orient the normal toward the camera at the origin
         plane = -plane
     behind = np.mean(pts @ plane[:3] + plane[3] < -params.plane_threshold_m)
-    if inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION:
+    # |d| is the camera's distance to the plane: a plane through (or near) the camera is a fan of
+    # rays (a few image rows), never a surface something rests on.
+    if inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION and plane[3] >= params.min_range_m:
         floor = plane
         above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
         removed_floor = int((~above).sum())
@@ -74,8 +82,8 @@ def clean_capture(
         log.info("floor plane %s removed %.1f%% of the points", np.round(plane, 4).tolist(), 100.0 * removed_floor / n_valid)
     else:
         log.warning(
-            "no support plane found (best plane holds %.1f%% of the points, %.1f%% lie behind it); nothing removed",
-            100 * inliers.mean(), 100 * behind,
+            "no support plane found (best plane holds %.1f%% of the points, %.1f%% lie behind it, %.3f m from the camera); nothing removed",
+            100 * inliers.mean(), 100 * behind, plane[3],
         )
 
     walls: list[np.ndarray] = []
@@ -84,7 +92,7 @@ def clean_capture(
         for w in range(params.max_walls):
             if len(pts) < MIN_POINTS:
                 break
-            plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w)
+            plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence)
             if inliers.sum() < params.wall_min_fraction * n_valid or abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR:
                 break
             walls.append(plane)

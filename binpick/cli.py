@@ -14,6 +14,8 @@ from binpick.errors import BinpickError
 from binpick.log import setup_logging
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=__doc__)
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each writes its measurements as JSON.")
+app.add_typer(bench_app, name="bench")
 log = logging.getLogger("binpick")
 
 
@@ -90,6 +92,19 @@ def demo() -> None:
 
 
 @app.command()
+def capture(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = typer.Option(Path("params.yaml"))) -> None:
+    """Take one frame from a connected Zivid camera (needs the zivid package)."""
+    from binpick.params import load_params
+    from stages.capture import run
+
+    try:
+        H, W = run(load_params(params), out)
+    except BinpickError as exc:
+        _fail(str(exc))
+    typer.echo(f"wrote {out} ({W} x {H})")
+
+
+@app.command()
 def review(capture: str = typer.Option("demo", help="capture whose recording to show")) -> None:
     """Print the commands that open the latest run in the MLflow UI and the rerun viewer."""
     root = project_root()
@@ -98,6 +113,24 @@ def review(capture: str = typer.Option("demo", help="capture whose recording to 
         _fail(f"{rrd}: no recording yet (run `make demo` or `dvc repro register@{capture}` first)")
     for cmd in review_commands(root, capture):
         typer.echo(cmd)
+
+
+def _write_json(out: Path, result: dict) -> None:
+    import json
+
+    from binpick.io.atomic import write_text
+
+    write_text(out, json.dumps(result, indent=1, sort_keys=True) + "\n")
+    typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, dict)}, indent=1, sort_keys=True))
+    typer.echo(f"wrote {out}")
+
+
+@bench_app.command("import")
+def bench_import_cmd(out: Path = typer.Option(..., help="JSON file to write"), repeats: int = typer.Option(7, min=1)) -> None:
+    """Import + clean + downsample of a full 1920 x 1200 organized frame (PLY, PCD, ZDF)."""
+    from binpick.bench.importing import bench_import
+
+    _write_json(out, bench_import(repeats))
 
 
 if __name__ == "__main__":

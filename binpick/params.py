@@ -13,6 +13,7 @@ import copy
 from pathlib import Path
 from typing import Any, Literal
 
+import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -80,6 +81,13 @@ class CaptureParams(_Strict):
     part: str
     unit: Literal["mm", "m", "in"] = "mm"
     truth: str = ""
+    # Text captures: names of the columns (x, y, z, r, g, b, nx, ny, nz; others are ignored).
+    columns: list[str] = ["x", "y", "z"]
+    # Depth images: a JSON file with fx, fy, cx, cy in pixels ('' for other formats).
+    intrinsics: str = ""
+    # Overrides of the scene_import section for this capture's sensor (noisier sensors need wider
+    # plane thresholds).
+    scene_import: dict[str, Any] = {}
 
 
 class IngestParams(_Strict):
@@ -183,11 +191,23 @@ class EvaluateParams(_Strict):
 class SceneImportParams(_Strict):
     min_range_m: float = Field(0.2, ge=0)
     max_range_m: float = Field(2.0, gt=0)
-    # Region of interest in the camera frame; null = no crop.
+    # Region of interest: a box from roi_min_m to roi_max_m, in the camera frame, or in the frame
+    # given by T_cam_from_roi (4 x 4, row-major rows; e.g. the bin frame); null = no crop.
     roi_min_m: tuple[float, float, float] | None = None
     roi_max_m: tuple[float, float, float] | None = None
+    T_cam_from_roi: tuple[tuple[float, float, float, float], ...] | None = None
+
+    @field_validator("T_cam_from_roi")
+    @classmethod
+    def _rigid(cls, T):
+        if T is not None:
+            M = np.asarray(T, dtype=float)
+            if M.shape != (4, 4) or not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(M[3], [0, 0, 0, 1]):
+                raise ValueError("T_cam_from_roi must be a 4 x 4 rigid transform")
+        return T
     plane_threshold_m: float = Field(0.003, gt=0)
     plane_ransac_iterations: int = Field(1000, ge=10)
+    plane_ransac_confidence: float = Field(0.9999, gt=0, lt=1, description="RANSAC stops once this sure")
     remove_walls: bool = True
     max_walls: int = Field(4, ge=0)
     wall_min_fraction: float = Field(0.02, ge=0, le=1, description="smallest wall, share of points")
@@ -230,6 +250,16 @@ class DemoCaptureParams(_Strict):
     downscale: int = Field(1, ge=1, description="replaces camera.downscale for the demo capture")
 
 
+class CaptureSettings(_Strict):
+    """Zivid capture settings (one acquisition)."""
+
+    serial: str = Field("", description="camera serial number; '' = the first camera found")
+    exposure_time_us: float = Field(10000.0, gt=0)
+    aperture: float = Field(5.66, gt=0, description="f-number")
+    brightness: float = Field(1.0, ge=0)
+    gain: float = Field(1.0, gt=0)
+
+
 class TrackingParams(_Strict):
     # null: a sqlite store in the project (mlflow.db). Any MLflow URI otherwise.
     mlflow_uri: str | None = None
@@ -249,6 +279,7 @@ class Params(_Strict):
     segment: SegmentParams = SegmentParams()
     registration: RegisterParams = Field(RegisterParams(), alias="register")
     demo_capture: DemoCaptureParams = DemoCaptureParams()
+    capture: CaptureSettings = CaptureSettings()
     tracking: TrackingParams = TrackingParams()
 
     @field_validator("parts")
@@ -258,6 +289,15 @@ class Params(_Strict):
             if not name.replace("_", "").replace("-", "").isalnum():
                 raise ValueError(f"part name {name!r} may hold only letters, digits, '_' and '-'")
         return parts
+
+    def scene_import_for(self, capture: str | None) -> SceneImportParams:
+        """The scene_import section with a listed capture's own overrides applied."""
+        if not capture or not self.captures[capture].scene_import:
+            return self.scene_import
+        try:
+            return SceneImportParams.model_validate(deep_merge(self.scene_import.model_dump(), self.captures[capture].scene_import))
+        except ValidationError as exc:
+            raise ParamsError(f"captures.{capture}.scene_import: {_one_line(exc)}") from None
 
     @model_validator(mode="after")
     def _captures_name_parts(self) -> Params:

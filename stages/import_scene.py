@@ -10,7 +10,7 @@ from pathlib import Path
 
 from binpick.cleaning import clean_capture
 from binpick.errors import BinpickError
-from binpick.io.capture import load_capture
+from binpick.io.capture import DEFAULT_TEXT_COLUMNS, ImportOptions, load_capture
 from binpick.io.cloud import save_cloud
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int
@@ -19,11 +19,13 @@ from stages.common import entry, parser, start, write_metrics
 log = logging.getLogger("binpick.stage.import_scene")
 
 
-def run(params: Params, capture_path: Path, unit: str, out: Path, metrics_path: Path | None = None) -> dict[str, float]:
+def run(
+    params: Params, capture_path: Path, options: ImportOptions, out: Path, metrics_path: Path | None = None, name: str | None = None
+) -> dict[str, float]:
     t0 = time.perf_counter()
-    capture = load_capture(capture_path, unit)
+    capture = load_capture(capture_path, options)
     try:
-        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.scene_import, derive_int(params.seed, "import", str(capture_path)))
+        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.scene_import_for(name), derive_int(params.seed, "import", str(capture_path)))
     except BinpickError as exc:
         raise BinpickError(f"{capture_path}: {exc}") from None
     save_cloud(out, cloud)
@@ -45,13 +47,24 @@ def run(params: Params, capture_path: Path, unit: str, out: Path, metrics_path: 
 @entry
 def main(argv: Sequence[str] | None = None) -> int:
     p = parser(__doc__)
-    p.add_argument("--capture", required=True, type=Path, help="capture file (.ply)")
-    p.add_argument("--unit", default="mm", help="unit of the capture's coordinates (default mm, as Zivid writes)")
+    p.add_argument("--name", default="", help="a capture listed in params.yaml: its unit, columns and intrinsics apply")
+    p.add_argument("--capture", required=True, type=Path, help="capture file (.ply, .pcd, .zdf, .csv/.xyz, depth .png)")
+    p.add_argument("--unit", help="unit of the coordinates or depth values (default mm, as Zivid writes)")
+    p.add_argument("--columns", help=f"text captures: column names (default {','.join(DEFAULT_TEXT_COLUMNS)}), e.g. x,y,z,r,g,b,_")
+    p.add_argument("--intrinsics", help="depth images: JSON file with fx, fy, cx, cy")
     p.add_argument("--out", required=True, type=Path, help="clean cloud to write (.npz)")
     p.add_argument("--metrics", type=Path)
     args = p.parse_args(argv)
     start(args)
-    run(load_params(args.params), args.capture, args.unit, args.out, args.metrics)
+    params = load_params(args.params)
+    listed = params.captures.get(args.name) if args.name else None
+    if args.name and listed is None:
+        raise BinpickError(f"{args.params}: capture {args.name!r} is not listed under 'captures'")
+    unit = args.unit or (listed.unit if listed else "mm")
+    columns = args.columns.split(",") if args.columns else (listed.columns if listed else list(DEFAULT_TEXT_COLUMNS))
+    intrinsics = args.intrinsics or (listed.intrinsics if listed else "")
+    options = ImportOptions(unit=unit, columns=tuple(c.strip() for c in columns), intrinsics=Path(intrinsics) if intrinsics else None)
+    run(params, args.capture, options, args.out, args.metrics, args.name or None)
     return 0
 
 

@@ -68,9 +68,9 @@ def test_bad_capture_files(tmp_path):
     (tmp_path / "cut.ply").write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match="cut.ply"):
         load_capture(tmp_path / "cut.ply", "mm")
-    (tmp_path / "x.txt").write_text("1 2 3")
+    (tmp_path / "x.step").write_text("ISO-10303-21;")
     with pytest.raises(InputError, match="unsupported capture format"):
-        load_capture(tmp_path / "x.txt", "mm")
+        load_capture(tmp_path / "x.step", "mm")
     with pytest.raises(InputError, match="not found"):
         load_capture(tmp_path / "none.ply", "mm")
 
@@ -89,3 +89,18 @@ def test_cloud_and_pose_files_roundtrip(tmp_path):
     (tmp_path / "bad.json").write_text('{"part": "x"}')
     with pytest.raises(InputError, match="bad.json"):
         load_poses(tmp_path / "bad.json")
+
+
+def test_region_of_interest_in_a_bin_frame():
+    from binpick.generation.bin import T_bin_from_cam
+    from binpick.geometry.transforms import invert_T
+
+    xyz, on_box = _bin_frame()
+    T_cam_bin = invert_T(T_bin_from_cam(0.5))  # bin floor 0.5 m below the camera, z up
+    roi = SceneImportParams(roi_min_m=(-0.02, -0.05, -0.01), roi_max_m=(0.05, 0.05, 0.1), T_cam_from_roi=tuple(map(tuple, T_cam_bin)))
+    cloud = clean_capture(xyz, None, (240, 320), roi, 0)
+    # Only the box top (30 mm above the floor) between x = -20 and +30 mm of the bin frame is left.
+    x_bin = cloud.points_m[:, 0]  # the camera's x is the bin's x
+    assert on_box[cloud.pixel_index].all() and x_bin.min() > -0.0205 and x_bin.max() < 0.0305
+    with pytest.raises(ValueError, match="rigid"):
+        SceneImportParams(T_cam_from_roi=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))

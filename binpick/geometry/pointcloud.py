@@ -56,22 +56,34 @@ def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray 
     return n.astype(np.float32)
 
 
+# RANSAC scores its hypotheses on at most this many points; inliers and the final fit use all.
+RANSAC_MAX_POINTS = 5000
+
+
 def fit_plane_ransac(
-    points: np.ndarray, threshold_m: float, iterations: int, seed: int
+    points: np.ndarray, threshold_m: float, iterations: int, seed: int, confidence: float = 0.9999
 ) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC plane (Open3D). Returns (plane (4,) a, b, c, d with unit normal and
-    a x + b y + c z + d = 0, inlier mask (n,) bool)."""
+    """RANSAC plane (Open3D, stopping early once `confidence` is reached, on a random subset of
+    at most RANSAC_MAX_POINTS points), refined by least squares on its inliers among all points.
+    Returns (plane (4,) a, b, c, d with unit normal and a x + b y + c z + d = 0, inlier mask (n,))."""
     points = _check_points(points)
     if len(points) < 3:
         raise ValueError("a plane needs at least 3 points")
+    rng = np.random.default_rng(seed)
+    subset = points if len(points) <= RANSAC_MAX_POINTS else points[rng.choice(len(points), RANSAC_MAX_POINTS, replace=False)]
     o3d.utility.random.seed(int(seed))
-    plane, inliers = _o3d_cloud(points).segment_plane(
-        distance_threshold=threshold_m, ransac_n=3, num_iterations=iterations
+    plane, _ = _o3d_cloud(subset).segment_plane(
+        distance_threshold=threshold_m, ransac_n=3, num_iterations=iterations, probability=confidence
     )
     plane = np.asarray(plane, dtype=np.float64)
     plane /= np.linalg.norm(plane[:3])
-    mask = np.zeros(len(points), dtype=bool)
-    mask[np.asarray(inliers, dtype=np.int64)] = True
+    inl = np.asarray(points[np.abs(points @ plane[:3] + plane[3]) <= threshold_m], dtype=np.float64)
+    if len(inl) >= 3:
+        centre = inl.mean(axis=0)
+        normal = np.linalg.svd(inl - centre, full_matrices=False)[2][2]
+        normal *= np.sign(normal @ plane[:3]) or 1.0
+        plane = np.append(normal, -normal @ centre)
+    mask = np.abs(points @ plane[:3] + plane[3]) <= threshold_m
     return plane, mask
 
 

@@ -1,0 +1,38 @@
+"""Benchmarks behind `binpick bench ...`: each measures one stage's targets and returns a JSON-able
+dict. Speed targets live here, never in timed tests."""
+
+from __future__ import annotations
+
+import os
+import platform
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+
+def machine() -> dict[str, object]:
+    import torch
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+
+
+def timed(fn: Callable[[], object], repeats: int) -> tuple[list[float], object]:
+    """Run fn `repeats` times; seconds of each run and the last result."""
+    seconds, result = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        result = fn()
+        seconds.append(time.perf_counter() - t0)
+    return seconds, result
+
+
+def summary(seconds: list[float], prefix: str, scale: float = 1.0) -> dict[str, float]:
+    a = np.asarray(seconds) * scale
+    return {f"{prefix}_median": float(np.median(a)), f"{prefix}_p90": float(np.percentile(a, 90)), f"{prefix}_min": float(a.min())}
