@@ -133,5 +133,96 @@ def bench_import_cmd(out: Path = typer.Option(..., help="JSON file to write"), r
     _write_json(out, bench_import(repeats))
 
 
+@bench_app.command("generate")
+def bench_generate_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    scenes: int = typer.Option(3, min=1, help="scenes per part and object count"),
+    baseline_scenes: int = typer.Option(2, min=1, help="baseline scenes per part and object count"),
+    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+) -> None:
+    """Placement + 1920 x 1200 rendering against the original rejection sampling, at 5, 10, 20 objects."""
+    from binpick.bench.generation import bench_generate
+
+    try:
+        result = bench_generate(part or None, scenes, baseline_scenes)
+    except ValueError as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+@bench_app.command("segment")
+def bench_segment_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    part: str = typer.Option("t_joint", help="a trained part (its checkpoint and generated scenes)"),
+    checkpoint: Path = typer.Option(None, help="default: data/fpcc/<part>/model.pt"),
+    scenes: Path = typer.Option(None, help="default: data/scenes/<part>"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """FPCC precision/recall against DBSCAN on held-out scenes, inference time, training throughput."""
+    from binpick.bench.segmentation import bench_segment
+    from binpick.params import load_params
+
+    root = project_root()
+    try:
+        p = load_params(params, part)
+        result = bench_segment(
+            checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part,
+            p.segment, p.scene_import.voxel_size_m,
+        )
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, {"part": part, **result})
+
+
+@app.command("eval-labels")
+def eval_labels(
+    pred: Path = typer.Option(..., help="labelled scene to evaluate (text)"),
+    gt: Path = typer.Option(..., help="ground-truth labelled scene (text)"),
+    pred_columns: str = typer.Option("x,y,z,label", help="e.g. x,y,z,label or x,y,z,score,label"),
+    gt_columns: str = typer.Option("x,y,z,label"),
+    unit: str = typer.Option("m", help="unit of both files' coordinates"),
+    match_distance_m: float = typer.Option(0.001, help="a predicted point labels the ground-truth point this close"),
+    iou: float = typer.Option(0.5, help="IoU threshold of a match"),
+) -> None:
+    """Evaluate a foreign tool's labelled scene against ground truth with this project's metrics."""
+    import json
+
+    from binpick.io.labelled import load_labelled, transfer_labels
+    from binpick.metrics.segmentation import scene_counts
+
+    try:
+        p = load_labelled(pred, tuple(c.strip() for c in pred_columns.split(",")), unit)
+        g = load_labelled(gt, tuple(c.strip() for c in gt_columns.split(",")), unit)
+    except BinpickError as exc:
+        _fail(str(exc))
+    labels = transfer_labels(p.points_m, p.labels, g.points_m, match_distance_m)
+    typer.echo(json.dumps(scene_counts(labels, g.labels, iou).summary(), indent=1, sort_keys=True))
+
+
+@bench_app.command("ppf")
+def bench_ppf_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    trials: int = typer.Option(20, min=1, help="views per part"),
+    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+    method: list[str] = typer.Option(None, help="methods to run (default: all)"),
+) -> None:
+    """PPF registration against OpenCV PPF + ICP and Open3D FPFH + RANSAC + ICP on the same views."""
+    from binpick.bench.ppf import METHODS, bench_ppf
+
+    for m in method or []:
+        if m not in METHODS:
+            _fail(f"unknown method {m!r} (have: {', '.join(METHODS)})")
+    if "opencv_ppf_icp" in (method or METHODS):
+        try:
+            import cv2  # noqa: F401
+        except ImportError:
+            _fail("the OpenCV peer needs opencv-contrib-python-headless: pip install -e .[bench]")
+    try:
+        result = bench_ppf(part or None, trials, method or None)
+    except ValueError as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
 if __name__ == "__main__":
     app()

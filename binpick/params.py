@@ -49,6 +49,9 @@ class SymmetryParams(_Strict):
     order: int = Field(1, ge=1, description="n of an n-fold symmetry (rotations by 360/n deg)")
     # A point on the symmetry axis, model frame, metres. The axis passes through it.
     origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # A second, two-fold axis through origin_m, perpendicular to `axis`, for parts whose two faces
+    # are alike (a nut, a washer): the group is then dihedral. null = none.
+    flip_axis: tuple[float, float, float] | None = None
 
     @model_validator(mode="after")
     def _check(self) -> SymmetryParams:
@@ -56,6 +59,12 @@ class SymmetryParams(_Strict):
             raise ValueError("an n_fold symmetry needs order >= 2")
         if sum(a * a for a in self.axis) < 1e-12:
             raise ValueError("symmetry axis must not be zero")
+        if self.flip_axis is not None:
+            a, f = np.asarray(self.axis, float), np.asarray(self.flip_axis, float)
+            if np.linalg.norm(f) < 1e-12 or abs(a @ f) > 1e-6 * np.linalg.norm(a) * np.linalg.norm(f):
+                raise ValueError("flip_axis must be non-zero and perpendicular to axis")
+            if self.kind == "none":
+                raise ValueError("flip_axis needs kind n_fold or revolution")
         return self
 
 
@@ -238,6 +247,7 @@ class RegisterParams(_Strict):
     cluster_rotation_deg: float = Field(15.0, gt=0)
     cluster_translation_rel: float = Field(0.1, gt=0)
     icp_iterations: int = Field(30, ge=0)
+    refine_step_rel: float = Field(0.02, gt=0, description="grid of the points ICP and scoring use, share of diameter")
     score_inlier_rel: float = Field(0.02, gt=0, description="scene point within this of the model counts")
     min_score: float = Field(0.3, ge=0, le=1)
 

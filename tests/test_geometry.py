@@ -76,3 +76,14 @@ def test_kernels_reject_bad_shapes():
         transform_points(np.eye(4), np.zeros((3, 2)))
     with pytest.raises(ValueError):
         voxel_downsample_indices(np.zeros(3), 0.1)
+
+
+def test_dihedral_symmetry_group():
+    S = symmetry_transforms(SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=6, flip_axis=(1, 0, 0)))
+    assert S.shape == (12, 4, 4)
+    # A group: closed under composition.
+    for a in S:
+        for b in S:
+            assert min(np.abs(a @ b - c).max() for c in S) < 1e-9
+    with pytest.raises(ValueError, match="perpendicular"):
+        SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=6, flip_axis=(0, 1, 1))

@@ -2,7 +2,7 @@ import numpy as np
 
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T
-from binpick.metrics.pose import add, add_s, mssd, pose_errors, rotation_error_deg, scene_pose_metrics
+from binpick.metrics.pose import add, add_s, mssd, pose_errors, rotation_error_deg, scene_pose_metrics, translation_error_m
 from binpick.metrics.segmentation import iou_matrix, scene_counts
 from binpick.params import SymmetryParams
 
@@ -37,6 +37,7 @@ def test_pose_errors_recover_known_offsets():
     T = make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.3), np.array([0.0, 0.0, 0.5]))
     shifted = T.copy()
     shifted[:3, 3] += [0.002, 0.0, 0.0]
+    assert np.isclose(translation_error_m(shifted, T, np.array([5.0, 0, 0])), 0.002)  # a pure shift moves every point alike
     assert np.isclose(add(shifted, T, pts), 0.002)
     rotated = T @ make_T(axis_angle_to_R(np.array([1.0, 0, 0]), np.radians(10)), np.zeros(3))
     assert np.isclose(rotation_error_deg(rotated, T), 10.0)
@@ -65,3 +66,21 @@ def test_scene_matching_counts_found_parts():
     summary, per = scene_pose_metrics(ests, gts, np.array([1.0, 0.2, 0.9]), pts, np.eye(4)[None], 0.05)
     assert summary["n_pickable"] == 2 and summary["pose_recall"] == 1.0 and summary["pose_precision"] == 1.0
     assert per[0]["gt_index"] == 2 and np.isclose(per[0]["trans_err_mm"], 1.0)
+
+
+def test_foreign_labelled_scenes_are_evaluated(tmp_path):
+    from binpick.io.labelled import LAYOUTS, load_labelled, transfer_labels
+
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 100, (300, 3))  # millimetres
+    gt = (pts[:, 0] > 50).astype(int)
+    np.savetxt(tmp_path / "gt.txt", np.column_stack([pts, gt]))
+    pred = gt.copy()
+    pred[:30] = -1  # a tool that left some points out
+    np.savetxt(tmp_path / "pred.txt", np.column_stack([pts, rng.random(300), pred]))
+    g = load_labelled(tmp_path / "gt.txt", LAYOUTS["x y z label"], "mm")
+    p = load_labelled(tmp_path / "pred.txt", LAYOUTS["x y z score label"], "mm")
+    assert np.allclose(g.points_m, pts / 1000) and p.scores is not None
+    labels = transfer_labels(p.points_m, p.labels, g.points_m, 1e-6)
+    c = scene_counts(labels, g.labels, 0.5).summary()
+    assert c["precision"] == 1.0 and c["recall"] == 1.0 and c["mean_coverage"] < 1.0

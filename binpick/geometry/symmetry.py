@@ -21,8 +21,8 @@ def symmetry_transforms(symmetry: SymmetryParams, revolution_steps: int = REVOLU
         return np.eye(4)[None]
     n = symmetry.order if symmetry.kind == "n_fold" else revolution_steps
     origin = np.asarray(symmetry.origin_m, dtype=np.float64)
-    out = np.empty((n, 4, 4))
-    for i in range(n):
-        R = axis_angle_to_R(np.asarray(symmetry.axis), 2.0 * np.pi * i / n)
-        out[i] = make_T(R, origin - R @ origin)
-    return out
+    rotations = [axis_angle_to_R(np.asarray(symmetry.axis), 2.0 * np.pi * i / n) for i in range(n)]
+    if symmetry.flip_axis is not None:
+        flip = axis_angle_to_R(np.asarray(symmetry.flip_axis), np.pi)
+        rotations += [R @ flip for R in rotations]
+    return np.stack([make_T(R, origin - R @ origin) for R in rotations])

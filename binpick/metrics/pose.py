@@ -19,11 +19,13 @@ def rotation_error_deg(T_est: np.ndarray, T_gt: np.ndarray, symmetries: np.ndarr
     return float(rotation_angle_deg(np.broadcast_to(T_est[:3, :3], R_gt.shape), R_gt).min())
 
 
-def translation_error_m(T_est: np.ndarray, T_gt: np.ndarray, symmetries: np.ndarray | None = None) -> float:
-    """Smallest distance between estimated and true translations over symmetric twins."""
-    syms = np.eye(4)[None] if symmetries is None else symmetries
-    t_gt = (T_gt[None] @ syms)[:, :3, 3]
-    return float(np.linalg.norm(t_gt - T_est[:3, 3], axis=1).min())
+def translation_error_m(T_est: np.ndarray, T_gt: np.ndarray, centre_m: np.ndarray | None = None) -> float:
+    """Distance between the estimated and the true position of the part's centre (model frame
+    point `centre_m`, default the model origin). A CAD origin can lie far from the part, where
+    it would turn a small rotation error into a large 'translation' error; symmetries leave the
+    centre where it is."""
+    c = np.zeros(3) if centre_m is None else np.asarray(centre_m, dtype=np.float64)
+    return float(np.linalg.norm((T_est[:3, :3] @ c + T_est[:3, 3]) - (T_gt[:3, :3] @ c + T_gt[:3, 3])))
 
 
 def add(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray) -> float:
@@ -49,11 +51,12 @@ def mssd(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray, symmetri
 def pose_errors(
     T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray, symmetries: np.ndarray, diameter_m: float
 ) -> dict[str, float]:
-    """All errors of one estimate. ADD-S replaces ADD for symmetric parts (more than one symmetry)."""
+    """All errors of one estimate. ADD-S replaces ADD for symmetric parts (more than one symmetry);
+    the translation error is that of the centre of the model points."""
     symmetric = len(symmetries) > 1
     add_value = add_s(T_est, T_gt, model_points) if symmetric else add(T_est, T_gt, model_points)
     rot = rotation_error_deg(T_est, T_gt, symmetries)
-    trans = translation_error_m(T_est, T_gt, symmetries)
+    trans = translation_error_m(T_est, T_gt, model_points.mean(axis=0))
     return {
         "rot_err_deg": rot,
         "trans_err_mm": 1000.0 * trans,

@@ -34,7 +34,8 @@ class PPFModel:
 
     points_m (M, 3), normals (M, 3): subsampled model surface, model frame.
     keys (P,) int64 sorted; ref_index (P,) int32 model reference point of each pair; alpha (P,)
-    float32 angle alpha_m of each pair, radians in (-pi, pi].
+    float32 angle alpha_m of each pair, radians in (-pi, pi]; key_starts (K + 1,) int64: the pairs
+    of key k are keys[key_starts[k]:key_starts[k + 1]] (an O(1) lookup).
     dense_points_m, dense_normals: the full surface sample, for scoring and ICP.
     symmetries (m, 4, 4): transforms of the model frame onto itself, identity first.
     """
@@ -44,6 +45,7 @@ class PPFModel:
     keys: np.ndarray
     ref_index: np.ndarray
     alpha: np.ndarray
+    key_starts: np.ndarray
     dense_points_m: np.ndarray
     dense_normals: np.ndarray
     symmetries: np.ndarray
@@ -115,7 +117,7 @@ def _pairs_within(points: np.ndarray, refs: np.ndarray, radius: float) -> tuple[
     lists = tree.query_ball_point(points[refs], r=radius)
     counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
     first = np.repeat(refs, counts)
-    second = np.fromiter((i for x in lists for i in x), dtype=np.int64, count=int(counts.sum()))
+    second = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if len(lists) else np.zeros(0, np.int64)
     keep = first != second
     return first[keep], second[keep]
 
@@ -137,10 +139,12 @@ def train_ppf(
     T_align = _align_to_x(pts, nrm)
     alpha = _alpha(T_align[i], pts[j])
     order = np.argsort(keys, kind="stable")
+    keys = keys[order]
     return PPFModel(
         points_m=pts,
         normals=nrm,
-        keys=keys[order],
+        keys=keys,
+        key_starts=np.searchsorted(keys, np.arange(int(keys[-1]) + 2)),
         ref_index=i[order].astype(np.int32),
         alpha=alpha[order].astype(np.float32),
         dense_points_m=np.asarray(dense_points_m, dtype=np.float64),
@@ -158,9 +162,11 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
     if len(first) == 0:
         return []
     keys = _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), model.distance_step_m, model.angle_bins)
-    lo = np.searchsorted(model.keys, keys, side="left")
-    hi = np.searchsorted(model.keys, keys, side="right")
-    counts = hi - lo
+    # Scene keys beyond the model's largest key (a pair longer than any model pair) match nothing.
+    known = keys <= len(model.key_starts) - 2
+    keys = np.where(known, keys, 0)
+    lo = model.key_starts[keys]
+    counts = np.where(known, model.key_starts[keys + 1] - lo, 0)
     if counts.sum() == 0:
         return []
     pair_of_match = np.repeat(np.arange(len(keys)), counts)
@@ -176,7 +182,7 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
     acc = acc.reshape(len(refs), M * A)
     T_m = _align_to_x(model.points_m, model.normals)
     candidates = []
-    top = np.argsort(-acc, axis=1)[:, :PEAKS_PER_REFERENCE]
+    top = np.argpartition(-acc, PEAKS_PER_REFERENCE - 1, axis=1)[:, :PEAKS_PER_REFERENCE]
     for r, ref in enumerate(refs):
         for flat in top[r]:
             votes = float(acc[r, flat])
@@ -191,36 +197,63 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
 
 
 def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams) -> list[tuple[np.ndarray, float]]:
-    """Greedy SE(3) clustering: a pose joins the first cluster whose best pose (or a symmetric twin)
-    is within the rotation AND the translation threshold. Returns (best pose, summed votes),
-    strongest first."""
+    """Greedy SE(3) clustering: a pose joins the first (strongest) cluster whose best pose, or a
+    symmetric twin of it, is within the rotation AND the translation threshold. Returns
+    (best pose, summed votes), strongest first."""
     order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])
     trans_thr = params.cluster_translation_rel * model.diameter_m
-    reps: list[np.ndarray] = []  # the best pose of each cluster
+    cos_thr = np.cos(np.radians(params.cluster_rotation_deg))
+    m = len(model.symmetries)
+    twins = np.empty((len(candidates) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
+    reps: list[np.ndarray] = []
     votes: list[float] = []
     for k in order:
         T, v = candidates[k]
-        for c, rep in enumerate(reps):
-            if same_pose(model, rep, T, params.cluster_rotation_deg, trans_thr):
-                votes[c] += v
-                break
-        else:
-            reps.append(T)
-            votes.append(v)
+        n = len(reps) * m
+        if n:
+            close_t = np.linalg.norm(twins[:n, :3, 3] - T[:3, 3], axis=1) < trans_thr
+            # cos of the relative angle: (trace(R_twin^T R) - 1) / 2
+            cos = (np.einsum("nij,ij->n", twins[:n, :3, :3], T[:3, :3]) - 1.0) / 2.0
+            hit = np.flatnonzero(close_t & (cos > cos_thr))
+            if len(hit):
+                votes[hit[0] // m] += v
+                continue
+        twins[n : n + m] = T[None] @ model.symmetries
+        reps.append(T)
+        votes.append(v)
     ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
     return [(reps[c], votes[c]) for c in ranked]
 
 
-def score_pose(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float) -> float:
+def score_pose(
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: cKDTree | None = None
+) -> float:
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
     point within inlier_m, and the share of scene points within inlier_m of the model."""
-    p = transform_points(T_cam_from_model, model.dense_points_m)
-    facing = _facing(model, T_cam_from_model)
-    if not facing.any() or len(scene_points) == 0:
+    if len(scene_points) == 0:
         return 0.0
-    d_model, _ = cKDTree(scene_points).query(p[facing], distance_upper_bound=inlier_m)
-    d_scene, _ = cKDTree(p).query(scene_points, distance_upper_bound=inlier_m)
+    facing = _facing(model, T_cam_from_model)
+    if not facing.any():
+        return 0.0
+    scene_tree = scene_tree or cKDTree(scene_points)
+    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[facing]), distance_upper_bound=inlier_m)
+    # Scene points against the model's own tree, in the model frame: built once per model.
+    d_scene, _ = _model_tree(model).query(transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m)
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+_TREES: dict[int, tuple[np.ndarray, cKDTree]] = {}
+
+
+def _model_tree(model: PPFModel) -> cKDTree:
+    """A kd-tree of the dense model points, cached per model (keyed by the array's identity)."""
+    key = id(model.dense_points_m)
+    cached = _TREES.get(key)
+    if cached is None or cached[0] is not model.dense_points_m:
+        _TREES.clear()  # one model at a time is the common case; keep memory bounded
+        cached = (model.dense_points_m, cKDTree(model.dense_points_m))
+        _TREES[key] = cached
+    return cached[1]
 
 
 def _facing(model: PPFModel, T_cam_from_model: np.ndarray) -> np.ndarray:
@@ -271,12 +304,16 @@ def match_segment(
     candidates = _vote(model, pts, nrm, refs)
     if not candidates:
         return None
+    # Refinement and scoring work on a grid finer than the voting one but bounded, so that their
+    # cost does not grow with the density of the capture.
+    scene_points = scene_points[voxel_downsample_indices(scene_points, params.refine_step_rel * model.diameter_m)]
     inlier = params.score_inlier_rel * model.diameter_m
+    scene_tree = cKDTree(scene_points)
     best: PoseEstimate | None = None
     for T, votes in _cluster(candidates, model, params)[:TOP_CLUSTERS]:
         T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations)
         T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations)
-        score = score_pose(model, T, scene_points, inlier)
+        score = score_pose(model, T, scene_points, inlier, scene_tree)
         if best is None or score > best.score:
             best = PoseEstimate(T_cam_from_model=T, score=score, votes=votes)
     return best

@@ -1,0 +1,99 @@
+"""Segmentation benchmark: a trained FPCC network on held-out generated scenes against a
+classical baseline (DBSCAN on the same points, which plane removal has already left as parts
+only), plus inference time at fixed scene sizes and training throughput."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+
+from binpick.bench import machine
+from binpick.io.scene import list_scenes, load_scene
+from binpick.metrics.segmentation import SegmentationCounts, scene_counts
+from binpick.network.checkpoint import load_checkpoint
+from binpick.network.infer import cluster_params, segment_scene
+from binpick.network.loss import fpcc_loss
+from binpick.network.model import input_features
+from binpick.network.train import default_device
+from binpick.params import SegmentParams, TrainParams
+
+SCENE_SIZES = (16384, 65536)
+DBSCAN_EPS_PER_VOXEL = 2.0  # neighbours within two grid cells are one cluster
+
+
+def dbscan_labels(points: np.ndarray, eps_m: float, min_points: int) -> np.ndarray:
+    o3d.utility.random.seed(0)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points.astype(np.float64)))
+    return np.asarray(pcd.cluster_dbscan(eps=eps_m, min_points=min_points, print_progress=False), dtype=np.int64)
+
+
+def _sized(points: np.ndarray, normals: np.ndarray, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A scene of exactly n points: copies of the scene side by side (each shifted by its width)
+    until there are enough, then a random n of them, so density stays that of the grid."""
+    width = np.ptp(points[:, 0]) + 0.05
+    copies = int(np.ceil(n / len(points)))
+    P = np.concatenate([points + [k * width, 0, 0] for k in range(copies)])
+    N = np.concatenate([normals] * copies)
+    pick = np.sort(rng.choice(len(P), n, replace=False))
+    return P[pick], N[pick]
+
+
+def bench_segment(checkpoint: Path, scenes: Path, segment: SegmentParams, voxel_size_m: float, repeats: int = 3) -> dict[str, object]:
+    device = default_device()
+    model, state = load_checkpoint(checkpoint, device)
+    extra = state["extra"]
+    cp = cluster_params(segment, extra["part_diameter_m"])
+    paths = list_scenes(scenes / "test")
+    if not paths:
+        raise ValueError(f"{scenes / 'test'} holds no scenes")
+    ours, base = SegmentationCounts(), SegmentationCounts()
+    for i, path in enumerate(paths):
+        s = load_scene(path)
+        labels = segment_scene(model, s.view_points_m, s.view_normals, extra["features"], extra["d_max_m"], segment.n_points, cp, np.random.default_rng(i))
+        ours = ours.add(scene_counts(labels, s.view_labels, 0.5, segment.min_points))
+        db = dbscan_labels(s.view_points_m, DBSCAN_EPS_PER_VOXEL * voxel_size_m, 10)
+        base = base.add(scene_counts(db, s.view_labels, 0.5, segment.min_points))
+    out: dict[str, object] = {**{k: v for k, v in ours.summary().items()}, "n_scenes": len(paths), "device": str(device)}
+    out["baseline_dbscan"] = base.summary()
+
+    s = load_scene(paths[0])
+    rng = np.random.default_rng(0)
+    for n in SCENE_SIZES:
+        P, N = _sized(s.view_points_m, s.view_normals, n, rng)
+        segment_scene(model, P, N, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)  # warm-up
+        t = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            segment_scene(model, P, N, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)
+            t.append(time.perf_counter() - t0)
+        out[f"infer_ms_per_scene_{n}"] = 1000.0 * float(np.median(t))
+
+    # Training throughput: forward + loss + backward + step on batches of 4 crops of 4,096 points.
+    tp = TrainParams(**state["extra"]["train_params"])
+    train_model = type(model)(model.config).to(device).train()
+    opt = torch.optim.Adam(train_model.parameters(), lr=1e-4)
+    P, N = _sized(s.view_points_m, s.view_normals, 4 * 4096, rng)
+    L = np.zeros(len(P), np.int64)  # labels only shape the loss's work, not its cost
+    L[: len(P) // 2] = 1
+    pts = torch.as_tensor(P.reshape(4, 4096, 3), dtype=torch.float32, device=device)
+    nrm = torch.as_tensor(N.reshape(4, 4096, 3), dtype=torch.float32, device=device)
+    lab = torch.as_tensor(L.reshape(4, 4096), device=device)
+    steps = []
+    for k in range(repeats + 1):
+        t0 = time.perf_counter()
+        emb, ctr = train_model(input_features(pts, nrm, tp.features, extra["d_max_m"]), pts)
+        loss, _ = fpcc_loss(emb, ctr, pts, lab, extra["d_max_m"], tp.eps1, tp.eps2, tp.centre_loss_weight, tp.centre_score_form, tp.loss_anchors)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        if k:  # the first step warms up
+            steps.append(time.perf_counter() - t0)
+    out["train_samples_per_s"] = 4.0 / float(np.median(steps))
+    out["train_sample_points"] = 4096
+    out["model_config"] = model.config.to_dict()
+    out["machine"] = machine()
+    return out

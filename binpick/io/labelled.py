@@ -1,0 +1,55 @@
+"""Labelled point-cloud text scenes from other tools (one point per line: `x y z label`,
+`x y z score label`, `x y z label score`, ...), so that their segmentations are evaluated with
+this project's metrics. Label -1 (or any negative) means no instance."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from binpick.errors import InputError
+from binpick.io.mesh import METRES_PER_UNIT
+from binpick.io.text_cloud import load_text_columns
+
+LAYOUTS = {
+    "x y z label": ("x", "y", "z", "label"),
+    "x y z score label": ("x", "y", "z", "score", "label"),
+    "x y z label score": ("x", "y", "z", "label", "score"),
+}
+
+
+@dataclass(frozen=True)
+class LabelledScene:
+    """points_m (n, 3) float64 metres; labels (n,) int64 (-1 = none); scores (n,) or None."""
+
+    points_m: np.ndarray
+    labels: np.ndarray
+    scores: np.ndarray | None
+
+
+def load_labelled(path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z label"], unit: str = "m") -> LabelledScene:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "labelled scene not found")
+    if "label" not in columns:
+        raise InputError(path, f"columns {list(columns)} name no label column")
+    if unit not in METRES_PER_UNIT:
+        raise InputError(path, f"unknown unit {unit!r} (use mm, m or in)")
+    cols = load_text_columns(path, list(columns))
+    labels = cols["label"]
+    if not np.all(labels == np.round(labels)):
+        raise InputError(path, "labels must be integers")
+    labels = labels.astype(np.int64)
+    labels[labels < 0] = -1
+    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1) * METRES_PER_UNIT[unit]
+    return LabelledScene(points, labels, cols.get("score"))
+
+
+def transfer_labels(source_points: np.ndarray, source_labels: np.ndarray, target_points: np.ndarray, max_distance_m: float) -> np.ndarray:
+    """Labels of target points from their nearest source point; -1 farther than max_distance_m."""
+    from scipy.spatial import cKDTree
+
+    d, i = cKDTree(source_points).query(target_points)
+    return np.where(d <= max_distance_m, source_labels[i], -1)
