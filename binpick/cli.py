@@ -92,6 +92,22 @@ def demo() -> None:
 
 
 @app.command()
+def watch() -> None:
+    """Once: add new meshes in data/parts/ to params.yaml and train every part not up to date."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from flows.dvc_tasks import StageFailed
+    from flows.watcher import watch_parts
+
+    try:
+        result = watch_parts(root)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    typer.echo(f"added: {', '.join(result['added']) or 'none'}; trained: {', '.join(result['trained']) or 'none'}")
+
+
+@app.command()
 def capture(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = typer.Option(Path("params.yaml"))) -> None:
     """Take one frame from a connected Zivid camera (needs the zivid package)."""
     from binpick.params import load_params

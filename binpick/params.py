@@ -380,3 +380,37 @@ def load_params(path: str | Path = "params.yaml", part: str | None = None) -> Pa
         raise ParamsError(f"{path}: {exc}") from None
     except ValidationError as exc:
         raise ParamsError(f"{path}: {_one_line(exc)}") from None
+
+
+def part_name_for(mesh_path: str | Path) -> str:
+    """A valid part name from a mesh file name: lower case, other characters as '_'."""
+    stem = Path(mesh_path).stem.lower()
+    name = "".join(c if c.isalnum() or c in "_-" else "_" for c in stem).strip("_-")
+    return name or "part"
+
+
+def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> None:
+    """Add parts (name -> mesh path) to params.yaml under `parts`, keeping comments and order.
+
+    New parts get `unit` (default: a logged guess at ingest) and no symmetry; edit their entries
+    to declare them. The result is validated before it replaces the file.
+    """
+    from ruamel.yaml import YAML
+
+    from binpick.io.atomic import write_text
+
+    path = Path(path)
+    yaml_rt = YAML()
+    yaml_rt.preserve_quotes = True
+    doc = yaml_rt.load(path.read_text())
+    for name, mesh in meshes.items():
+        if name in doc["parts"]:
+            raise ParamsError(f"{path}: part {name!r} already exists")
+        doc["parts"][name] = {"mesh": mesh, "unit": unit, "symmetry": {"kind": "none"}}
+    import io
+
+    buffer = io.StringIO()
+    yaml_rt.dump(doc, buffer)
+    text = buffer.getvalue()
+    Params.model_validate(resolve(yaml.safe_load(text)))
+    write_text(path, text)

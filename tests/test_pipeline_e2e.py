@@ -35,10 +35,12 @@ def project(tmp_path_factory):
         shutil.copy(ROOT / name, root / name)
     (root / "data" / "parts").mkdir(parents=True)
     shutil.copy(ROOT / "data" / "parts" / "t_joint.stl", root / "data" / "parts")
-    params = yaml.safe_load((ROOT / "params.yaml").read_text())
-    params["profiles"]["tiny"] = TINY
-    params["profile"] = "tiny"
-    (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    # Edit the text, so that the copy keeps params.yaml's comments.
+    text = (ROOT / "params.yaml").read_text().replace("\nprofile: quick\n", "\nprofile: tiny\n", 1)
+    tiny = "".join(f"  {line}\n" for line in yaml.safe_dump({"tiny": TINY}, sort_keys=False).splitlines())
+    text = text.replace("\nprofiles:\n", f"\nprofiles:\n{tiny}", 1)
+    assert yaml.safe_load(text)["profile"] == "tiny"
+    (root / "params.yaml").write_text(text)
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     return root
 
@@ -77,3 +79,28 @@ def test_demo_flow_runs_every_stage_and_dvc_is_clean_after(project):
     assert rerun.returncode == 0, rerun.stderr
     assert (project / "data/results/demo/poses.json").is_file()
     assert "Running stage 'train@t_joint'" not in rerun.stdout  # only the missing output's stage ran
+
+
+@pytest.mark.slow
+def test_watcher_trains_a_new_part_and_skips_unchanged_ones(project):
+    """A mesh dropped into data/parts/ is registered and gets a trained, evaluated model; the
+    parts already up to date are skipped; a second pass has nothing to do."""
+    import trimesh
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.watcher import watch_parts
+
+    box = trimesh.creation.box(extents=[40.0, 24.0, 12.0])  # millimetres, as CAD exports are
+    box.export(project / "data" / "parts" / "Bracket Block.stl")
+    with prefect_test_harness(server_startup_timeout=120):
+        first = watch_parts(project)
+        second = watch_parts(project)
+    assert first == {"added": ["bracket_block"], "trained": ["bracket_block"]}
+    assert second == {"added": [], "trained": []}
+    params = yaml.safe_load((project / "params.yaml").read_text())
+    assert params["parts"]["bracket_block"]["mesh"] == "data/parts/Bracket Block.stl"
+    assert "# binpick settings" in (project / "params.yaml").read_text()  # comments kept
+    ingest = json.loads((project / "data/metrics/bracket_block/ingest.json").read_text())
+    assert np.isclose(ingest["diameter_mm"], np.sqrt(40**2 + 24**2 + 12**2), rtol=1e-3)  # unit guessed: mm
+    assert (project / "data/fpcc/bracket_block/model.pt").is_file()
+    assert (project / "data/metrics/bracket_block/evaluate.json").is_file()
