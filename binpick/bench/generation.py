@@ -11,12 +11,11 @@ import trimesh
 
 from binpick.bench import machine
 from binpick.bench.parts import bench_parts
-from binpick.generation.bin import T_bin_from_cam, bin_meshes
-from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, visible_fractions
 from binpick.generation.placement import place_objects
+from binpick.generation.scene import ViewParams, render_scene
 from binpick.geometry.transforms import invert_T, make_T, random_rotation, transform_points
 from binpick.io.part_model import PartModel
-from binpick.params import BinParams, CameraParams, NoiseParams, PlacementParams
+from binpick.params import BinParams, CameraParams, GenerateParams, PlacementParams
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +23,7 @@ COUNTS = (5, 10, 20)
 BASELINE_RETRIES = 20  # K of the original: new random poses tried per object
 BASELINE_POINTS = 500  # downsampled points of a new object tested against earlier ones
 PENETRATION_POINTS = 2000
+VIEW = ViewParams(voxel_size_m=0.002, normal_radius_m=0.006)  # the pipeline's defaults
 
 
 def bin_for(part: PartModel) -> BinParams:
@@ -73,16 +73,6 @@ def max_penetration_mm(part: PartModel, poses: np.ndarray, rng: np.random.Genera
     return 1000.0 * worst
 
 
-def _render_scene(part: PartModel, T_bin_model: np.ndarray, bin_params: BinParams, camera: CameraParams, rng: np.random.Generator) -> None:
-    T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m))
-    objects = [(transform_points(T_cam_bin @ T, part.mesh_vertices_m), part.mesh_faces) for T in T_bin_model]
-    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(bin_params)]
-    intr = Intrinsics.from_params(camera)
-    clean = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
-    visible_fractions(objects, clean.labels, intr)
-    apply_sensor_noise(clean, NoiseParams(), rng)
-
-
 def bench_generate(
     parts: list[str] | None = None, scenes: int = 3, baseline_scenes: int = 2, seed: int = 0, counts: tuple[int, ...] = COUNTS
 ) -> dict[str, object]:
@@ -92,7 +82,7 @@ def bench_generate(
     models = bench_parts(parts)
     out: dict[str, object] = {"setup": {"parts": [p.name for p in models], "counts": list(counts), "scenes": scenes,
                                         "baseline_scenes": baseline_scenes, "baseline_retries": BASELINE_RETRIES,
-                                        "resolution": "1920x1200", "machine": machine()}}
+                                        "resolution": "1920x1200", "rendering": "ray casting, sensor noise, visibility, network view", "machine": machine()}}
     ours: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
     base: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": []} for n in counts}
     for part in models:
@@ -104,7 +94,7 @@ def bench_generate(
                 t0 = time.perf_counter()
                 placed = place_objects(part.points_m, n, bin_params, PlacementParams(), rng)
                 t1 = time.perf_counter()
-                _render_scene(part, placed.T_bin_from_model, bin_params, camera, rng)
+                render_scene(part, placed.T_bin_from_model, GenerateParams(bin=bin_params), camera, VIEW, rng)
                 t2 = time.perf_counter()
                 r = ours[str(n)]
                 r["s"].append(t2 - t0)

@@ -69,24 +69,18 @@ def make_view(xyz_m: np.ndarray, labels: np.ndarray, view: ViewParams) -> tuple[
     return pts.astype(np.float32), normals, lab.astype(np.int16)
 
 
-def generate_scene(
+def render_scene(
     part: PartModel,
+    T_bin_from_model: np.ndarray,
     generate: GenerateParams,
     camera: CameraParams,
     view: ViewParams,
-    seed: int | np.random.SeedSequence,
-    n_objects: int | None = None,
+    rng: np.random.Generator,
 ) -> SyntheticScene:
-    """Place objects (count drawn from the params unless given), render with noise, build the view."""
-    rng = np.random.default_rng(seed)
-    placement = generate.placement
-    if n_objects is None:
-        n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
-    placed = place_objects(part.points_m, n_objects, generate.bin, placement, rng)
-
-    T_bin_cam = T_bin_from_cam(camera.distance_m)
-    T_cam_bin = invert_T(T_bin_cam)
-    T_cam_model = T_cam_bin @ placed.T_bin_from_model
+    """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
+    measure visibility and build the network's view."""
+    T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m))
+    T_cam_model = T_cam_bin @ T_bin_from_model
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(generate.bin)]
     intr = Intrinsics.from_params(camera)
@@ -105,3 +99,20 @@ def generate_scene(
         view_normals=vn,
         view_labels=vl,
     )
+
+
+def generate_scene(
+    part: PartModel,
+    generate: GenerateParams,
+    camera: CameraParams,
+    view: ViewParams,
+    seed: int | np.random.SeedSequence,
+    n_objects: int | None = None,
+) -> SyntheticScene:
+    """Place objects (count drawn from the params unless given), then render the scene."""
+    rng = np.random.default_rng(seed)
+    placement = generate.placement
+    if n_objects is None:
+        n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
+    placed = place_objects(part.points_m, n_objects, generate.bin, placement, rng)
+    return render_scene(part, placed.T_bin_from_model, generate, camera, view, rng)
