@@ -195,6 +195,10 @@ class TrainParams(_Strict):
 
 class EvaluateParams(_Strict):
     iou_threshold: float = Field(0.5, gt=0, le=1)
+    # A model whose test precision and recall reach these gets the registry alias `accept_alias`.
+    accept_precision: float = Field(0.9, ge=0, le=1)
+    accept_recall: float = Field(0.9, ge=0, le=1)
+    accept_alias: str = "accepted"
 
 
 class SceneImportParams(_Strict):

@@ -92,3 +92,47 @@ def flat_params(prefix: str, model: Any) -> dict[str, Any]:
 
     walk(prefix, model.model_dump(by_alias=True) if hasattr(model, "model_dump") else model)
     return out
+
+
+def file_sha256(path: str | Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def registered_name(part: str) -> str:
+    return f"fpcc-{part}"
+
+
+def register_checkpoint(part: str, checkpoint: Path, run: Any, dvc_stage: str) -> str:
+    """A new version of the registered model fpcc-<part> pointing at the run's logged checkpoint,
+    tagged with the checkpoint's SHA-256 so that evaluation can find it. Returns the version."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    name = registered_name(part)
+    if not client.search_registered_models(filter_string=f"name='{name}'"):
+        client.create_registered_model(name, description=f"FPCC instance segmentation of part {part}")
+    version = client.create_model_version(
+        name, source=f"{run.info.artifact_uri}/model", run_id=run.info.run_id,
+        tags={"checkpoint_sha256": file_sha256(checkpoint), "dvc_stage": dvc_stage},
+    )
+    return str(version.version)
+
+
+def accept_checkpoint(part: str, checkpoint: Path, alias: str) -> str | None:
+    """Point `alias` of fpcc-<part> at the version registered for this checkpoint file; the
+    version, or None when no version holds this checkpoint."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    sha = file_sha256(checkpoint)
+    for version in client.search_model_versions(f"name='{registered_name(part)}'"):
+        if version.tags.get("checkpoint_sha256") == sha:
+            client.set_registered_model_alias(registered_name(part), alias, version.version)
+            return str(version.version)
+    return None

@@ -14,7 +14,7 @@ from binpick.io.scene import list_scenes, load_scene
 from binpick.network.train import BEST, Views, default_device, train_fpcc
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int
-from stages.common import entry, flat_params, mlflow_run, parser, start, write_metrics
+from stages.common import entry, flat_params, mlflow_run, parser, register_checkpoint, registered_name, start, write_metrics
 
 log = logging.getLogger("binpick.stage.train")
 
@@ -56,7 +56,9 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         out.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(work / BEST, out)
         mlflow.log_artifact(str(out), artifact_path="model")
-        metrics = {**metrics, "mlflow_run_id": run_.info.run_id}
+        version = register_checkpoint(part.name, out, run_, f"train@{part.name}")
+        log.info("%s: registered as %s version %s", part.name, registered_name(part.name), version)
+        metrics = {**metrics, "mlflow_run_id": run_.info.run_id, "registered_version": float(version)}
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
     log.info("%s: best validation loss %.4f at epoch %d -> %s", part.name, metrics["best_val_loss"], metrics["best_epoch"], out)

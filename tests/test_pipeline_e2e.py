@@ -18,7 +18,7 @@ TINY = {
     "camera": {"downscale": 8},
     "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "workers": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
     "train": {"n_points": 512, "width": 8, "embedding_dim": 8, "k_neighbours": 8, "epochs": 2, "batch_size": 2, "loss_anchors": 128},
-    "evaluate": {},
+    "evaluate": {"accept_precision": 0.0, "accept_recall": 0.0},  # every model is accepted
     "scene_import": {},
     "segment": {"n_points": 512},
     "register": {},
@@ -104,3 +104,19 @@ def test_watcher_trains_a_new_part_and_skips_unchanged_ones(project):
     assert np.isclose(ingest["diameter_mm"], np.sqrt(40**2 + 24**2 + 12**2), rtol=1e-3)  # unit guessed: mm
     assert (project / "data/fpcc/bracket_block/model.pt").is_file()
     assert (project / "data/metrics/bracket_block/evaluate.json").is_file()
+
+
+def test_models_are_registered_and_the_accepted_alias_points_at_the_checkpoint(project):
+    """After the runs above: every training registered a version of fpcc-<part>, and evaluation
+    (thresholds 0 in the tiny profile) pointed the alias at the version of the current model.pt."""
+    import mlflow
+
+    from stages.common import file_sha256
+
+    mlflow.set_tracking_uri(f"sqlite:///{project / 'data' / 'mlflow' / 'mlflow.db'}")
+    client = mlflow.MlflowClient()
+    for part in ("t_joint", "bracket_block"):
+        assert json.loads((project / f"data/metrics/{part}/evaluate.json").read_text())["accepted"] == 1.0
+        accepted = client.get_model_version_by_alias(f"fpcc-{part}", "accepted")
+        assert accepted.tags["checkpoint_sha256"] == file_sha256(project / f"data/fpcc/{part}/model.pt")
+        assert accepted.tags["dvc_stage"] == f"train@{part}"
