@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.errors import InputError
 from binpick.io.mesh import load_mesh
 from binpick.io.part_model import save_part_model
 from binpick.params import Params, load_params
@@ -23,8 +24,6 @@ def run(params: Params, part: str, mesh_path: Path, out: Path, metrics_path: Pat
     mesh, unit = load_mesh(mesh_path, spec.unit)
     extent = float(np.max(mesh.extents))
     if not params.ingest.min_extent_m <= extent <= params.ingest.max_extent_m:
-        from binpick.errors import InputError
-
         raise InputError(
             mesh_path,
             f"part is {extent:.4g} m long in unit {unit!r}, outside {params.ingest.min_extent_m}-"

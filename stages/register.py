@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.errors import InputError
 from binpick.io.cloud import PoseRecord, load_cloud, load_poses, load_segments, save_poses
 from binpick.io.part_model import load_part_model
 from binpick.io.ppf_model import load_ppf_model
@@ -39,8 +40,6 @@ def run(
     cloud = load_cloud(cloud_path)
     labels = load_segments(segments_path)
     if len(labels) != len(cloud.points_m):
-        from binpick.errors import InputError
-
         raise InputError(segments_path, f"has {len(labels)} labels for {len(cloud.points_m)} cloud points")
     ppf = load_ppf_model(ppf_path)
     part = load_part_model(part_model_path)

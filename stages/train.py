@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.errors import InputError
 from binpick.io.part_model import load_part_model
 from binpick.io.scene import list_scenes, load_scene
 from binpick.network.train import BEST, Views, default_device, train_fpcc
@@ -23,8 +24,6 @@ def load_views(folder: Path) -> Views:
     """The training views of every scene in a split folder."""
     scenes = [load_scene(p) for p in list_scenes(folder)]
     if not scenes:
-        from binpick.errors import InputError
-
         raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
     return Views(
         points=[s.view_points_m for s in scenes],

@@ -4,13 +4,14 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from binpick.errors import InputError
 from binpick.io.atomic import atomic_path, write_text
+from binpick.io.npz import load_fields, save_fields
 
 
 @dataclass(frozen=True)
@@ -36,19 +37,11 @@ class CleanCloud:
 
 
 def save_cloud(path: str | Path, cloud: CleanCloud) -> None:
-    with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, **{f.name: getattr(cloud, f.name) for f in fields(CleanCloud)})
+    save_fields(path, cloud)
 
 
 def load_cloud(path: str | Path) -> CleanCloud:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "cleaned cloud not found (run the import stage first)")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return CleanCloud(**{f.name: z[f.name] for f in fields(CleanCloud)})
-    except (KeyError, ValueError, OSError) as exc:
-        raise InputError(path, f"not a binpick cleaned cloud ({exc})") from None
+    return CleanCloud(**load_fields(path, CleanCloud, "cleaned cloud", "cleaned cloud not found (run the import stage first)"))
 
 
 def save_segments(path: str | Path, labels: np.ndarray) -> None:

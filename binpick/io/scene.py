@@ -5,15 +5,14 @@ Spec: data/README.md#scene.
 
 from __future__ import annotations
 
-from dataclasses import fields
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from binpick.errors import InputError
 from binpick.generation.scene import SyntheticScene
 from binpick.io.atomic import atomic_path
+from binpick.io.npz import load_fields, save_fields
 
 # Fixed colours so that instance i has the same colour in every image and recording.
 _PALETTE_SEED = 12345
@@ -45,22 +44,14 @@ def label_image(labels: np.ndarray) -> np.ndarray:
 def save_scene(path: str | Path, scene: SyntheticScene, png: bool = True) -> None:
     """Write the scene (compressed npz, byte-identical for identical content) and its label PNG."""
     path = Path(path)
-    with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, **{f.name: getattr(scene, f.name) for f in fields(SyntheticScene)})
+    save_fields(path, scene)
     if png:
         with atomic_path(path.with_suffix(".png")) as tmp:
             Image.fromarray(label_image(scene.labels)).save(tmp, format="PNG")
 
 
 def load_scene(path: str | Path) -> SyntheticScene:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "scene file not found")
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            return SyntheticScene(**{f.name: z[f.name] for f in fields(SyntheticScene)})
-    except (KeyError, ValueError, OSError) as exc:
-        raise InputError(path, f"not a binpick scene ({exc})") from None
+    return SyntheticScene(**load_fields(path, SyntheticScene, "scene", "scene file not found"))
 
 
 def list_scenes(folder: str | Path) -> list[Path]:

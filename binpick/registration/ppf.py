@@ -21,7 +21,7 @@ import open3d as o3d
 from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
-from binpick.geometry.transforms import invert_T, rotation_angle_deg, transform_points
+from binpick.geometry.transforms import invert_T, transform_points
 from binpick.params import RegisterParams
 
 TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
@@ -202,7 +202,6 @@ def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params
     (best pose, summed votes), strongest first."""
     order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])
     trans_thr = params.cluster_translation_rel * model.diameter_m
-    cos_thr = np.cos(np.radians(params.cluster_rotation_deg))
     m = len(model.symmetries)
     twins = np.empty((len(candidates) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
     reps: list[np.ndarray] = []
@@ -211,10 +210,7 @@ def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params
         T, v = candidates[k]
         n = len(reps) * m
         if n:
-            close_t = np.linalg.norm(twins[:n, :3, 3] - T[:3, 3], axis=1) < trans_thr
-            # cos of the relative angle: (trace(R_twin^T R) - 1) / 2
-            cos = (np.einsum("nij,ij->n", twins[:n, :3, :3], T[:3, :3]) - 1.0) / 2.0
-            hit = np.flatnonzero(close_t & (cos > cos_thr))
+            hit = np.flatnonzero(_near(twins[:n], T, params.cluster_rotation_deg, trans_thr))
             if len(hit):
                 votes[hit[0] // m] += v
                 continue
@@ -319,11 +315,17 @@ def match_segment(
     return best
 
 
+def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
+    """(n,) mask of the poses (n, 4, 4) within translation_m AND rotation_deg of T."""
+    close_t = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) < translation_m
+    # cos of the relative angle: (trace(R_pose^T R) - 1) / 2
+    cos = (np.einsum("nij,ij->n", poses[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
+    return close_t & (cos > np.cos(np.radians(rotation_deg)))
+
+
 def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
     """Whether two poses of the part agree within the thresholds, up to the part's symmetries."""
-    twins = T_a[None] @ model.symmetries
-    close_t = np.linalg.norm(twins[:, :3, 3] - T_b[:3, 3], axis=1) < translation_m
-    return bool(close_t.any() and (rotation_angle_deg(twins[close_t, :3, :3], T_b[:3, :3]) < rotation_deg).any())
+    return bool(_near(T_a[None] @ model.symmetries, T_b, rotation_deg, translation_m).any())
 
 
 def suppress_duplicates(model: PPFModel, estimates: list[PoseEstimate], params: RegisterParams) -> list[int]:
