@@ -47,6 +47,8 @@ def review_commands(root: Path, capture: str = "demo") -> list[str]:
     return [
         f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{root / 'data' / 'mlflow' / 'mlflow.db'} --host 127.0.0.1 --port 5000",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
+        # rerun binds to every interface unless told otherwise
+        f"{bin_dir / 'rerun'} --web-viewer --bind 127.0.0.1 {root / 'data' / 'results' / capture / 'scene.rrd'}",
     ]
 
 
@@ -108,6 +110,51 @@ def watch() -> None:
 
 
 @app.command()
+def scenes(
+    folder: Path = typer.Argument(..., help="folder of captures inside the project, e.g. data/captures/monday"),
+    part: str = typer.Option(..., help="the part in these bins (listed in params.yaml)"),
+    unit: str = typer.Option("mm", help="unit of the capture files: mm, m or in"),
+) -> None:
+    """Import, segment and register every capture in a folder (new files are added to params.yaml)."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    if unit not in ("mm", "m", "in"):
+        _fail(f"unit {unit!r} is not one of mm, m, in")
+    from flows.dvc_tasks import StageFailed
+    from flows.pipeline import process_folder
+
+    try:
+        results = process_folder(root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    for name, metrics in results.items():
+        typer.echo(f"{name}: {metrics.get('n_found', 0):.0f} parts, mean score {metrics.get('score_mean', 0.0):.2f}")
+
+
+@app.command()
+def serve(
+    interval_s: float = typer.Option(None, "--interval-s", min=1, help="run every N seconds instead of the cron schedule in params"),
+    port: int = typer.Option(4200, help="port of the local Prefect server (when PREFECT_API_URL is not set)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Run the watcher on the schedule in params (default nightly) until stopped; starts a local
+    Prefect server on 127.0.0.1 unless PREFECT_API_URL names a shared one."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from binpick.params import load_params
+    from flows.serve import serve_watcher
+
+    try:
+        serve_watcher(root, load_params(root / params if not params.is_absolute() else params).orchestration, interval_s, port)
+    except BinpickError as exc:
+        _fail(str(exc))
+    except KeyboardInterrupt:
+        typer.echo("stopped")
+
+
+@app.command()
 def capture(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = typer.Option(Path("params.yaml"))) -> None:
     """Take one frame from a connected Zivid camera (needs the zivid package)."""
     from binpick.params import load_params
@@ -122,7 +169,8 @@ def capture(out: Path = typer.Option(..., help="capture to write (.ply, millimet
 
 @app.command()
 def review(capture: str = typer.Option("demo", help="capture whose recording to show")) -> None:
-    """Print the commands that open the latest run in the MLflow UI and the rerun viewer."""
+    """Print the commands that open the latest run in the MLflow UI and the rerun viewer (native or
+    in the browser), all bound to 127.0.0.1."""
     root = project_root()
     rrd = root / "data" / "results" / capture / "scene.rrd"
     if not rrd.is_file():

@@ -19,8 +19,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from binpick.errors import InputError, ParamsError
 
-# Sections a profile or a part may override. `tracking` is deliberately absent: where runs are
-# logged changes no result, so DVC does not track it.
+# Sections a profile or a part may override. `tracking` and `orchestration` are deliberately
+# absent: where runs are logged and how work is spread change no result, so DVC does not track them.
 SECTIONS = (
     "ingest",
     "camera",
@@ -147,6 +147,16 @@ class PlacementParams(_Strict):
     heightmap_cell_m: float = Field(0.001, gt=0, description="grid of the drop-placement height maps")
     candidates_per_object: int = Field(8, ge=1, description="random poses tried; the lowest resting wins")
     max_pile_height_m: float = Field(0.25, gt=0, description="an object resting higher means the bin is full")
+    # Start height of each object's lowest point above the bin floor: `pile` = resting on the pile
+    # below; `u_shaped` = drawn from a U-shaped law (Beta(0.5, 0.5)) over [0, bin wall height];
+    # `discrete` = one of height_levels_m. Never lower than the pile below. In `drop` mode objects
+    # stay there (floating, as in the original work), in `physics` mode they fall from there.
+    heights: Literal["pile", "u_shaped", "discrete"] = "pile"
+    height_levels_m: list[float] = Field([0.0, 0.02, 0.04], min_length=1)
+    # drop: height-map drop placement (fast); physics: then settled by rigid-body simulation.
+    mode: Literal["drop", "physics"] = "drop"
+    settle_max_s: float = Field(2.0, gt=0, description="physics: simulated time at most")
+    max_penetration_m: float = Field(0.001, ge=0, description="physics: objects reaching deeper into another are removed")
 
     @model_validator(mode="after")
     def _check(self) -> PlacementParams:
@@ -159,7 +169,6 @@ class GenerateParams(_Strict):
     n_train: int = Field(200, ge=1)
     n_val: int = Field(20, ge=1)
     n_test: int = Field(20, ge=1)
-    workers: int = Field(0, ge=0, description="processes; 0 = one per CPU core")
     placement: PlacementParams = PlacementParams()
     bin: BinParams = BinParams()
     noise: NoiseParams = NoiseParams()
@@ -254,6 +263,10 @@ class RegisterParams(_Strict):
     refine_step_rel: float = Field(0.02, gt=0, description="grid of the points ICP and scoring use, share of diameter")
     score_inlier_rel: float = Field(0.02, gt=0, description="scene point within this of the model counts")
     min_score: float = Field(0.3, ge=0, le=1)
+    # true: match the whole cleaned scene, without the segments (slower, needs no network);
+    # max_instances bounds the poses sought then.
+    whole_scene: bool = False
+    max_instances: int = Field(30, ge=1)
 
 
 class DemoCaptureParams(_Strict):
@@ -279,6 +292,26 @@ class TrackingParams(_Strict):
     mlflow_uri: str | None = None
 
 
+class OrchestrationParams(_Strict):
+    """How Prefect runs the pipeline. Not tracked by DVC: none of it changes a result."""
+
+    # `binpick serve`: when the watcher runs (cron, in schedule_timezone). Default: nightly 02:00.
+    schedule_cron: str = "0 2 * * *"
+    schedule_timezone: str = "UTC"
+    # Fan-out of scene generation and evaluation: `processes` (a local process pool) or `dask`
+    # (a Prefect DaskTaskRunner, on the cluster at dask_address or a local one of `workers`).
+    task_runner: Literal["processes", "dask"] = "processes"
+    dask_address: str | None = None
+    workers: int = Field(0, ge=0, description="processes or local Dask workers; 0 = one per CPU core")
+
+    @field_validator("schedule_cron")
+    @classmethod
+    def _five_fields(cls, cron: str) -> str:
+        if len(cron.split()) != 5:
+            raise ValueError(f"{cron!r} is not a cron expression of 5 fields (minute hour day month weekday)")
+        return cron
+
+
 class Params(_Strict):
     seed: int = 0
     profile: str
@@ -295,6 +328,7 @@ class Params(_Strict):
     demo_capture: DemoCaptureParams = DemoCaptureParams()
     capture: CaptureSettings = CaptureSettings()
     tracking: TrackingParams = TrackingParams()
+    orchestration: OrchestrationParams = OrchestrationParams()
 
     @field_validator("parts")
     @classmethod
@@ -399,6 +433,19 @@ def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> N
     New parts get `unit` (default: a logged guess at ingest) and no symmetry; edit their entries
     to declare them. The result is validated before it replaces the file.
     """
+    _add_entries(path, "parts", {name: {"mesh": mesh, "unit": unit, "symmetry": {"kind": "none"}} for name, mesh in meshes.items()})
+
+
+def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str = "mm") -> None:
+    """Add captures (name -> file path) of `part` to params.yaml under `captures`, keeping
+    comments; validated before it replaces the file. `truth: ""` (none) is written out because
+    dvc.yaml reads it."""
+    _add_entries(path, "captures", {name: {"file": file, "part": part, "unit": unit, "truth": ""} for name, file in files.items()})
+
+
+def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, Any]]) -> None:
+    import io
+
     from ruamel.yaml import YAML
 
     from binpick.io.atomic import write_text
@@ -407,14 +454,17 @@ def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> N
     yaml_rt = YAML()
     yaml_rt.preserve_quotes = True
     doc = yaml_rt.load(path.read_text())
-    for name, mesh in meshes.items():
-        if name in doc["parts"]:
-            raise ParamsError(f"{path}: part {name!r} already exists")
-        doc["parts"][name] = {"mesh": mesh, "unit": unit, "symmetry": {"kind": "none"}}
-    import io
-
+    if doc.get(section) is None:
+        doc[section] = {}
+    for name, entry in entries.items():
+        if name in doc[section]:
+            raise ParamsError(f"{path}: {section} already has {name!r}")
+        doc[section][name] = entry
     buffer = io.StringIO()
     yaml_rt.dump(doc, buffer)
     text = buffer.getvalue()
-    Params.model_validate(resolve(yaml.safe_load(text)))
+    try:
+        Params.model_validate(resolve(yaml.safe_load(text)))
+    except ValidationError as exc:
+        raise ParamsError(f"{path}: {_one_line(exc)}") from None
     write_text(path, text)

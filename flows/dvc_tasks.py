@@ -1,6 +1,5 @@
 """Prefect tasks that run DVC, so that DVC's cache skips every stage that is up to date."""
 
-from __future__ import annotations
 
 import os
 import subprocess
@@ -23,10 +22,23 @@ def dvc_env() -> dict[str, str]:
     return env
 
 
-def repro(target: str, root: Path) -> str:
+def prefect_run_env() -> dict[str, str]:
+    """The current Prefect flow and task run, for the stages' MLflow tags (stages/common.py)."""
+    from prefect.runtime import flow_run, task_run
+
+    values = {
+        "BINPICK_PREFECT_FLOW_RUN_ID": flow_run.id,
+        "BINPICK_PREFECT_FLOW_RUN_NAME": flow_run.name,
+        "BINPICK_PREFECT_FLOW_NAME": flow_run.flow_name,
+        "BINPICK_PREFECT_TASK_RUN_ID": task_run.id,
+    }
+    return {k: str(v) for k, v in values.items() if v}
+
+
+def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> str:
     """`dvc repro <target>` in `root`; returns DVC's output, raises StageFailed with the error."""
     proc = subprocess.run(
-        [sys.executable, "-m", "dvc", "repro", target], cwd=root, env=dvc_env(), text=True,
+        [sys.executable, "-m", "dvc", "repro", target], cwd=root, env={**dvc_env(), **(extra_env or {})}, text=True,
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
     if proc.returncode != 0:
@@ -40,7 +52,7 @@ def repro(target: str, root: Path) -> str:
       retry_condition_fn=lambda task, run, state: "lock" in str(state.message or "").lower())
 def repro_stage(target: str, root: Path) -> str:
     """One DVC stage; retried once only when another DVC process held the repository lock."""
-    out = repro(target, root)
+    out = repro(target, root, prefect_run_env())
     logger = get_run_logger()
     skipped = "didn't change, skipping" in out or "is cached" in out
     logger.info("%s: %s", target, "up to date" if skipped else "ran")

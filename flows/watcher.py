@@ -2,7 +2,6 @@
 touching anything. New mesh files are added to params.yaml; each part whose DVC stages are not
 up to date runs the training flow; up-to-date parts are skipped."""
 
-from __future__ import annotations
 
 import json
 import subprocess

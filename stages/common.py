@@ -75,8 +75,24 @@ def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags:
         location = None if configured_uri else (project_root() / "data" / "mlflow" / "artifacts").as_uri()
         mlflow.create_experiment(experiment, artifact_location=location)
     mlflow.set_experiment(experiment)
-    with mlflow.start_run(run_name=run_name, tags=tags or {}) as run:
+    with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **(tags or {})}) as run:
         yield run
+
+
+# Set by flows/dvc_tasks.py for the stage commands it runs, so that a stage's MLflow run names
+# the Prefect flow run (and task run) that started it.
+PREFECT_ENV = {
+    "prefect.flow_run_id": "BINPICK_PREFECT_FLOW_RUN_ID",
+    "prefect.flow_run_name": "BINPICK_PREFECT_FLOW_RUN_NAME",
+    "prefect.flow_name": "BINPICK_PREFECT_FLOW_NAME",
+    "prefect.task_run_id": "BINPICK_PREFECT_TASK_RUN_ID",
+}
+
+
+def prefect_tags() -> dict[str, str]:
+    import os
+
+    return {tag: os.environ[var] for tag, var in PREFECT_ENV.items() if os.environ.get(var)}
 
 
 def flat_params(prefix: str, model: Any) -> dict[str, Any]:

@@ -8,9 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.fanout import fan_out
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-from binpick.network.checkpoint import load_checkpoint
+from binpick.network.checkpoint import load_checkpoint, read_checkpoint
 from binpick.network.infer import cluster_params, segment_scene
 from binpick.network.train import default_device
 from binpick.params import Params, load_params
@@ -20,17 +21,37 @@ from stages.common import accept_checkpoint, entry, flat_params, mlflow_run, par
 log = logging.getLogger("binpick.stage.evaluate")
 
 
-def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None) -> dict[str, float]:
-    model, state = load_checkpoint(checkpoint, default_device())
+# Per-process cache of the network, so that each worker loads the checkpoint once.
+_MODELS: dict[str, tuple] = {}
+
+
+def evaluate_scene(shared: tuple[str, Params], job: tuple[int, str]) -> SegmentationCounts:
+    """Segment one held-out scene with the checkpoint and count its matches against the labels;
+    the sampling seed comes from the scene's index, so any worker gives the same counts."""
+    checkpoint, params = shared
+    index, path = job
+    key = f"{checkpoint}@{Path(checkpoint).stat().st_mtime_ns}"  # a retrained file is reloaded
+    if key not in _MODELS:
+        _MODELS.clear()
+        _MODELS[key] = load_checkpoint(Path(checkpoint), default_device())
+    model, state = _MODELS[key]
     extra = state["extra"]
     cp = cluster_params(params.segment, extra["part_diameter_m"])
+    scene = load_scene(Path(path))
+    rng = np.random.default_rng(derive_seed(params.seed, "evaluate", extra["part"], index))
+    labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], params.segment.n_points, cp, rng)
+    return scene_counts(labels, scene.view_labels, params.evaluate.iou_threshold, params.segment.min_points)
+
+
+def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
+    extra = read_checkpoint(checkpoint, "cpu")["extra"]
     paths = list_scenes(scenes / "test")
+    jobs = [(i, str(path)) for i, path in enumerate(paths)]
+    # Locally one process: the network already uses every core; a Dask cluster spreads the scenes.
+    counts = fan_out(evaluate_scene, (str(checkpoint.resolve()), params), jobs, params.orchestration, f"evaluate {extra['part']}", progress, max_workers=1)
     total = SegmentationCounts()
-    for i, path in enumerate(paths):
-        scene = load_scene(path)
-        rng = np.random.default_rng(derive_seed(params.seed, "evaluate", extra["part"], i))
-        labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], params.segment.n_points, cp, rng)
-        total = total.add(scene_counts(labels, scene.view_labels, params.evaluate.iou_threshold, params.segment.min_points))
+    for c in counts:
+        total = total.add(c)
     metrics = {**total.summary(), "n_scenes": float(len(paths))}
     ev = params.evaluate
     passed = metrics["precision"] >= ev.accept_precision and metrics["recall"] >= ev.accept_recall

@@ -3,15 +3,12 @@
 from __future__ import annotations
 
 import logging
-import os
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
-from multiprocessing import get_context
 from pathlib import Path
 
 import numpy as np
-from tqdm import tqdm
 
+from binpick.fanout import fan_out
 from binpick.generation.scene import ViewParams, generate_scene
 from binpick.io.atomic import atomic_dir
 from binpick.io.part_model import PartModel, load_part_model
@@ -24,10 +21,6 @@ log = logging.getLogger("binpick.stage.generate")
 
 SPLITS = ("train", "val", "test")
 
-# Per-process state of the workers, set once by _init_worker.
-_WORKER: dict = {}
-
-
 def view_params(params: Params) -> ViewParams:
     """The network's view is cleaned like an imported capture: same voxel grid and normal radius."""
     return ViewParams(
@@ -36,42 +29,26 @@ def view_params(params: Params) -> ViewParams:
     )
 
 
-def _init_worker(part: PartModel, params: Params) -> None:
-    _WORKER["part"], _WORKER["params"] = part, params
-
-
-def _make_one(split: str, index: int, folder: str) -> tuple[str, int, int]:
-    part: PartModel = _WORKER["part"]
-    params: Params = _WORKER["params"]
+def make_scene(shared: tuple[PartModel, Params, str], job: tuple[str, int]) -> int:
+    """One scene of the data set, written to <folder>/<split>/scene_<index>.npz; its seed comes
+    from the job alone, so the files do not depend on the worker or the order. Returns the
+    number of objects placed."""
+    part, params, folder = shared
+    split, index = job
     seed = derive_seed(params.seed, "generate", part.name, split, index)
     scene = generate_scene(part, params.generate, params.camera, view_params(params), seed)
     save_scene(Path(folder) / split / f"scene_{index:06d}.npz", scene)
-    return split, index, len(scene.T_cam_from_model)
+    return len(scene.T_cam_from_model)
 
 
 def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
     part = load_part_model(part_model_path)
     g = params.generate
     jobs = [(split, i) for split, n in zip(SPLITS, (g.n_train, g.n_val, g.n_test)) for i in range(n)]
-    workers = g.workers or os.cpu_count() or 1
-    placed: list[int] = []
     with atomic_dir(out) as tmp:
         for split in SPLITS:
             (tmp / split).mkdir()
-        bar = tqdm(total=len(jobs), desc=f"generate {part.name}", unit="scene", disable=not progress)
-        if workers == 1:
-            _init_worker(part, params)
-            for split, i in jobs:
-                placed.append(_make_one(split, i, str(tmp))[2])
-                bar.update()
-        else:
-            # spawn, not fork: Open3D's thread pools do not survive a fork.
-            with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(part, params)) as pool:
-                futures = [pool.submit(_make_one, split, i, str(tmp)) for split, i in jobs]
-                for f in as_completed(futures):
-                    placed.append(f.result()[2])
-                    bar.update()
-        bar.close()
+        placed = fan_out(make_scene, (part, params, str(tmp.resolve())), jobs, params.orchestration, f"generate {part.name}", progress)
     metrics = {
         "n_scenes": float(len(jobs)),
         "objects_per_scene_mean": float(np.mean(placed)),

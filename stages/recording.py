@@ -61,3 +61,39 @@ def _log_part(rec, entity: str, pose: PoseRecord, part: PartModel, rgba: np.ndar
         rr.Mesh3D(vertex_positions=part.mesh_vertices_m.astype(np.float32), triangle_indices=part.mesh_faces.astype(np.uint32), albedo_factor=rgba),
     )
     rec.log(f"{entity}/score", rr.TextDocument(f"score {pose.score:.3f}"))
+
+
+class TrainingRecording:
+    """Sample predictions during training: a few fixed validation views, segmented by the network
+    after chosen epochs (timeline `epoch`), beside their ground-truth instances."""
+
+    def __init__(self, path: Path, part: str, views: list[tuple[np.ndarray, np.ndarray]]):
+        import rerun as rr
+
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.rec = rr.RecordingStream("binpick", recording_id=f"train-{part}")
+        self.rec.save(str(self.path))  # to a file, never a viewer
+        self.rec.log("views", rr.ViewCoordinates.RDF, static=True)
+        self.views = views
+        for i, (points, labels) in enumerate(views):
+            self.rec.log(f"views/{i}/truth", rr.Points3D(points, colors=_instance_rgb(labels), radii=0.0008), static=True)
+
+    def log_epoch(self, epoch: int, predictions: list[np.ndarray], metrics: dict[str, float]) -> None:
+        import rerun as rr
+
+        self.rec.set_time("epoch", sequence=epoch)
+        for i, ((points, _), labels) in enumerate(zip(self.views, predictions)):
+            self.rec.log(f"views/{i}/prediction", rr.Points3D(points, colors=_instance_rgb(labels), radii=0.0008))
+        for key in ("train_loss", "val_loss"):
+            if key in metrics:
+                self.rec.log(f"loss/{key}", rr.Scalars(metrics[key]))
+
+    def close(self) -> None:
+        self.rec.flush()
+        self.rec.disconnect()
+
+
+def _instance_rgb(labels: np.ndarray) -> np.ndarray:
+    palette = instance_colours(max(int(labels.max()) + 1 if len(labels) else 1, 1))
+    return np.where((labels >= 0)[:, None], palette[np.maximum(labels, 0) % len(palette)], NOISE_GREY)

@@ -17,7 +17,7 @@ from binpick.io.part_model import load_part_model
 from binpick.io.ppf_model import load_ppf_model
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params, load_params
-from binpick.registration.ppf import PoseEstimate, match_segment, suppress_duplicates
+from binpick.registration.ppf import PoseEstimate, match_scene, match_segment, suppress_duplicates
 from binpick.seeding import derive_seed
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 from stages.recording import write_scene_recording
@@ -36,7 +36,10 @@ def run(
     truth_path: Path | None = None,
     metrics_path: Path | None = None,
     rrd_path: Path | None = None,
+    timing_files: Sequence[Path] = (),
 ) -> dict[str, float]:
+    """timing_files: metrics JSON of the earlier scene stages; their timings (keys ending in
+    `_s`) join this scene's MLflow run and recording."""
     cloud = load_cloud(cloud_path)
     labels = load_segments(segments_path)
     if len(labels) != len(cloud.points_m):
@@ -47,22 +50,29 @@ def run(
     found: list[tuple[int, PoseEstimate]] = []
     per_instance_ms: list[float] = []
     t0 = time.perf_counter()
-    for seg in range(int(labels.max()) + 1 if len(labels) else 0):
-        mask = labels == seg
-        t = time.perf_counter()
-        est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params.registration, rng)
-        per_instance_ms.append(1000.0 * (time.perf_counter() - t))
-        if est is not None and est.score >= params.registration.min_score:
-            found.append((seg, est))
-    kept = suppress_duplicates(ppf, [e for _, e in found], params.registration)
-    estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
+    if params.registration.whole_scene:
+        whole = match_scene(ppf, cloud.points_m, cloud.normals, params.registration, rng, params.registration.max_instances)
+        estimates = [PoseRecord(e.T_cam_from_model, e.score, -1) for e in whole]
+        per_instance_ms = [1000.0 * (time.perf_counter() - t0) / max(1, len(whole))] * len(whole)
+        n_duplicates = 0
+    else:
+        for seg in range(int(labels.max()) + 1 if len(labels) else 0):
+            mask = labels == seg
+            t = time.perf_counter()
+            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params.registration, rng)
+            per_instance_ms.append(1000.0 * (time.perf_counter() - t))
+            if est is not None and est.score >= params.registration.min_score:
+                found.append((seg, est))
+        kept = suppress_duplicates(ppf, [e for _, e in found], params.registration)
+        estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
+        n_duplicates = len(found) - len(kept)
     register_s = time.perf_counter() - t0
     save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
         "register_s": register_s,
         "ms_per_instance_median": float(np.median(per_instance_ms)) if per_instance_ms else 0.0,
-        "n_segments": float(len(per_instance_ms)),
-        "n_duplicates_suppressed": float(len(found) - len(kept)),
+        "n_segments": float(int(labels.max()) + 1 if len(labels) else 0),
+        "n_duplicates_suppressed": float(n_duplicates),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }
@@ -76,18 +86,31 @@ def run(
             ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
         )
         metrics.update(summary)
-    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part.name, "dvc_stage": f"register@{name}"}):
+    timings = {**earlier_timings(timing_files), "register_s": register_s}
+    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part.name, "capture": name, "dvc_stage": f"register@{name}"}):
         import mlflow
 
-        mlflow.log_metrics({k: v for k, v in metrics.items() if np.isfinite(v)})
+        mlflow.log_metrics({k: v for k, v in {**metrics, **timings}.items() if np.isfinite(v)})
         for k, e in enumerate(estimates):
             mlflow.log_metric("pose_score", e.score, step=k)
+        mlflow.log_dict({"part": part.name, "poses": [{"segment": e.segment, "score": e.score, "T_cam_from_model": e.T_cam_from_model.tolist()} for e in estimates]}, "poses.json")
     if rrd_path is not None:
-        write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {"register": register_s})
+        write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
-    log.info("%s: %d poses from %d segments in %.2f s", name, len(estimates), len(per_instance_ms), register_s)
+    log.info("%s: %d poses (%s) in %.2f s", name, len(estimates), "whole scene" if params.registration.whole_scene else f"{metrics['n_segments']:.0f} segments", register_s)
     return metrics
+
+
+def earlier_timings(paths: Sequence[Path]) -> dict[str, float]:
+    import json
+
+    timings: dict[str, float] = {}
+    for path in paths:
+        if not Path(path).is_file():
+            raise InputError(path, "metrics file of an earlier stage not found")
+        timings.update({k: float(v) for k, v in json.loads(Path(path).read_text()).items() if k.endswith("_s")})
+    return timings
 
 
 @entry
@@ -103,11 +126,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--truth", default="", help="ground-truth poses (.json), '' for none")
     p.add_argument("--metrics", type=Path)
     p.add_argument("--rrd", type=Path, help="rerun recording to write")
+    p.add_argument("--timings", type=Path, nargs="*", default=[], help="metrics files of the earlier stages, for their timings")
     args = p.parse_args(argv)
     start(args)
     run(
         load_params(args.params, args.part), args.name, args.cloud, args.segments, args.ppf, args.part_model, args.out,
-        Path(args.truth) if args.truth else None, args.metrics, args.rrd,
+        Path(args.truth) if args.truth else None, args.metrics, args.rrd, args.timings,
     )
     return 0
 

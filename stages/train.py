@@ -12,10 +12,12 @@ import numpy as np
 from binpick.errors import InputError
 from binpick.io.part_model import load_part_model
 from binpick.io.scene import list_scenes, load_scene
+from binpick.network.infer import cluster_params, segment_scene
 from binpick.network.train import BEST, Views, default_device, train_fpcc
 from binpick.params import Params, load_params
-from binpick.seeding import derive_int
+from binpick.seeding import derive_int, derive_seed
 from stages.common import entry, flat_params, mlflow_run, parser, register_checkpoint, registered_name, start, write_metrics
+from stages.recording import TrainingRecording
 
 log = logging.getLogger("binpick.stage.train")
 
@@ -37,6 +39,11 @@ def d_max(params: Params, diameter_m: float) -> float:
     return params.train.d_max_m if params.train.d_max_m is not None else diameter_m / 2.0
 
 
+# Sample predictions: this many validation views, after about this many evenly spread epochs.
+SAMPLE_VIEWS = 2
+SAMPLE_EPOCHS = 8
+
+
 def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
     part = load_part_model(part_model_path)
     train_views, val_views = load_views(scenes / "train"), load_views(scenes / "val")
@@ -48,16 +55,34 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         import mlflow
 
         mlflow.log_params({**flat_params("train", params.train), "train.d_max_m_resolved": dm, "seed": params.seed, "device": str(device)})
-        _, metrics = train_fpcc(
-            train_views, val_views, params.train, dm, derive_int(params.seed, "train", part.name), work, extra,
-            on_epoch=lambda epoch, m: mlflow.log_metrics(m, step=epoch), device=device, progress=progress,
-        )
+        samples = TrainingRecording(work / "samples.rrd", part.name, [(val_views.points[i], val_views.labels[i]) for i in range(min(SAMPLE_VIEWS, len(val_views)))])
+        every = max(1, params.train.epochs // SAMPLE_EPOCHS)
+        cp = cluster_params(params.segment, part.diameter_m)
+
+        def on_epoch(epoch: int, m: dict[str, float], model) -> None:
+            mlflow.log_metrics(m, step=epoch)
+            if epoch % every == 0 or epoch == params.train.epochs - 1:
+                rng = np.random.default_rng(derive_seed(params.seed, "train-samples", part.name))
+                predictions = [
+                    segment_scene(model, val_views.points[i], val_views.normals[i], params.train.features, dm, params.segment.n_points, cp, rng)
+                    for i in range(len(samples.views))
+                ]
+                samples.log_epoch(epoch, predictions, m)
+
+        try:
+            _, metrics = train_fpcc(
+                train_views, val_views, params.train, dm, derive_int(params.seed, "train", part.name), work, extra,
+                on_epoch=on_epoch, device=device, progress=progress,
+            )
+        finally:
+            samples.close()
+        mlflow.log_artifact(str(samples.path), artifact_path="samples")
         out.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(work / BEST, out)
         mlflow.log_artifact(str(out), artifact_path="model")
         version = register_checkpoint(part.name, out, run_, f"train@{part.name}")
-        log.info("%s: registered as %s version %s", part.name, registered_name(part.name), version)
-        metrics = {**metrics, "mlflow_run_id": run_.info.run_id, "registered_version": float(version)}
+        # The run id and version stay in MLflow: the DVC metrics hold only what a rerun reproduces.
+        log.info("%s: MLflow run %s, registered as %s version %s", part.name, run_.info.run_id, registered_name(part.name), version)
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
     log.info("%s: best validation loss %.4f at epoch %d -> %s", part.name, metrics["best_val_loss"], metrics["best_epoch"], out)

@@ -28,6 +28,8 @@ def test_generate_bench_reports_both_methods(t_joint):
     ours, base = result["binpick"]["3"], result["rejection_baseline"]["3"]
     assert ours["objects_placed_mean"] == 3 and ours["max_penetration_mm"] <= 1.0
     assert base["objects_placed_mean"] == 3 and "speedup_at_3" in result
+    physics = result["binpick_physics"]["3"]
+    assert physics["objects_placed_mean"] >= 2 and physics["max_penetration_mm"] <= 1.0
 
 
 def test_ppf_bench_recovers_poses():

@@ -16,7 +16,7 @@ from tests.conftest import ROOT
 TINY = {
     "ingest": {"n_surface_points": 8000},
     "camera": {"downscale": 8},
-    "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "workers": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
+    "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
     "train": {"n_points": 512, "width": 8, "embedding_dim": 8, "k_neighbours": 8, "epochs": 2, "batch_size": 2, "loss_anchors": 128},
     "evaluate": {"accept_precision": 0.0, "accept_recall": 0.0},  # every model is accepted
     "scene_import": {},
@@ -120,3 +120,152 @@ def test_models_are_registered_and_the_accepted_alias_points_at_the_checkpoint(p
         accepted = client.get_model_version_by_alias(f"fpcc-{part}", "accepted")
         assert accepted.tags["checkpoint_sha256"] == file_sha256(project / f"data/fpcc/{part}/model.pt")
         assert accepted.tags["dvc_stage"] == f"train@{part}"
+
+
+@pytest.mark.slow
+def test_scene_flow_processes_a_folder_of_captures(project):
+    """Two captures dropped in a folder are listed in params.yaml and each imported, segmented and
+    registered; a second pass over the folder adds nothing and changes nothing."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    from flows.pipeline import process_folder
+
+    folder = project / "data" / "captures" / "monday"
+    folder.mkdir(parents=True)
+    for name in ("bin A.ply", "bin_b.ply"):
+        shutil.copy(project / "data/captures/demo/capture.ply", folder / name)
+    (folder / "notes.md").write_text("not a capture")
+    with prefect_test_harness(server_startup_timeout=120):
+        first = process_folder(project, folder, "t_joint")
+        second = process_folder(project, folder, "t_joint")
+    assert sorted(first) == ["bin_a", "bin_b"]
+    demo = json.loads((project / "data/metrics/scenes/demo/register.json").read_text())
+    for name in first:  # the demo capture's frame: about the demo's parts are found
+        assert demo["n_found"] / 2 <= first[name]["n_found"] <= demo["n_found"] + 2
+        assert (project / f"data/results/{name}/poses.json").is_file()
+    assert second == first
+    captures = yaml.safe_load((project / "params.yaml").read_text())["captures"]
+    assert captures["bin_a"] == {"file": "data/captures/monday/bin A.ply", "part": "t_joint", "unit": "mm", "truth": ""}
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _train_runs(project, part):
+    import mlflow
+
+    mlflow.set_tracking_uri(f"sqlite:///{project / 'data' / 'mlflow' / 'mlflow.db'}")
+    experiment = mlflow.get_experiment_by_name(f"part-{part}")
+    if experiment is None:
+        return []
+    runs = mlflow.search_runs([experiment.experiment_id], output_format="list")
+    return [r for r in runs if r.info.run_name == f"train-{part}"]
+
+
+def _completed_flow_runs(api_url):
+    import urllib.request
+
+    body = json.dumps({"flow_runs": {"state": {"type": {"any_": ["COMPLETED"]}}}, "limit": 200}).encode()
+    request = urllib.request.Request(f"{api_url}/flow_runs/filter", data=body, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(request, timeout=10) as response:
+        return json.loads(response.read())
+
+
+@pytest.mark.slow
+def test_served_schedule_fires_and_trains_a_new_part_only(project):
+    """`binpick serve` on a 5 s interval, against the local Prefect server it starts: a scheduled
+    run picks up a newly dropped mesh and trains it; the parts already trained are not retrained;
+    the new part's MLflow runs name the Prefect flow run that made them."""
+    import os
+    import signal
+    import time
+
+    import trimesh
+
+    before = {part: len(_train_runs(project, part)) for part in ("t_joint", "bracket_block")}
+    assert all(before.values())
+    trimesh.creation.cylinder(radius=9.0, height=30.0, sections=48).export(project / "data" / "parts" / "spacer.stl")
+    port = _free_port()
+    env = {**os.environ, "PREFECT_HOME": str(project / "data" / "prefect"), "TQDM_DISABLE": "1"}
+    env.pop("PREFECT_API_URL", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "binpick.cli", "serve", "--interval-s", "5", "--port", str(port)],
+        cwd=project, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    api_url = f"http://127.0.0.1:{port}/api"
+    scheduled = []
+    try:
+        deadline = time.monotonic() + 480
+        while time.monotonic() < deadline and proc.poll() is None:
+            if (project / "data/metrics/spacer/evaluate.json").is_file():
+                runs = _completed_flow_runs(api_url)
+                scheduled = [r for r in runs if r["name"] == "watch-parts" and r["deployment_id"]]
+                if scheduled:
+                    break
+            time.sleep(2)
+    finally:
+        os.killpg(proc.pid, signal.SIGINT)
+        try:
+            output, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            output, _ = proc.communicate()
+    assert scheduled, f"no scheduled watcher run completed; serve said:\n{output[-3000:]}"
+    assert (project / "data/fpcc/spacer/model.pt").is_file()
+    assert {part: len(_train_runs(project, part)) for part in before} == before  # up to date: skipped
+    (spacer_run,) = _train_runs(project, "spacer")
+    assert spacer_run.data.tags["prefect.flow_run_name"] == "train-spacer"
+    assert spacer_run.data.tags["dvc_stage"] == "train@spacer"
+    assert "samples/samples.rrd" in {a.path for a in __import__("mlflow").MlflowClient().list_artifacts(spacer_run.info.run_id, "samples")}
+
+
+def _quality_metrics(project, part):
+    """A part's DVC metrics without the timings, which no rerun reproduces."""
+    out = {}
+    for path in sorted((project / "data" / "metrics" / part).glob("*.json")):
+        out[path.stem] = {k: v for k, v in json.loads(path.read_text()).items() if not k.endswith("_s")}
+    return out
+
+
+@pytest.mark.slow
+def test_one_parts_params_rerun_only_its_stages_and_a_rerun_reproduces_it(project):
+    """Changing bracket_block's params re-runs only bracket_block's stages; changing them back and
+    running again without DVC's run cache gives the same data set, weights and metrics."""
+    from ruamel.yaml import YAML
+
+    from stages.common import file_sha256
+
+    def lock_hash(stage, out):
+        lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"][stage]
+        return next(o["md5"] for o in lock["outs"] if o["path"] == out)
+
+    before = (
+        _quality_metrics(project, "bracket_block"), file_sha256(project / "data/fpcc/bracket_block/model.pt"),
+        lock_hash("generate@bracket_block", "data/scenes/bracket_block"),
+    )
+    yaml_rt = YAML()
+    original = (project / "params.yaml").read_text()
+    doc = yaml_rt.load(original)
+    doc["parts"]["bracket_block"]["train"] = {"epochs": 1}
+    with open(project / "params.yaml", "w") as fh:
+        yaml_rt.dump(doc, fh)
+    changed = _dvc(project, "repro")
+    assert changed.returncode == 0, changed.stderr
+    ran = {line.split("'")[1] for line in changed.stdout.splitlines() if line.startswith("Running stage")}
+    assert "train@bracket_block" in ran and all(s.endswith("@bracket_block") for s in ran), ran
+
+    (project / "params.yaml").write_text(original)
+    again = _dvc(project, "repro", "--no-run-cache")
+    assert again.returncode == 0, again.stderr
+    assert "Running stage 'train@bracket_block'" in again.stdout
+    after = (
+        _quality_metrics(project, "bracket_block"), file_sha256(project / "data/fpcc/bracket_block/model.pt"),
+        lock_hash("generate@bracket_block", "data/scenes/bracket_block"),
+    )
+    assert after == before
+    assert "up to date" in _dvc(project, "status").stdout

@@ -59,3 +59,22 @@ def test_duplicate_poses_are_suppressed_up_to_symmetry(ppf):
     other = make_T(np.eye(3), np.array([0.1, 0.0, 0.5]))
     ests = [PoseEstimate(twin, 0.6, 10), PoseEstimate(T, 0.7, 10), PoseEstimate(other, 0.5, 10)]
     assert suppress_duplicates(ppf, ests, RegisterParams()) == [1, 2]
+
+
+def test_whole_scene_matching_finds_every_part_without_segments(t_joint, ppf):
+    """The network's view of a rendered bin, no labels: every pickable part is found once, at
+    its ground-truth pose, and nothing else."""
+    from binpick.metrics.pose import scene_pose_metrics
+    from binpick.registration.ppf import match_scene
+
+    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), RegisterParams(), np.random.default_rng(0), max_instances=10)
+    summary, _ = scene_pose_metrics(
+        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), scene.T_cam_from_model, scene.visible_fraction,
+        ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+    )
+    assert summary["n_pickable"] >= 4
+    assert summary["pose_recall"] >= 0.8 and summary["pose_precision"] >= 0.8, summary
+    assert summary["rot_err_deg_median"] < 1.0 and summary["trans_err_mm_median"] < 1.0
+    assert all(0.0 <= e.score <= 1.0 for e in found)
+    assert [e.score for e in found] == sorted((e.score for e in found), reverse=True)

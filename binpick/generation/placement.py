@@ -43,6 +43,15 @@ def sample_orientation(rng: np.random.Generator, mode: str) -> np.ndarray:
     raise ValueError(f"unknown orientation mode {mode!r}")
 
 
+def start_height(rng: np.random.Generator, placement: PlacementParams, bin_params: BinParams) -> float:
+    """Height of an object's lowest point above the floor, before the pile below is considered."""
+    if placement.heights == "pile":
+        return 0.0  # no draw: the default mode's random stream stays as it was
+    if placement.heights == "u_shaped":
+        return float(bin_params.wall_height_m * rng.beta(0.5, 0.5))
+    return float(rng.choice(placement.height_levels_m))
+
+
 def _column_extremes(
     ix: np.ndarray, iy: np.ndarray, z: np.ndarray, shape: tuple[int, int]
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +86,7 @@ def place_objects(
     top = np.zeros(shape)  # pile height per column; the floor is z = 0
     poses: list[np.ndarray] = []
     for _ in range(n_objects):
+        floor_gap = start_height(rng, placement, bin_params)
         # Of several random candidates, the one that comes to rest lowest: piles stay flat and
         # dense like a settled bin instead of growing towers on single contact points.
         best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
@@ -93,7 +103,7 @@ def place_objects(
             iy = np.clip(((p[:, 1] + ty + Y / 2) / cell).astype(np.int64), 0, shape[1] - 1)
             low, high = _column_extremes(ix, iy, p[:, 2], shape)
             occupied = np.isfinite(low)
-            tz = float(np.max(support[occupied] - low[occupied]))
+            tz = max(float(np.max(support[occupied] - low[occupied])), floor_gap - float(lo[2]))
             centre_z = tz + float(p[:, 2].mean())
             if best is None or centre_z < best[0]:
                 best = (centre_z, make_T(R, np.array([tx, ty, tz])), occupied, high + tz)

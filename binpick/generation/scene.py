@@ -2,17 +2,26 @@
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, visible_fractions
+from binpick.generation.overlap import drop_overlapping, penetration_depths_m
+from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
 from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.params import CameraParams, GenerateParams
+
+
+log = logging.getLogger(__name__)
+
+# Surface points per object in the physics mode's penetration check.
+PENETRATION_SAMPLE = 400
 
 
 @dataclass(frozen=True)
@@ -115,4 +124,28 @@ def generate_scene(
     if n_objects is None:
         n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
     placed = place_objects(part.points_m, n_objects, generate.bin, placement, rng)
-    return render_scene(part, placed.T_bin_from_model, generate, camera, view, rng)
+    T_bin_from_model = placed.T_bin_from_model
+    if placement.mode == "physics":
+        T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
+    return render_scene(part, T_bin_from_model, generate, camera, view, rng)
+
+
+def settle_in_bin(part: PartModel, T_bin_from_model: np.ndarray, generate: GenerateParams, rng: np.random.Generator) -> np.ndarray:
+    """The physics mode: drop-placed objects settled by simulation; objects that left the bin or
+    reach deeper than placement.max_penetration_m into another are removed (logged).
+
+    T_bin_from_model : (k, 4, 4) non-overlapping start poses, bin frame. Returns (m, 4, 4), m <= k.
+    """
+    placement = generate.placement
+    boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(generate.bin)]
+    settled, inside = settle(part.mesh_vertices_m, part.mesh_faces, T_bin_from_model, boxes, SettleSettings(max_time_s=placement.settle_max_s))
+    settled = settled[inside]
+    sample = part.points_m[rng.choice(len(part.points_m), min(PENETRATION_SAMPLE, len(part.points_m)), replace=False)]
+    keep = drop_overlapping(
+        lambda poses: penetration_depths_m(part.mesh_vertices_m, part.mesh_faces, sample, poses, part.diameter_m),
+        settled, placement.max_penetration_m,
+    )
+    if len(keep) < len(T_bin_from_model):
+        log.info("physics: kept %d of %d objects (%d left the bin, %d overlapped)", len(keep), len(T_bin_from_model),
+                 int((~inside).sum()), int(inside.sum()) - len(keep))
+    return settled[keep]

@@ -6,6 +6,7 @@ Spec: data/README.md#checkpoint.
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
 from typing import Any
 
@@ -36,8 +37,12 @@ def save_checkpoint(
         "metrics": metrics,
         "extra": extra,
     }
+    # Through a buffer: torch names the archive inside the file after the file, and the atomic
+    # write's temporary name would make equal checkpoints differ byte for byte.
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
     with atomic_path(path) as tmp:
-        torch.save(state, tmp)
+        Path(tmp).write_bytes(buffer.getvalue())
 
 
 def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """The FPCC training loop: setup, data, model, optimiser, epochs with validation, checkpoints,
 early stopping, resume after interruption. Reads top to bottom; no tracking calls inside
-(the caller receives each epoch's metrics through `on_epoch`)."""
+(the caller receives each epoch's metrics and the network, in eval mode, through `on_epoch`)."""
 
 from __future__ import annotations
 
@@ -87,7 +87,7 @@ def train_fpcc(
     seed: int,
     checkpoint_dir: str | Path,
     extra: dict[str, Any],
-    on_epoch: Callable[[int, dict[str, float]], None] | None = None,
+    on_epoch: Callable[[int, dict[str, float], FPCC], None] | None = None,
     device: torch.device | None = None,
     progress: bool = True,
 ) -> tuple[FPCC, dict[str, float]]:
@@ -168,7 +168,7 @@ def train_fpcc(
         save_checkpoint(last, model, optimiser, epoch, metrics, extra)
         bar.set_postfix(loss=f"{sums['loss']:.3f}", val=f"{val_loss:.3f}")
         if on_epoch is not None:
-            on_epoch(epoch, metrics)
+            on_epoch(epoch, metrics, model)
         if epoch - best_epoch >= params.patience_epochs:
             log.info("early stop at epoch %d: no validation improvement for %d epochs", epoch, params.patience_epochs)
             break

@@ -26,6 +26,9 @@ from binpick.params import RegisterParams
 
 TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
 PEAKS_PER_REFERENCE = 2
+SCENE_REFS_PER_CHUNK = 64  # whole-scene voting: references per accumulator
+SCENE_CLUSTERS_PER_INSTANCE = 3  # whole-scene matching: clusters refined per instance sought
+SCENE_MAX_SHARED_SUPPORT = 0.3  # whole-scene NMS: share of a pose's points a better pose may explain
 
 
 @dataclass(frozen=True)
@@ -222,10 +225,12 @@ def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params
 
 
 def score_pose(
-    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: cKDTree | None = None
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: cKDTree | None = None,
+    whole_scene: bool = False,
 ) -> float:
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
-    point within inlier_m, and the share of scene points within inlier_m of the model."""
+    point within inlier_m, and the share of scene points within inlier_m of the model. On a
+    whole scene (other parts around) only the first share counts."""
     if len(scene_points) == 0:
         return 0.0
     facing = _facing(model, T_cam_from_model)
@@ -233,6 +238,8 @@ def score_pose(
         return 0.0
     scene_tree = scene_tree or cKDTree(scene_points)
     d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[facing]), distance_upper_bound=inlier_m)
+    if whole_scene:
+        return float(np.mean(np.isfinite(d_model)))
     # Scene points against the model's own tree, in the model frame: built once per model.
     d_scene, _ = _model_tree(model).query(transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m)
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
@@ -313,6 +320,60 @@ def match_segment(
         if best is None or score > best.score:
             best = PoseEstimate(T_cam_from_model=T, score=score, votes=votes)
     return best
+
+
+def match_scene(
+    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
+    max_instances: int = 30,
+) -> list[PoseEstimate]:
+    """Every instance of the part in a whole scene, without segments: votes from reference
+    points all over the scene, the strongest pose clusters refined and scored, duplicates
+    suppressed (symmetry-aware), poses scoring below params.min_score dropped. Best first.
+
+    scene_points, scene_normals : (n, 3) camera frame, metres; normals facing the camera.
+    """
+    if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
+        raise ValueError("expected scene points and normals (n, 3)")
+    idx = voxel_downsample_indices(scene_points, params.sample_step_rel * model.diameter_m)
+    if len(idx) < 3:
+        return []
+    pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
+    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
+    refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
+    candidates: list[tuple[np.ndarray, float]] = []
+    # In chunks: the accumulator holds (references x model points x angle bins) counts.
+    for chunk in np.array_split(refs, int(np.ceil(len(refs) / SCENE_REFS_PER_CHUNK))):
+        candidates += _vote(model, pts, nrm, chunk)
+    fine = scene_points[voxel_downsample_indices(scene_points, params.refine_step_rel * model.diameter_m)]
+    inlier = params.score_inlier_rel * model.diameter_m
+    tree = cKDTree(fine)
+    estimates: list[PoseEstimate] = []
+    support: list[np.ndarray] = []
+    for T, votes in _cluster(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
+        T = refine_icp(model, T, fine, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations)
+        T = refine_icp(model, T, fine, 2.0 * inlier, params.icp_iterations)
+        score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
+        if score >= params.min_score:
+            estimates.append(PoseEstimate(T_cam_from_model=T, score=score, votes=votes))
+            support.append(_supporting_points(model, T, tree, inlier))
+    # Non-maximum suppression by explained points, best first: a pose whose supporting scene
+    # points are mostly explained by a better pose already (a repeat, or a fit bridging two
+    # neighbouring parts) is dropped, whatever its pose.
+    claimed = np.zeros(len(fine), bool)
+    kept: list[PoseEstimate] = []
+    for k in sorted(range(len(estimates)), key=lambda k: -estimates[k].score):
+        if len(support[k]) == 0 or claimed[support[k]].mean() > SCENE_MAX_SHARED_SUPPORT:
+            continue
+        claimed[support[k]] = True
+        kept.append(estimates[k])
+    return kept[:max_instances]
+
+
+def _supporting_points(model: PPFModel, T_cam_from_model: np.ndarray, scene_tree: cKDTree, inlier_m: float) -> np.ndarray:
+    """Indices of the scene points within inlier_m of the camera-facing model surface at the pose."""
+    facing = _facing(model, T_cam_from_model)
+    hits = scene_tree.query_ball_point(transform_points(T_cam_from_model, model.dense_points_m[facing]), inlier_m)
+    return np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits])) if len(hits) else np.zeros(0, np.int64)
 
 
 def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:

@@ -1,0 +1,145 @@
+"""Physically settled piles: objects dropped into the bin and left to settle under gravity in a
+rigid-body simulation (pybullet), for piles that look like a real bin (objects leaning on each
+other, sliding under overhangs, lying in stable poses).
+
+The part collides through a convex decomposition of its mesh (V-HACD), computed once per mesh
+per process. The simulation runs with lengths scaled up (SCALE), because Bullet's contact
+margins and tolerances are tuned for objects of about a metre; parts of a few centimetres would
+otherwise float millimetres apart or sink into each other.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import logging
+import os
+import sys
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from binpick.geometry.transforms import make_T
+
+log = logging.getLogger(__name__)
+
+SCALE = 10.0  # simulation length unit = 1/SCALE metre (decimetres)
+TIME_STEP_S = 1.0 / 240.0
+REST_SPEED_M_S = 0.002  # settled when every object moves slower than this
+
+_DECOMPOSITIONS: dict[str, str] = {}
+
+
+@dataclass(frozen=True)
+class SettleSettings:
+    max_time_s: float = 2.0
+    friction: float = 0.6
+    drop_gap_m: float = 0.005  # objects start this far above their drop-placement pose, per object
+
+
+def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
+    """Path of an OBJ holding the V-HACD convex decomposition of the mesh (scaled by SCALE)."""
+    import pybullet as pb
+
+    key = hashlib.sha1(np.ascontiguousarray(vertices_m, np.float64).tobytes() + np.ascontiguousarray(faces, np.int64).tobytes()).hexdigest()
+    if key in _DECOMPOSITIONS and Path(_DECOMPOSITIONS[key]).is_file():
+        return _DECOMPOSITIONS[key]
+    folder = Path(tempfile.mkdtemp(prefix="binpick-vhacd-"))
+    src, out = folder / "part.obj", folder / "parts.obj"
+    v = vertices_m * SCALE
+    lines = [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    src.write_text("\n".join(lines) + "\n")
+    client = pb.connect(pb.DIRECT)
+    try:
+        with _quiet_stdout():  # V-HACD prints its progress from C
+            pb.vhacd(str(src), str(out), str(folder / "vhacd.log"), resolution=200000, maxNumVerticesPerCH=64, physicsClientId=client)
+    finally:
+        pb.disconnect(client)
+    if not out.is_file() or out.stat().st_size == 0:
+        raise RuntimeError("V-HACD convex decomposition of the part failed")
+    _DECOMPOSITIONS[key] = str(out)
+    return str(out)
+
+
+def settle(
+    vertices_m: np.ndarray,
+    faces: np.ndarray,
+    T_bin_from_model: np.ndarray,
+    bin_boxes: list[tuple[np.ndarray, np.ndarray]],
+    settings: SettleSettings,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Let objects starting at non-overlapping poses fall and settle in the bin.
+
+    vertices_m, faces : the part's mesh, model frame, metres
+    T_bin_from_model  : (k, 4, 4) start poses, bin frame (z up, floor at z = 0), metres
+    bin_boxes         : static boxes (lo, hi), each (3,) bin frame, metres: floor and walls
+    Returns the settled poses (k, 4, 4) and a (k,) bool mask of objects still inside the bin.
+    The simulation is deterministic for the same inputs.
+    """
+    import pybullet as pb
+
+    k = len(T_bin_from_model)
+    if k == 0:
+        return T_bin_from_model.copy(), np.zeros(0, bool)
+    shape_file = _convex_parts_obj(vertices_m, faces)
+    client = pb.connect(pb.DIRECT)
+    try:
+        pb.setGravity(0, 0, -9.81 * SCALE, physicsClientId=client)
+        pb.setTimeStep(TIME_STEP_S, physicsClientId=client)
+        pb.setPhysicsEngineParameter(numSolverIterations=50, deterministicOverlappingPairs=1, physicsClientId=client)
+        for lo, hi in bin_boxes:
+            half = (np.asarray(hi) - np.asarray(lo)) / 2.0 * SCALE
+            centre = (np.asarray(hi) + np.asarray(lo)) / 2.0 * SCALE
+            box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=client)
+            body = pb.createMultiBody(0.0, box, basePosition=centre.tolist(), physicsClientId=client)
+            pb.changeDynamics(body, -1, lateralFriction=settings.friction, physicsClientId=client)
+        shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=shape_file, physicsClientId=client)
+        bodies = []
+        for i, T in enumerate(T_bin_from_model):
+            position = (T[:3, 3] + np.array([0.0, 0.0, settings.drop_gap_m * (i + 1)])) * SCALE
+            body = pb.createMultiBody(
+                1.0, shape, basePosition=position.tolist(), baseOrientation=_quaternion_xyzw(T[:3, :3]).tolist(), physicsClientId=client
+            )
+            pb.changeDynamics(body, -1, lateralFriction=settings.friction, restitution=0.0, linearDamping=0.1, angularDamping=0.1, physicsClientId=client)
+            bodies.append(body)
+        steps = int(settings.max_time_s / TIME_STEP_S)
+        for step in range(steps):
+            pb.stepSimulation(physicsClientId=client)
+            if step % 24 == 23 and step > 120:
+                speeds = [np.linalg.norm(pb.getBaseVelocity(b, physicsClientId=client)[0]) / SCALE for b in bodies]
+                if max(speeds) < REST_SPEED_M_S:
+                    break
+        out = np.empty_like(T_bin_from_model)
+        for i, b in enumerate(bodies):
+            position, q = pb.getBasePositionAndOrientation(b, physicsClientId=client)
+            R = np.asarray(pb.getMatrixFromQuaternion(q, physicsClientId=client)).reshape(3, 3)
+            out[i] = make_T(R, np.asarray(position) / SCALE)
+    finally:
+        pb.disconnect(client)
+    lo = np.min([b[0] for b in bin_boxes], axis=0)
+    hi = np.max([b[1] for b in bin_boxes], axis=0)
+    inside = np.all((out[:, :3, 3] > lo) & (out[:, :3, 3] < hi + np.array([0, 0, 1.0])), axis=1)
+    return out, inside
+
+
+@contextlib.contextmanager
+def _quiet_stdout() -> Iterator[None]:
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(R).as_quat()  # scipy's order is (x, y, z, w), as pybullet's
