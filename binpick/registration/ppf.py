@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+import numba
+from numba import njit
 from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
@@ -25,6 +27,11 @@ from binpick.geometry.transforms import invert_T, transform_points
 from binpick.params import RegisterParams
 
 TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
+COARSE_STRIDE = 4  # coarse ICP: every 4th dense model point is a target
+FINE_STRIDE = 2  # fine ICP: every 2nd
+SCORE_STRIDE = 2  # scoring: every 2nd dense model point must find a scene point
+MAX_CLUSTER_CANDIDATES = 160  # per segment: the strongest accumulator peaks that are clustered
+PAIRWISE_CLUSTER_LIMIT = 2_000_000  # candidates^2 * symmetries up to which clustering is one matrix
 PEAKS_PER_REFERENCE = 2
 SCENE_REFS_PER_CHUNK = 64  # whole-scene voting: references per accumulator
 SCENE_CLUSTERS_PER_INSTANCE = 3  # whole-scene matching: clusters refined per instance sought
@@ -165,61 +172,130 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
     if len(first) == 0:
         return []
     keys = _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), model.distance_step_m, model.angle_bins)
-    # Scene keys beyond the model's largest key (a pair longer than any model pair) match nothing.
-    known = keys <= len(model.key_starts) - 2
-    keys = np.where(known, keys, 0)
-    lo = model.key_starts[keys]
-    counts = np.where(known, model.key_starts[keys + 1] - lo, 0)
-    if counts.sum() == 0:
-        return []
-    pair_of_match = np.repeat(np.arange(len(keys)), counts)
-    model_pair = np.repeat(lo - np.cumsum(counts) + counts, counts) + np.arange(counts.sum())
     T_s = _align_to_x(pts, nrm)
     alpha_s = _alpha(T_s[first], pts[second])
+    ref_slot = np.searchsorted(refs, first)
     A = model.angle_bins
-    alpha = model.alpha[model_pair] - alpha_s[pair_of_match]
-    alpha_bin = np.floor((alpha + np.pi) / (2 * np.pi) * A).astype(np.int64) % A
-    ref_slot = np.searchsorted(refs, first[pair_of_match])
-    M = len(model.points_m)
-    acc = np.bincount((ref_slot * M + model.ref_index[model_pair]) * A + alpha_bin, minlength=len(refs) * M * A)
-    acc = acc.reshape(len(refs), M * A)
+    peak_flat, peak_votes = _accumulate_peaks(
+        ref_slot.astype(np.int64), keys.astype(np.int64), alpha_s.astype(np.float64), model.key_starts.astype(np.int64),
+        model.ref_index.astype(np.int64), model.alpha.astype(np.float64), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
+    )
+    valid = peak_votes > 0
+    ref_rows, _ = np.nonzero(valid)
+    m_r, a_bin = np.divmod(peak_flat[valid], A)
+    a = -np.pi + (a_bin + 0.5) * 2 * np.pi / A
+    Rx = np.zeros((len(a), 4, 4))
+    Rx[:, 0, 0] = Rx[:, 3, 3] = 1.0
+    Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
     T_m = _align_to_x(model.points_m, model.normals)
-    candidates = []
-    top = np.argpartition(-acc, PEAKS_PER_REFERENCE - 1, axis=1)[:, :PEAKS_PER_REFERENCE]
-    for r, ref in enumerate(refs):
-        for flat in top[r]:
-            votes = float(acc[r, flat])
-            if votes <= 0:
-                continue
-            m_r, a_bin = divmod(int(flat), A)
-            a = -np.pi + (a_bin + 0.5) * 2 * np.pi / A
-            Rx = np.eye(4)
-            Rx[1:3, 1:3] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
-            candidates.append((invert_T(T_s[ref]) @ Rx @ T_m[m_r], votes))
-    return candidates
+    poses = _invert_Ts(T_s[refs[ref_rows]]) @ Rx @ T_m[m_r]
+    return list(zip(poses, peak_votes[valid].astype(np.float64)))
 
 
-def _cluster(candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams) -> list[tuple[np.ndarray, float]]:
+def _invert_Ts(T: np.ndarray) -> np.ndarray:
+    """Inverses of rigid transforms (n, 4, 4)."""
+    out = np.zeros_like(T)
+    Rt = np.transpose(T[:, :3, :3], (0, 2, 1))
+    out[:, :3, :3] = Rt
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
+    out[:, 3, 3] = 1.0
+    return out
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _accumulate_peaks(ref_slot, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks):  # pragma: no cover - compiled
+    """The voting loop: every scene pair votes for (model reference point, alpha bin) of each
+    model pair with its key; per scene reference, the n_peaks strongest accumulator cells.
+
+    Pairs must come grouped by reference (ref_slot non-decreasing), as _pairs_within makes them.
+    References are spread over the cores in chunks, each with its own accumulator row, reset
+    between references (only the touched cells), so the result does not depend on the cores.
+    Returns (n_refs, n_peaks) flat cell indices (model point * n_angles + alpha bin) and votes.
+    """
+    peak_flat = np.zeros((n_refs, n_peaks), np.int64)
+    peak_votes = np.zeros((n_refs, n_peaks), np.int32)
+    group_start = np.searchsorted(ref_slot, np.arange(n_refs + 1))
+    n_keys = len(key_starts) - 1
+    scale = n_angles / (2.0 * np.pi)
+    n_chunks = min(n_refs, 4 * numba.get_num_threads())
+    for c in numba.prange(n_chunks):
+        acc = np.zeros(n_model * n_angles, np.int32)
+        touched = np.empty(n_model * n_angles, np.int64)
+        for r in range(c * n_refs // n_chunks, (c + 1) * n_refs // n_chunks):
+            n_touched = 0
+            for p in range(group_start[r], group_start[r + 1]):
+                k = keys[p]
+                if k < n_keys:
+                    for q in range(key_starts[k], key_starts[k + 1]):
+                        b = int(np.floor((alpha_m[q] - alpha_s[p] + np.pi) * scale)) % n_angles
+                        cell = ref_index[q] * n_angles + b
+                        if acc[cell] == 0:
+                            touched[n_touched] = cell
+                            n_touched += 1
+                        acc[cell] += 1
+            for t in range(n_touched):
+                cell = touched[t]
+                v = acc[cell]
+                # insert into this reference's top list (sorted, strongest first; ties: first seen)
+                for slot in range(n_peaks):
+                    if v > peak_votes[r, slot]:
+                        for j in range(n_peaks - 1, slot, -1):
+                            peak_votes[r, j] = peak_votes[r, j - 1]
+                            peak_flat[r, j] = peak_flat[r, j - 1]
+                        peak_votes[r, slot] = v
+                        peak_flat[r, slot] = cell
+                        break
+                acc[cell] = 0
+    return peak_flat, peak_votes
+
+
+def _cluster(
+    candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams, max_candidates: int | None = None
+) -> list[tuple[np.ndarray, float]]:
     """Greedy SE(3) clustering: a pose joins the first (strongest) cluster whose best pose, or a
     symmetric twin of it, is within the rotation AND the translation threshold. Returns
-    (best pose, summed votes), strongest first."""
-    order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])
+    (best pose, summed votes), strongest first. max_candidates: only the strongest poses are
+    clustered (weak peaks, from references on clutter or ambiguous patches, decide nothing)."""
+    order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])[:max_candidates]
+    if not order:
+        return []
     trans_thr = params.cluster_translation_rel * model.diameter_m
     m = len(model.symmetries)
-    twins = np.empty((len(candidates) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
-    reps: list[np.ndarray] = []
-    votes: list[float] = []
-    for k in order:
-        T, v = candidates[k]
-        n = len(reps) * m
-        if n:
-            hit = np.flatnonzero(_near(twins[:n], T, params.cluster_rotation_deg, trans_thr))
-            if len(hit):
-                votes[hit[0] // m] += v
-                continue
-        twins[n : n + m] = T[None] @ model.symmetries
-        reps.append(T)
-        votes.append(v)
+    poses = np.stack([candidates[k][0] for k in order])
+    weights = np.array([candidates[k][1] for k in order])
+    if len(order) * len(order) * m <= PAIRWISE_CLUSTER_LIMIT:
+        # All pairwise closeness tests at once: near[i, j] = pose j is close to a twin of pose i.
+        twins = (poses[:, None] @ model.symmetries[None]).reshape(-1, 4, 4)  # (n * m, 4, 4), pose-major
+        close_t = np.linalg.norm(twins[:, None, :3, 3] - poses[None, :, :3, 3], axis=2) < trans_thr
+        cos = (np.einsum("aij,bij->ab", twins[:, :3, :3], poses[:, :3, :3]) - 1.0) / 2.0
+        near = (close_t & (cos > np.cos(np.radians(params.cluster_rotation_deg)))).reshape(len(order), m, len(order)).any(axis=1)
+        rep_of = np.full(len(order), -1)
+        reps_idx: list[int] = []
+        votes_list: list[float] = []
+        for k in range(len(order)):
+            if reps_idx:
+                hit = np.flatnonzero(near[reps_idx, k])
+                if len(hit):
+                    votes_list[hit[0]] += weights[k]
+                    rep_of[k] = hit[0]
+                    continue
+            reps_idx.append(k)
+            votes_list.append(float(weights[k]))
+        reps = [poses[k] for k in reps_idx]
+        votes = votes_list
+    else:
+        twins_buf = np.empty((len(order) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
+        reps, votes = [], []
+        for T, v in zip(poses, weights):
+            n = len(reps) * m
+            if n:
+                hit = np.flatnonzero(_near(twins_buf[:n], T, params.cluster_rotation_deg, trans_thr))
+                if len(hit):
+                    votes[hit[0] // m] += v
+                    continue
+            twins_buf[n : n + m] = T[None] @ model.symmetries
+            reps.append(T)
+            votes.append(float(v))
     ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
     return [(reps[c], votes[c]) for c in ranked]
 
@@ -233,11 +309,11 @@ def score_pose(
     whole scene (other parts around) only the first share counts."""
     if len(scene_points) == 0:
         return 0.0
-    facing = _facing(model, T_cam_from_model)
+    facing = _facing(model, T_cam_from_model, SCORE_STRIDE)
     if not facing.any():
         return 0.0
     scene_tree = scene_tree or cKDTree(scene_points)
-    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[facing]), distance_upper_bound=inlier_m)
+    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[::SCORE_STRIDE][facing]), distance_upper_bound=inlier_m)
     if whole_scene:
         return float(np.mean(np.isfinite(d_model)))
     # Scene points against the model's own tree, in the model frame: built once per model.
@@ -259,14 +335,18 @@ def _model_tree(model: PPFModel) -> cKDTree:
     return cached[1]
 
 
-def _facing(model: PPFModel, T_cam_from_model: np.ndarray) -> np.ndarray:
-    """(n,) mask of dense model points whose normal faces the camera (at the origin) at this pose."""
-    p = transform_points(T_cam_from_model, model.dense_points_m)
-    n = model.dense_normals @ T_cam_from_model[:3, :3].T
+def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:
+    """Mask of the dense model points (every stride-th) whose normal faces the camera (at the
+    origin) at this pose."""
+    pts, nrm = model.dense_points_m[::stride], model.dense_normals[::stride]
+    p = pts @ T_cam_from_model[:3, :3].T + T_cam_from_model[:3, 3]
+    n = nrm @ T_cam_from_model[:3, :3].T
     return np.sum(n * p, axis=1) < 0
 
 
-def refine_icp(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int) -> np.ndarray:
+def refine_icp(
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int, stride: int = 1
+) -> np.ndarray:
     """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals).
 
     Only model points facing the camera at the starting pose are targets: a thin wall's inner
@@ -275,12 +355,12 @@ def refine_icp(model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.n
     """
     if iterations == 0 or len(scene_points) < 6:
         return T_cam_from_model
-    facing = _facing(model, T_cam_from_model)
+    facing = _facing(model, T_cam_from_model, stride)
     if facing.sum() < 6:
         return T_cam_from_model
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, dtype=np.float64)))
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m[facing]))
-    target.normals = o3d.utility.Vector3dVector(model.dense_normals[facing])
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m[::stride][facing]))
+    target.normals = o3d.utility.Vector3dVector(model.dense_normals[::stride][facing])
     result = o3d.pipelines.registration.registration_icp(
         source,
         target,
@@ -312,10 +392,12 @@ def match_segment(
     scene_points = scene_points[voxel_downsample_indices(scene_points, params.refine_step_rel * model.diameter_m)]
     inlier = params.score_inlier_rel * model.diameter_m
     scene_tree = cKDTree(scene_points)
+    # Each strong cluster is refined (coarse ICP on a subsample of the model, then fine ICP) and
+    # scored; comparing clusters only after both keeps a pose slid along a long part from winning.
     best: PoseEstimate | None = None
-    for T, votes in _cluster(candidates, model, params)[:TOP_CLUSTERS]:
-        T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations)
-        T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations)
+    for T, votes in _cluster(candidates, model, params, MAX_CLUSTER_CANDIDATES)[:TOP_CLUSTERS]:
+        T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations, COARSE_STRIDE)
+        T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, scene_points, inlier, scene_tree)
         if best is None or score > best.score:
             best = PoseEstimate(T_cam_from_model=T, score=score, votes=votes)
