@@ -6,6 +6,7 @@ metres, NaN where the sensor returns nothing, like a Zivid frame.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,9 +43,22 @@ class Intrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     def ray_directions(self) -> np.ndarray:
-        """(H, W, 3) float32 ray directions with z = 1, so that a hit distance is the depth."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32))
-        return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1)
+        """(H, W, 3) float32 ray directions with z = 1, so that a hit distance is the depth.
+        Cached per camera (read-only): every scene of a data set casts the same rays."""
+        return _rays(self)[..., 3:]
+
+
+@functools.lru_cache(maxsize=4)
+def _rays(intr: Intrinsics) -> np.ndarray:
+    """(H, W, 6) float32 rays (origin at the camera centre, direction with z = 1), read-only."""
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
+    dirs = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+    rays = np.ascontiguousarray(np.concatenate([np.zeros_like(dirs), dirs], axis=-1))
+    rays.flags.writeable = False
+    return rays
+
+
+VISIBILITY_STRIDE = 2
 
 
 @dataclass(frozen=True)
@@ -76,21 +90,23 @@ def render(meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[in
     """
     if len(meshes_cam) != len(mesh_labels):
         raise ValueError("one label per mesh is needed")
-    dirs = intr.ray_directions()
-    rays = np.concatenate([np.zeros_like(dirs), dirs], axis=-1)
+    rays = _rays(intr)
+    dirs = rays[..., 3:]
     hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays))
     t = hit["t_hit"].numpy()
     ok = np.isfinite(t)
-    geom = hit["geometry_ids"].numpy().astype(np.int64)
+    # Misses carry Open3D's invalid id, clipped here onto the trailing -1 of the lookup.
+    geom = np.minimum(hit["geometry_ids"].numpy(), len(mesh_labels)).astype(np.int64)
     label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
-    labels = np.where(ok, label_of[np.where(ok, geom, len(mesh_labels))], -1).astype(np.int32)
-    xyz = np.where(ok[..., None], dirs * t[..., None], np.nan).astype(np.float32)
-    n = hit["primitive_normals"].numpy()
+    labels = label_of[geom]
+    labels[~ok] = -1
+    xyz = dirs * t[..., None]
+    xyz[~ok] = np.nan
+    normals = hit["primitive_normals"].numpy()
     # Face normals of closed meshes point outward; a visible face looks toward the camera anyway,
     # but open meshes may be hit from behind.
-    flip = np.sum(n * dirs, axis=-1) > 0
-    n = np.where(flip[..., None], -n, n)
-    normals = np.where(ok[..., None], n, np.nan).astype(np.float32)
+    normals[np.einsum("hwi,hwi->hw", normals, dirs) > 0] *= -1.0
+    normals[~ok] = np.nan
     return Render(xyz_m=xyz, normals=normals, labels=labels)
 
 
@@ -100,20 +116,22 @@ def apply_sensor_noise(render_: Render, noise: NoiseParams, rng: np.random.Gener
     Range noise std: depth_sigma_m + depth_sigma_per_m2 * range^2. A return whose incidence angle
     (between the ray and the surface normal) exceeds max_incidence_deg is dropped.
     """
-    xyz = render_.xyz_m.astype(np.float64)
-    ok = np.isfinite(xyz[..., 2])
-    rng_m = np.linalg.norm(np.where(ok[..., None], xyz, 0.0), axis=-1)
-    ray = np.where(ok[..., None], xyz / np.maximum(rng_m, 1e-12)[..., None], 0.0)
-    cos_inc = -np.sum(ray * np.nan_to_num(render_.normals), axis=-1)
-    keep = ok & (cos_inc >= np.cos(np.radians(noise.max_incidence_deg)))
+    # Whole frames in float32 (the noise is far above its precision); NaN marks no return and
+    # compares False, so pixels without one stay empty.
+    xyz, normals = render_.xyz_m, render_.normals
+    rng_m = np.sqrt(np.einsum("hwi,hwi->hw", xyz, xyz))
+    ray = xyz / rng_m[..., None]
+    with np.errstate(invalid="ignore"):
+        keep = -np.einsum("hwi,hwi->hw", ray, normals) >= np.float32(np.cos(np.radians(noise.max_incidence_deg)))
     if noise.dropout_fraction > 0:
         keep &= rng.random(keep.shape) >= noise.dropout_fraction
-    sigma = noise.depth_sigma_m + noise.depth_sigma_per_m2 * rng_m**2
-    noisy = xyz + ray * (rng.standard_normal(rng_m.shape) * sigma)[..., None]
-    xyz_out = np.where(keep[..., None], noisy, np.nan).astype(np.float32)
-    normals = np.where(keep[..., None], render_.normals, np.nan).astype(np.float32)
+    sigma = np.float32(noise.depth_sigma_m) + np.float32(noise.depth_sigma_per_m2) * rng_m * rng_m
+    xyz_out = xyz + ray * (rng.standard_normal(rng_m.shape, dtype=np.float32) * sigma)[..., None]
+    xyz_out[~keep] = np.nan
+    normals_out = normals.copy()
+    normals_out[~keep] = np.nan
     labels = np.where(keep, render_.labels, -1).astype(np.int32)
-    return Render(xyz_m=xyz_out, normals=normals, labels=labels)
+    return Render(xyz_m=xyz_out, normals=normals_out, labels=labels)
 
 
 def visible_fractions(
@@ -122,10 +140,12 @@ def visible_fractions(
     """(k,) share of the pixels each object would cover alone that show it in the scene.
 
     meshes_cam are the k objects (camera frame); labels (H, W) is the scene's label image before
-    noise. Each object is cast alone only over the pixel box of its projection.
+    noise. Each object is cast alone only over the pixel box of its projection, on every
+    VISIBILITY_STRIDE-th pixel row and column (a share of thousands of pixels needs no more).
     """
     out = np.zeros(len(meshes_cam))
-    dirs = intr.ray_directions()
+    s = VISIBILITY_STRIDE
+    rays_all = _rays(intr)
     for i, (vertices, faces) in enumerate(meshes_cam):
         v = np.asarray(vertices, dtype=np.float64)
         front = v[:, 2] > 1e-6
@@ -137,9 +157,11 @@ def visible_fractions(
         v0, v1 = int(max(np.floor(w.min()), 0)), int(min(np.ceil(w.max()) + 1, intr.height))
         if u0 >= u1 or v0 >= v1:
             continue
-        d = dirs[v0:v1, u0:u1]
-        rays = np.concatenate([np.zeros_like(d), d], axis=-1)
+        v0, u0 = v0 + (-v0) % s, u0 + (-u0) % s  # on the strided grid of the whole frame
+        rays = np.ascontiguousarray(rays_all[v0:v1:s, u0:u1:s])
+        if rays.size == 0:
+            continue
         alone = np.isfinite(_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()
         if alone:
-            out[i] = np.count_nonzero(labels == i) / alone
+            out[i] = min(1.0, np.count_nonzero(labels[::s, ::s] == i) / alone)
     return out

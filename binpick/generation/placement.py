@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import maximum_filter
 
 from binpick.geometry.transforms import axis_angle_to_R, make_T, random_rotation
@@ -52,16 +53,50 @@ def start_height(rng: np.random.Generator, placement: PlacementParams, bin_param
     return float(rng.choice(placement.height_levels_m))
 
 
-def _column_extremes(
-    ix: np.ndarray, iy: np.ndarray, z: np.ndarray, shape: tuple[int, int]
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per grid cell, the lowest and highest z of the points that fall in it (+inf / -inf if none)."""
-    flat = ix * shape[1] + iy
-    low = np.full(shape[0] * shape[1], np.inf)
-    high = np.full(shape[0] * shape[1], -np.inf)
-    np.minimum.at(low, flat, z)
-    np.maximum.at(high, flat, z)
-    return low.reshape(shape), high.reshape(shape)
+# The kernels below visit each surface point once; points are (n, 3) in the bin frame of the
+# candidate orientation, grid column (i, j) holds x in [i, i + 1) * cell from the bin's corner.
+
+
+@njit(cache=True, nogil=True)
+def _bounds(p):  # pragma: no cover - compiled
+    """Lowest and highest x, y, z of the points, and their mean z."""
+    lo = p[0].copy()
+    hi = p[0].copy()
+    z_sum = 0.0
+    for k in range(len(p)):
+        for a in range(3):
+            lo[a] = min(lo[a], p[k, a])
+            hi[a] = max(hi[a], p[k, a])
+        z_sum += p[k, 2]
+    return lo, hi, z_sum / len(p)
+
+
+@njit(cache=True, nogil=True)
+def _column(p, k, ox, oy, cell, nx, ny):  # pragma: no cover - compiled
+    i = min(max(int((p[k, 0] + ox) / cell), 0), nx - 1)
+    j = min(max(int((p[k, 1] + oy) / cell), 0), ny - 1)
+    return i, j
+
+
+@njit(cache=True, nogil=True)
+def _contact(p, ox, oy, cell, support):  # pragma: no cover - compiled
+    """The lift at which the points, shifted by (ox, oy) onto the grid, rest on `support`:
+    max over points of (pile height in its column - its z)."""
+    nx, ny = support.shape
+    lift = -np.inf
+    for k in range(len(p)):
+        i, j = _column(p, k, ox, oy, cell, nx, ny)
+        lift = max(lift, support[i, j] - p[k, 2])
+    return lift
+
+
+@njit(cache=True, nogil=True)
+def _stamp(top, p, ox, oy, tz, cell):  # pragma: no cover - compiled
+    """Raise the pile height map to the placed object's points (lifted by tz), in place."""
+    nx, ny = top.shape
+    for k in range(len(p)):
+        i, j = _column(p, k, ox, oy, cell, nx, ny)
+        top[i, j] = max(top[i, j], p[k, 2] + tz)
 
 
 def place_objects(
@@ -89,29 +124,26 @@ def place_objects(
         floor_gap = start_height(rng, placement, bin_params)
         # Of several random candidates, the one that comes to rest lowest: piles stay flat and
         # dense like a settled bin instead of growing towers on single contact points.
-        best: tuple[float, np.ndarray, np.ndarray, np.ndarray] | None = None
+        best: tuple[float, np.ndarray, np.ndarray] | None = None
         support = maximum_filter(top, size=3, mode="nearest")  # one cell of dilation, see above
         for _candidate in range(placement.candidates_per_object):
             R = sample_orientation(rng, placement.orientation)
             p = pts @ R.T
-            lo, hi = p.min(axis=0), p.max(axis=0)
+            lo, hi, z_mean = _bounds(p)
             if hi[0] - lo[0] >= X or hi[1] - lo[1] >= Y:
                 continue  # this orientation does not fit between the walls
             tx = rng.uniform(-X / 2 - lo[0], X / 2 - hi[0])
             ty = rng.uniform(-Y / 2 - lo[1], Y / 2 - hi[1])
-            ix = np.clip(((p[:, 0] + tx + X / 2) / cell).astype(np.int64), 0, shape[0] - 1)
-            iy = np.clip(((p[:, 1] + ty + Y / 2) / cell).astype(np.int64), 0, shape[1] - 1)
-            low, high = _column_extremes(ix, iy, p[:, 2], shape)
-            occupied = np.isfinite(low)
-            tz = max(float(np.max(support[occupied] - low[occupied])), floor_gap - float(lo[2]))
-            centre_z = tz + float(p[:, 2].mean())
+            # Lowered until its lowest point in some column touches the pile there.
+            tz = max(_contact(p, tx + X / 2, ty + Y / 2, cell, support), floor_gap - float(lo[2]))
+            centre_z = tz + z_mean
             if best is None or centre_z < best[0]:
-                best = (centre_z, make_T(R, np.array([tx, ty, tz])), occupied, high + tz)
+                best = (centre_z, make_T(R, np.array([tx, ty, tz])), p)
         if best is None or best[0] > placement.max_pile_height_m:
             log.warning("bin full: placed %d of %d objects", len(poses), n_objects)
             break
-        _, pose, occupied, high = best
-        top = np.where(occupied, np.maximum(top, high), top)
+        _, pose, p = best
+        _stamp(top, p, pose[0, 3] + X / 2, pose[1, 3] + Y / 2, pose[2, 3], cell)
         poses.append(pose)
     T = np.stack(poses) if poses else np.zeros((0, 4, 4))
     return Placement(T_bin_from_model=T, n_requested=n_objects)
