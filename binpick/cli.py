@@ -231,7 +231,7 @@ def bench_segment_cmd(
         p = load_params(params, part)
         result = bench_segment(
             checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part,
-            p.segment, p.scene_import.voxel_size_m,
+            p.segment, p.scene_import.voxel_size_m, p.seed, p.evaluate.iou_threshold,
         )
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))

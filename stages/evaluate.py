@@ -10,12 +10,11 @@ import numpy as np
 
 from binpick.fanout import fan_out
 from binpick.io.scene import list_scenes, load_scene
-from binpick.metrics.segmentation import SegmentationCounts, scene_counts
+from binpick.metrics.segmentation import SegmentationCounts
 from binpick.network.checkpoint import load_checkpoint, read_checkpoint
-from binpick.network.infer import cluster_params, segment_scene
+from binpick.network.evaluate import segment_and_count
 from binpick.network.train import default_device
 from binpick.params import Params, load_params
-from binpick.seeding import derive_seed
 from stages.common import accept_checkpoint, entry, flat_params, mlflow_run, parser, registered_name, start, write_metrics
 
 log = logging.getLogger("binpick.stage.evaluate")
@@ -35,12 +34,8 @@ def evaluate_scene(shared: tuple[str, Params], job: tuple[int, str]) -> Segmenta
         _MODELS.clear()
         _MODELS[key] = load_checkpoint(Path(checkpoint), default_device())
     model, state = _MODELS[key]
-    extra = state["extra"]
-    cp = cluster_params(params.segment, extra["part_diameter_m"])
-    scene = load_scene(Path(path))
-    rng = np.random.default_rng(derive_seed(params.seed, "evaluate", extra["part"], index))
-    labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], params.segment.n_points, cp, rng)
-    return scene_counts(labels, scene.view_labels, params.evaluate.iou_threshold, params.segment.min_points)
+    _, counts = segment_and_count(model, state["extra"], load_scene(Path(path)), params.segment, params.evaluate.iou_threshold, params.seed, index)
+    return counts
 
 
 def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:

@@ -15,6 +15,7 @@ from binpick.bench import machine
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.checkpoint import load_checkpoint
+from binpick.network.evaluate import segment_and_count
 from binpick.network.infer import cluster_params, segment_scene
 from binpick.network.loss import fpcc_loss
 from binpick.network.model import input_features
@@ -42,7 +43,11 @@ def _sized(points: np.ndarray, normals: np.ndarray, n: int, rng: np.random.Gener
     return P[pick], N[pick]
 
 
-def bench_segment(checkpoint: Path, scenes: Path, segment: SegmentParams, voxel_size_m: float, repeats: int = 3) -> dict[str, object]:
+def bench_segment(
+    checkpoint: Path, scenes: Path, segment: SegmentParams, voxel_size_m: float, seed: int, iou_threshold: float = 0.5, repeats: int = 3
+) -> dict[str, object]:
+    """seed and iou_threshold as in params.yaml: the network's precision and recall are then
+    those of the evaluate stage on the same checkpoint and scenes (the same routine scores both)."""
     device = default_device()
     model, state = load_checkpoint(checkpoint, device)
     extra = state["extra"]
@@ -53,10 +58,9 @@ def bench_segment(checkpoint: Path, scenes: Path, segment: SegmentParams, voxel_
     ours, base = SegmentationCounts(), SegmentationCounts()
     for i, path in enumerate(paths):
         s = load_scene(path)
-        labels = segment_scene(model, s.view_points_m, s.view_normals, extra["features"], extra["d_max_m"], segment.n_points, cp, np.random.default_rng(i))
-        ours = ours.add(scene_counts(labels, s.view_labels, 0.5, segment.min_points))
+        ours = ours.add(segment_and_count(model, extra, s, segment, iou_threshold, seed, i)[1])
         db = dbscan_labels(s.view_points_m, DBSCAN_EPS_PER_VOXEL * voxel_size_m, 10)
-        base = base.add(scene_counts(db, s.view_labels, 0.5, segment.min_points))
+        base = base.add(scene_counts(db, s.view_labels, iou_threshold, segment.min_points))
     out: dict[str, object] = {**{k: v for k, v in ours.summary().items()}, "n_scenes": len(paths), "device": str(device)}
     out["baseline_dbscan"] = base.summary()
 

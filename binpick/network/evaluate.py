@@ -1,0 +1,31 @@
+"""Scoring a trained network on held-out generated scenes: one routine for the evaluate stage and
+the segmentation benchmark, so that both report the same precision and recall."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from binpick.generation.scene import SyntheticScene
+from binpick.metrics.segmentation import SegmentationCounts, scene_counts
+from binpick.network.infer import cluster_params, segment_scene
+from binpick.network.model import FPCC
+from binpick.params import SegmentParams
+from binpick.seeding import derive_seed
+
+
+def scene_seed(seed: int, part: str, index: int) -> np.random.SeedSequence:
+    """The sampling seed of held-out scene `index` of `part`: from the scene alone, so that any
+    worker, and the benchmark, segment it the same way."""
+    return derive_seed(seed, "evaluate", part, index)
+
+
+def segment_and_count(
+    model: FPCC, extra: dict, scene: SyntheticScene, segment: SegmentParams, iou_threshold: float, seed: int, index: int
+) -> tuple[np.ndarray, SegmentationCounts]:
+    """Segment the network's view of a generated scene and match the instances against its
+    labels. extra: the checkpoint's inference settings (part, part_diameter_m, features, d_max_m).
+    Returns the labels (N,) and the counts."""
+    cp = cluster_params(segment, extra["part_diameter_m"])
+    rng = np.random.default_rng(scene_seed(seed, extra["part"], index))
+    labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)
+    return labels, scene_counts(labels, scene.view_labels, iou_threshold, segment.min_points)
