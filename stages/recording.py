@@ -15,6 +15,7 @@ from binpick.io.scene import instance_colours
 
 NOISE_GREY = np.array([110, 110, 110], np.uint8)
 TRUTH_COLOUR = np.array([60, 200, 90, 90], np.uint8)
+PLANE_COLOUR = np.array([90, 120, 200, 70], np.uint8)
 
 
 def write_scene_recording(
@@ -40,7 +41,10 @@ def write_scene_recording(
         rec.log("camera/segments", rr.Points3D(cloud.points_m, colors=colours, radii=0.001, class_ids=labels))
         if np.isfinite(cloud.floor_plane).all():
             a, b, c, d = cloud.floor_plane
-            rec.log("camera/floor_plane", rr.TextDocument(f"floor plane: {a:.4f} x + {b:.4f} y + {c:.4f} z + {d:.4f} = 0 (metres)"), static=True)
+            quad = plane_quad(cloud.floor_plane, cloud.points_m)
+            if quad is not None:
+                rec.log("camera/floor_plane", rr.Mesh3D(vertex_positions=quad, triangle_indices=[[0, 1, 2], [0, 2, 3]], albedo_factor=PLANE_COLOUR), static=True)
+            rec.log("camera/floor_plane/equation", rr.TextDocument(f"removed floor plane: {a:.4f} x + {b:.4f} y + {c:.4f} z + {d:.4f} = 0 (metres)"), static=True)
         for k, pose in enumerate(estimates):
             colour = palette[pose.segment % len(palette)] if pose.segment >= 0 else NOISE_GREY
             _log_part(rec, f"camera/parts/{k}", pose, part, np.append(colour, 255).astype(np.uint8))
@@ -49,6 +53,18 @@ def write_scene_recording(
         rec.log("timings", rr.TextDocument("\n".join(f"{k}: {v:.3f} s" for k, v in timings_s.items())), static=True)
         rec.flush()
         rec.disconnect()
+
+
+def plane_quad(plane: np.ndarray, points_m: np.ndarray, margin_m: float = 0.02) -> np.ndarray | None:
+    """(4, 3) float32 corners of the plane a x + b y + c z + d = 0 (camera frame) under the
+    points' x/y extent plus a margin, for drawing; None when the plane is edge-on to the camera."""
+    a, b, c, d = (float(v) for v in plane)
+    if abs(c) < 1e-3 or len(points_m) == 0:
+        return None
+    lo, hi = points_m[:, :2].min(axis=0) - margin_m, points_m[:, :2].max(axis=0) + margin_m
+    xy = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    z = -(a * xy[:, 0] + b * xy[:, 1] + d) / c
+    return np.column_stack([xy, z]).astype(np.float32)
 
 
 def _log_part(rec, entity: str, pose: PoseRecord, part: PartModel, rgba: np.ndarray) -> None:

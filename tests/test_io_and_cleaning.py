@@ -104,3 +104,16 @@ def test_region_of_interest_in_a_bin_frame():
     assert on_box[cloud.pixel_index].all() and x_bin.min() > -0.0205 and x_bin.max() < 0.0305
     with pytest.raises(ValueError, match="rigid"):
         SceneImportParams(T_cam_from_roi=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))
+
+
+def test_plane_quad_lies_on_the_plane_under_the_points():
+    from stages.recording import plane_quad
+
+    plane = np.array([0.1, -0.05, -1.0, 0.5])
+    plane /= np.linalg.norm(plane[:3])
+    pts = np.random.default_rng(0).uniform([-0.1, -0.08, 0.4], [0.12, 0.09, 0.45], (200, 3))
+    quad = plane_quad(plane, pts, margin_m=0.01)
+    assert np.allclose(quad @ plane[:3] + plane[3], 0.0, atol=1e-6)
+    assert np.allclose(quad[:, :2].min(axis=0), pts[:, :2].min(axis=0) - 0.01, atol=1e-6)
+    assert np.allclose(quad[:, :2].max(axis=0), pts[:, :2].max(axis=0) + 0.01, atol=1e-6)
+    assert plane_quad(np.array([1.0, 0.0, 0.0, 0.1]), pts) is None  # edge-on to the camera

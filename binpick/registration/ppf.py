@@ -26,6 +26,10 @@ from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.params import RegisterParams
 
+# The voting loop runs on every core through OpenMP or numba's own pool; the TBB found on some
+# systems is too old for numba and would only print a warning.
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
 TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
 COARSE_STRIDE = 4  # coarse ICP: every 4th dense model point is a target
 FINE_STRIDE = 2  # fine ICP: every 2nd
@@ -179,6 +183,7 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
     peak_flat, peak_votes = _accumulate_peaks(
         ref_slot.astype(np.int64), keys.astype(np.int64), alpha_s.astype(np.float64), model.key_starts.astype(np.int64),
         model.ref_index.astype(np.int64), model.alpha.astype(np.float64), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
+        4 * numba.get_num_threads(),
     )
     valid = peak_votes > 0
     ref_rows, _ = np.nonzero(valid)
@@ -203,7 +208,7 @@ def _invert_Ts(T: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _accumulate_peaks(ref_slot, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks):  # pragma: no cover - compiled
+def _accumulate_peaks(ref_slot, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks, n_chunks):  # pragma: no cover - compiled
     """The voting loop: every scene pair votes for (model reference point, alpha bin) of each
     model pair with its key; per scene reference, the n_peaks strongest accumulator cells.
 
@@ -217,7 +222,7 @@ def _accumulate_peaks(ref_slot, keys, alpha_s, key_starts, ref_index, alpha_m, n
     group_start = np.searchsorted(ref_slot, np.arange(n_refs + 1))
     n_keys = len(key_starts) - 1
     scale = n_angles / (2.0 * np.pi)
-    n_chunks = min(n_refs, 4 * numba.get_num_threads())
+    n_chunks = min(n_chunks, n_refs)
     for c in numba.prange(n_chunks):
         acc = np.zeros(n_model * n_angles, np.int32)
         touched = np.empty(n_model * n_angles, np.int64)
@@ -431,13 +436,21 @@ def match_scene(
     tree = cKDTree(fine)
     estimates: list[PoseEstimate] = []
     support: list[np.ndarray] = []
+    centre = model.dense_points_m.mean(axis=0)
+    reach = 0.5 * model.diameter_m + 2.0 * params.sample_step_rel * model.diameter_m
     for T, votes in _cluster(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
-        T = refine_icp(model, T, fine, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations)
-        T = refine_icp(model, T, fine, 2.0 * inlier, params.icp_iterations)
+        # ICP and support only see the scene around the pose: the rest cannot match this part.
+        near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
+        if len(near) < 6:
+            continue
+        local = fine[near]
+        T = refine_icp(model, T, local, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations, COARSE_STRIDE)
+        T = refine_icp(model, T, local, 2.0 * inlier, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
         if score >= params.min_score:
             estimates.append(PoseEstimate(T_cam_from_model=T, score=score, votes=votes))
-            support.append(_supporting_points(model, T, tree, inlier))
+            d, _ = _model_tree(model).query(transform_points(invert_T(T), local), distance_upper_bound=inlier)
+            support.append(near[np.isfinite(d)])
     # Non-maximum suppression by explained points, best first: a pose whose supporting scene
     # points are mostly explained by a better pose already (a repeat, or a fit bridging two
     # neighbouring parts) is dropped, whatever its pose.
@@ -449,13 +462,6 @@ def match_scene(
         claimed[support[k]] = True
         kept.append(estimates[k])
     return kept[:max_instances]
-
-
-def _supporting_points(model: PPFModel, T_cam_from_model: np.ndarray, scene_tree: cKDTree, inlier_m: float) -> np.ndarray:
-    """Indices of the scene points within inlier_m of the camera-facing model surface at the pose."""
-    facing = _facing(model, T_cam_from_model)
-    hits = scene_tree.query_ball_point(transform_points(T_cam_from_model, model.dense_points_m[facing]), inlier_m)
-    return np.unique(np.concatenate([np.asarray(h, np.int64) for h in hits])) if len(hits) else np.zeros(0, np.int64)
 
 
 def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
