@@ -263,9 +263,10 @@ class RegisterParams(_Strict):
     refine_step_rel: float = Field(0.02, gt=0, description="grid of the points ICP and scoring use, share of diameter")
     score_inlier_rel: float = Field(0.02, gt=0, description="scene point within this of the model counts")
     min_score: float = Field(0.3, ge=0, le=1)
-    # true: match the whole cleaned scene, without the segments (slower, needs no network);
-    # max_instances bounds the poses sought then.
-    whole_scene: bool = False
+    # segments: one pose per segment (then duplicates suppressed); whole_scene: the whole cleaned
+    # scene matched without the segments; segments_then_scene: per segment, then the whole scene
+    # for parts the segmentation missed or merged. max_instances bounds whole-scene poses.
+    mode: Literal["segments", "whole_scene", "segments_then_scene"] = "segments_then_scene"
     max_instances: int = Field(30, ge=1)
 
 

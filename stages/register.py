@@ -50,12 +50,10 @@ def run(
     found: list[tuple[int, PoseEstimate]] = []
     per_instance_ms: list[float] = []
     t0 = time.perf_counter()
-    if params.registration.whole_scene:
-        whole = match_scene(ppf, cloud.points_m, cloud.normals, params.registration, rng, params.registration.max_instances)
-        estimates = [PoseRecord(e.T_cam_from_model, e.score, -1) for e in whole]
-        per_instance_ms = [1000.0 * (time.perf_counter() - t0) / max(1, len(whole))] * len(whole)
-        n_duplicates = 0
-    else:
+    mode = params.registration.mode
+    estimates: list[PoseRecord] = []
+    n_duplicates = 0
+    if mode in ("segments", "segments_then_scene"):
         for seg in range(int(labels.max()) + 1 if len(labels) else 0):
             mask = labels == seg
             t = time.perf_counter()
@@ -66,6 +64,13 @@ def run(
         kept = suppress_duplicates(ppf, [e for _, e in found], params.registration)
         estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
         n_duplicates = len(found) - len(kept)
+    if mode in ("whole_scene", "segments_then_scene"):
+        t = time.perf_counter()
+        more = match_scene(ppf, cloud.points_m, cloud.normals, params.registration, rng, params.registration.max_instances,
+                           known=[e.T_cam_from_model for e in estimates])
+        per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
+        estimates += [PoseRecord(e.T_cam_from_model, e.score, -1) for e in more]
+        log.info("%s: whole-scene matching added %d poses", name, len(more))
     register_s = time.perf_counter() - t0
     save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
@@ -98,7 +103,7 @@ def run(
         write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
-    log.info("%s: %d poses (%s) in %.2f s", name, len(estimates), "whole scene" if params.registration.whole_scene else f"{metrics['n_segments']:.0f} segments", register_s)
+    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), mode, metrics["n_segments"], register_s)
     return metrics
 
 

@@ -78,3 +78,19 @@ def test_whole_scene_matching_finds_every_part_without_segments(t_joint, ppf):
     assert summary["rot_err_deg_median"] < 1.0 and summary["trans_err_mm_median"] < 1.0
     assert all(0.0 <= e.score <= 1.0 for e in found)
     assert [e.score for e in found] == sorted((e.score for e in found), reverse=True)
+
+
+def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
+    """With the poses of some parts given as found (as the segments mode gives them), the
+    whole-scene pass returns the other parts only."""
+    from binpick.metrics.pose import scene_pose_metrics
+    from binpick.registration.ppf import match_scene
+
+    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    known, rest = scene.T_cam_from_model[:3], scene.T_cam_from_model[3:]
+    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), RegisterParams(), np.random.default_rng(0), known=list(known))
+    summary, _ = scene_pose_metrics(
+        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), rest, scene.visible_fraction[3:],
+        ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+    )
+    assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 2 / 3, summary

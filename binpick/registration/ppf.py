@@ -14,6 +14,7 @@ Poses are T_cam_from_model.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -411,13 +412,15 @@ def match_segment(
 
 def match_scene(
     model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
-    max_instances: int = 30,
+    max_instances: int = 30, known: Sequence[np.ndarray] = (),
 ) -> list[PoseEstimate]:
     """Every instance of the part in a whole scene, without segments: votes from reference
-    points all over the scene, the strongest pose clusters refined and scored, duplicates
-    suppressed (symmetry-aware), poses scoring below params.min_score dropped. Best first.
+    points all over the scene, the strongest pose clusters refined and scored, poses scoring
+    below params.min_score dropped, then non-maximum suppression by explained points. Best first.
 
     scene_points, scene_normals : (n, 3) camera frame, metres; normals facing the camera.
+    known : poses T_cam_from_model found already (e.g. on segments); the scene points they
+            explain are taken, and only other instances are returned.
     """
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
@@ -438,6 +441,14 @@ def match_scene(
     support: list[np.ndarray] = []
     centre = model.dense_points_m.mean(axis=0)
     reach = 0.5 * model.diameter_m + 2.0 * params.sample_step_rel * model.diameter_m
+
+    def explained(T: np.ndarray) -> np.ndarray:
+        near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
+        if len(near) == 0:
+            return near
+        d, _ = _model_tree(model).query(transform_points(invert_T(T), fine[near]), distance_upper_bound=inlier)
+        return near[np.isfinite(d)]
+
     for T, votes in _cluster(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
         # ICP and support only see the scene around the pose: the rest cannot match this part.
         near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
@@ -449,12 +460,13 @@ def match_scene(
         score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
         if score >= params.min_score:
             estimates.append(PoseEstimate(T_cam_from_model=T, score=score, votes=votes))
-            d, _ = _model_tree(model).query(transform_points(invert_T(T), local), distance_upper_bound=inlier)
-            support.append(near[np.isfinite(d)])
+            support.append(explained(T))
     # Non-maximum suppression by explained points, best first: a pose whose supporting scene
     # points are mostly explained by a better pose already (a repeat, or a fit bridging two
     # neighbouring parts) is dropped, whatever its pose.
     claimed = np.zeros(len(fine), bool)
+    for T in known:
+        claimed[explained(np.asarray(T))] = True
     kept: list[PoseEstimate] = []
     for k in sorted(range(len(estimates)), key=lambda k: -estimates[k].score):
         if len(support[k]) == 0 or claimed[support[k]].mean() > SCENE_MAX_SHARED_SUPPORT:
