@@ -32,7 +32,7 @@ def project(tmp_path_factory):
     root = tmp_path_factory.mktemp("project")
     for name in ("binpick", "stages", "flows", ".dvc"):
         shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache"))
-    for name in ("dvc.yaml", "pyproject.toml", ".gitignore"):
+    for name in ("dvc.yaml", "pyproject.toml", ".gitignore", ".dvcignore"):
         shutil.copy(ROOT / name, root / name)
     (root / "data" / "parts").mkdir(parents=True)
     shutil.copy(ROOT / "data" / "parts" / "t_joint.stl", root / "data" / "parts")
