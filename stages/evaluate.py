@@ -6,8 +6,6 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from binpick.fanout import fan_out
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts
