@@ -29,9 +29,7 @@ log = logging.getLogger(__name__)
 SCALE = 10.0  # simulation length unit = 1/SCALE metre (decimetres)
 TIME_STEP_S = 1.0 / 240.0
 REST_SPEED_M_S = 0.002  # settled when every object moves slower than this
-
-_DECOMPOSITIONS: dict[str, str] = {}
-
+VHACD_VERSION = 1  # in the cached decomposition's file name: bump when its settings change
 
 @dataclass(frozen=True)
 class SettleSettings:
@@ -45,22 +43,24 @@ def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
     import pybullet as pb
 
     key = hashlib.sha1(np.ascontiguousarray(vertices_m, np.float64).tobytes() + np.ascontiguousarray(faces, np.int64).tobytes()).hexdigest()
-    if key in _DECOMPOSITIONS and Path(_DECOMPOSITIONS[key]).is_file():
-        return _DECOMPOSITIONS[key]
-    folder = Path(tempfile.mkdtemp(prefix="binpick-vhacd-"))
-    src, out = folder / "part.obj", folder / "parts.obj"
-    v = vertices_m * SCALE
-    lines = [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
-    src.write_text("\n".join(lines) + "\n")
-    client = pb.connect(pb.DIRECT)
-    try:
-        with _quiet_stdout():  # V-HACD prints its progress from C
-            pb.vhacd(str(src), str(out), str(folder / "vhacd.log"), resolution=200000, maxNumVerticesPerCH=64, physicsClientId=client)
-    finally:
-        pb.disconnect(client)
-    if not out.is_file() or out.stat().st_size == 0:
-        raise RuntimeError("V-HACD convex decomposition of the part failed")
-    _DECOMPOSITIONS[key] = str(out)
+    # One file per mesh in the system's temporary folder, shared by worker processes and runs.
+    out = Path(tempfile.gettempdir()) / f"binpick-vhacd-{VHACD_VERSION}-{key[:16]}.obj"
+    if out.is_file() and out.stat().st_size > 0:
+        return str(out)
+    with tempfile.TemporaryDirectory(prefix="binpick-vhacd-", dir=out.parent) as folder:
+        src, parts = Path(folder) / "part.obj", Path(folder) / "parts.obj"
+        v = vertices_m * SCALE
+        lines = [f"v {x:.7f} {y:.7f} {z:.7f}" for x, y, z in v] + [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+        src.write_text("\n".join(lines) + "\n")
+        client = pb.connect(pb.DIRECT)
+        try:
+            with _quiet_stdout():  # V-HACD prints its progress from C
+                pb.vhacd(str(src), str(parts), str(Path(folder) / "vhacd.log"), resolution=200000, maxNumVerticesPerCH=64, physicsClientId=client)
+        finally:
+            pb.disconnect(client)
+        if not parts.is_file() or parts.stat().st_size == 0:
+            raise RuntimeError("V-HACD convex decomposition of the part failed")
+        os.replace(parts, out)  # atomic: a worker reading it sees the whole file or none
     return str(out)
 
 
