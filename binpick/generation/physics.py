@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.geometry.transforms import make_T
+from binpick.geometry.transforms import invert_T, make_T
 
 log = logging.getLogger(__name__)
 
@@ -70,13 +70,16 @@ def settle(
     T_bin_from_model: np.ndarray,
     bin_boxes: list[tuple[np.ndarray, np.ndarray]],
     settings: SettleSettings,
+    inner_half_xy_m: tuple[float, float],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Let objects starting at non-overlapping poses fall and settle in the bin.
 
     vertices_m, faces : the part's mesh, model frame, metres
     T_bin_from_model  : (k, 4, 4) start poses, bin frame (z up, floor at z = 0), metres
     bin_boxes         : static boxes (lo, hi), each (3,) bin frame, metres: floor and walls
-    Returns the settled poses (k, 4, 4) and a (k,) bool mask of objects still inside the bin.
+    inner_half_xy_m   : half the bin's inner size in x and y, metres
+    Returns the settled poses (k, 4, 4) and a (k,) bool mask of objects whose centre is still
+    inside the bin (above the floor, between the walls).
     The simulation is deterministic for the same inputs.
     """
     import pybullet as pb
@@ -84,7 +87,12 @@ def settle(
     k = len(T_bin_from_model)
     if k == 0:
         return T_bin_from_model.copy(), np.zeros(0, bool)
-    shape_file = _convex_parts_obj(vertices_m, faces)
+    # Bodies live in a frame at the centre of the part's box: a CAD origin far from the part
+    # would otherwise be the centre of mass, and the point tested for being in the bin.
+    centre = (vertices_m.min(axis=0) + vertices_m.max(axis=0)) / 2.0
+    T_model_from_body = make_T(np.eye(3), centre)
+    T_bin_from_body = T_bin_from_model @ T_model_from_body
+    shape_file = _convex_parts_obj(vertices_m - centre, faces)
     client = pb.connect(pb.DIRECT)
     try:
         pb.setGravity(0, 0, -9.81 * SCALE, physicsClientId=client)
@@ -92,13 +100,13 @@ def settle(
         pb.setPhysicsEngineParameter(numSolverIterations=50, deterministicOverlappingPairs=1, physicsClientId=client)
         for lo, hi in bin_boxes:
             half = (np.asarray(hi) - np.asarray(lo)) / 2.0 * SCALE
-            centre = (np.asarray(hi) + np.asarray(lo)) / 2.0 * SCALE
+            middle = (np.asarray(hi) + np.asarray(lo)) / 2.0 * SCALE
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=client)
-            body = pb.createMultiBody(0.0, box, basePosition=centre.tolist(), physicsClientId=client)
+            body = pb.createMultiBody(0.0, box, basePosition=middle.tolist(), physicsClientId=client)
             pb.changeDynamics(body, -1, lateralFriction=settings.friction, physicsClientId=client)
         shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=shape_file, physicsClientId=client)
         bodies = []
-        for i, T in enumerate(T_bin_from_model):
+        for i, T in enumerate(T_bin_from_body):
             position = (T[:3, 3] + np.array([0.0, 0.0, settings.drop_gap_m * (i + 1)])) * SCALE
             body = pb.createMultiBody(
                 1.0, shape, basePosition=position.tolist(), baseOrientation=_quaternion_xyzw(T[:3, :3]).tolist(), physicsClientId=client
@@ -116,12 +124,11 @@ def settle(
         for i, b in enumerate(bodies):
             position, q = pb.getBasePositionAndOrientation(b, physicsClientId=client)
             R = np.asarray(pb.getMatrixFromQuaternion(q, physicsClientId=client)).reshape(3, 3)
-            out[i] = make_T(R, np.asarray(position) / SCALE)
+            out[i] = make_T(R, np.asarray(position) / SCALE) @ invert_T(T_model_from_body)
     finally:
         pb.disconnect(client)
-    lo = np.min([b[0] for b in bin_boxes], axis=0)
-    hi = np.max([b[1] for b in bin_boxes], axis=0)
-    inside = np.all((out[:, :3, 3] > lo) & (out[:, :3, 3] < hi + np.array([0, 0, 1.0])), axis=1)
+    centres = out[:, :3, :3] @ centre + out[:, :3, 3]
+    inside = np.all(np.abs(centres[:, :2]) < np.asarray(inner_half_xy_m), axis=1) & (centres[:, 2] > 0.0)
     return out, inside
 
 

@@ -138,7 +138,8 @@ def settle_in_bin(part: PartModel, T_bin_from_model: np.ndarray, generate: Gener
     """
     placement = generate.placement
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(generate.bin)]
-    settled, inside = settle(part.mesh_vertices_m, part.mesh_faces, T_bin_from_model, boxes, SettleSettings(max_time_s=placement.settle_max_s))
+    half = (generate.bin.inner_x_m / 2.0, generate.bin.inner_y_m / 2.0)
+    settled, inside = settle(part.mesh_vertices_m, part.mesh_faces, T_bin_from_model, boxes, SettleSettings(max_time_s=placement.settle_max_s), half)
     settled = settled[inside]
     sample = part.points_m[rng.choice(len(part.points_m), min(PENETRATION_SAMPLE, len(part.points_m)), replace=False)]
     keep = drop_overlapping(
