@@ -3,7 +3,7 @@ rigid-body simulation (pybullet), for piles that look like a real bin (objects l
 other, sliding under overhangs, lying in stable poses).
 
 The part collides through a convex decomposition of its mesh (V-HACD), computed once per mesh
-per process. The simulation runs with lengths scaled up (SCALE), because Bullet's contact
+and kept in the system's temporary folder for every process and run. The simulation runs with lengths scaled up (SCALE), because Bullet's contact
 margins and tolerances are tuned for objects of about a metre; parts of a few centimetres would
 otherwise float millimetres apart or sink into each other.
 """

@@ -194,18 +194,8 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
     Rx[:, 0, 0] = Rx[:, 3, 3] = 1.0
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
     T_m = _align_to_x(model.points_m, model.normals)
-    poses = _invert_Ts(T_s[refs[ref_rows]]) @ Rx @ T_m[m_r]
+    poses = invert_T(T_s[refs[ref_rows]]) @ Rx @ T_m[m_r]
     return list(zip(poses, peak_votes[valid].astype(np.float64)))
-
-
-def _invert_Ts(T: np.ndarray) -> np.ndarray:
-    """Inverses of rigid transforms (n, 4, 4)."""
-    out = np.zeros_like(T)
-    Rt = np.transpose(T[:, :3, :3], (0, 2, 1))
-    out[:, :3, :3] = Rt
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", Rt, T[:, :3, 3])
-    out[:, 3, 3] = 1.0
-    return out
 
 
 @njit(cache=True, nogil=True, parallel=True)
@@ -272,23 +262,17 @@ def _cluster(
     if len(order) * len(order) * m <= PAIRWISE_CLUSTER_LIMIT:
         # All pairwise closeness tests at once: near[i, j] = pose j is close to a twin of pose i.
         twins = (poses[:, None] @ model.symmetries[None]).reshape(-1, 4, 4)  # (n * m, 4, 4), pose-major
-        close_t = np.linalg.norm(twins[:, None, :3, 3] - poses[None, :, :3, 3], axis=2) < trans_thr
-        cos = (np.einsum("aij,bij->ab", twins[:, :3, :3], poses[:, :3, :3]) - 1.0) / 2.0
-        near = (close_t & (cos > np.cos(np.radians(params.cluster_rotation_deg)))).reshape(len(order), m, len(order)).any(axis=1)
-        rep_of = np.full(len(order), -1)
+        near = _close(twins, poses, params.cluster_rotation_deg, trans_thr).reshape(len(order), m, len(order)).any(axis=1)
         reps_idx: list[int] = []
-        votes_list: list[float] = []
+        votes = []
         for k in range(len(order)):
-            if reps_idx:
-                hit = np.flatnonzero(near[reps_idx, k])
-                if len(hit):
-                    votes_list[hit[0]] += weights[k]
-                    rep_of[k] = hit[0]
-                    continue
+            hit = np.flatnonzero(near[reps_idx, k]) if reps_idx else ()
+            if len(hit):
+                votes[hit[0]] += weights[k]
+                continue
             reps_idx.append(k)
-            votes_list.append(float(weights[k]))
+            votes.append(float(weights[k]))
         reps = [poses[k] for k in reps_idx]
-        votes = votes_list
     else:
         twins_buf = np.empty((len(order) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
         reps, votes = [], []
@@ -476,12 +460,17 @@ def match_scene(
     return kept[:max_instances]
 
 
+def _close(A: np.ndarray, B: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
+    """(a, b) mask: pose A[i] within translation_m AND rotation_deg of pose B[j]; A (a, 4, 4), B (b, 4, 4)."""
+    close_t = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < translation_m
+    # cos of the relative angle: (trace(R_a^T R_b) - 1) / 2
+    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
+    return close_t & (cos > np.cos(np.radians(rotation_deg)))
+
+
 def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
     """(n,) mask of the poses (n, 4, 4) within translation_m AND rotation_deg of T."""
-    close_t = np.linalg.norm(poses[:, :3, 3] - T[:3, 3], axis=1) < translation_m
-    # cos of the relative angle: (trace(R_pose^T R) - 1) / 2
-    cos = (np.einsum("nij,ij->n", poses[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
-    return close_t & (cos > np.cos(np.radians(rotation_deg)))
+    return _close(poses, T[None], rotation_deg, translation_m)[:, 0]
 
 
 def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
