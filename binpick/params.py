@@ -32,7 +32,7 @@ SECTIONS = (
     "register",
     "demo_capture",
 )
-PER_PART_SECTIONS = ("ingest", "generate", "train", "evaluate", "segment", "register")
+PER_PART_SECTIONS = ("ingest", "camera", "generate", "scene_import", "train", "evaluate", "segment", "register")
 
 
 class _Strict(BaseModel):
@@ -75,7 +75,11 @@ class PartParams(_Strict):
     unit: Literal["mm", "m", "in", "auto"] = "auto"
     symmetry: SymmetryParams = SymmetryParams()
     ingest: dict[str, Any] = {}
+    # A large part needs a larger bin, a camera farther away and a coarser voxel grid; the
+    # part's captures are imported with its scene_import, so training and inference views match.
+    camera: dict[str, Any] = {}
     generate: dict[str, Any] = {}
+    scene_import: dict[str, Any] = {}
     train: dict[str, Any] = {}
     evaluate: dict[str, Any] = {}
     segment: dict[str, Any] = {}

@@ -49,6 +49,25 @@ def test_camera_sees_the_floor_at_its_distance():
     assert (r.labels == -1).all()
 
 
+def test_objects_over_a_cached_background_equal_one_cast_of_everything(t_joint):
+    from binpick.generation.camera import render_background
+
+    cam = CameraParams(downscale=4)
+    intr = Intrinsics.from_params(cam)
+    T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
+    gen = GenerateParams()
+    placed = place_objects(t_joint.points_m, 8, gen.bin, gen.placement, np.random.default_rng(2))
+    objects = [(transform_points(T_cam_bin @ T, t_joint.mesh_vertices_m), t_joint.mesh_faces) for T in placed.T_bin_from_model]
+    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(gen.bin)]
+    together = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
+    over = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
+    assert set(np.unique(together.labels)) == {-1, *range(len(objects))}
+    assert np.array_equal(together.labels, over.labels)
+    assert np.allclose(together.xyz_m, over.xyz_m, equal_nan=True, atol=1e-7)
+    assert np.allclose(together.normals, over.normals, equal_nan=True, atol=1e-6)
+    assert render_background(clutter, intr) is render_background(clutter, intr)  # cached
+
+
 def test_noise_grows_with_range_and_grazing_returns_drop():
     rng = np.random.default_rng(0)
     H, W = 200, 200

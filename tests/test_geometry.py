@@ -63,6 +63,21 @@ def test_voxel_downsample_keeps_one_point_per_voxel():
     assert idx.tolist() == [0, 2, 3]
 
 
+def test_voxel_downsample_dense_and_sorted_paths_agree(monkeypatch):
+    import binpick.geometry.pointcloud as pc
+
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-0.05, 0.05, (20000, 3)).astype(np.float32)
+    # The first point of each voxel, by a plain dictionary.
+    first: dict[tuple[int, int, int], int] = {}
+    for i, k in enumerate(map(tuple, np.floor(pts.astype(np.float64) / 0.004).astype(int))):
+        first.setdefault(k, i)
+    expected = sorted(first.values())
+    dense = voxel_downsample_indices(pts, 0.004)
+    monkeypatch.setattr(pc, "DENSE_VOXEL_CELLS", 0)  # forces the sorting path
+    assert dense.tolist() == expected == voxel_downsample_indices(pts, 0.004).tolist()
+
+
 def test_normals_face_the_camera():
     rng = np.random.default_rng(4)
     xy = rng.uniform(-0.1, 0.1, (2000, 2))

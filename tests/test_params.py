@@ -38,6 +38,26 @@ def test_part_overrides_apply_after_profile():
     assert b["train"] == {"epochs": 3, "width": 16}
 
 
+def test_a_large_part_overrides_camera_and_import_grid(tmp_path, monkeypatch):
+    """A large part sets its own camera distance and voxel grid; its captures import on that grid,
+    so the network sees at inference the density it was trained on."""
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["parts"]["shaft"] = {"mesh": "shaft.stl", "unit": "m", "camera": {"distance_m": 1.4}, "scene_import": {"voxel_size_m": 0.008}}
+    raw["captures"]["monday"] = {"file": "monday.ply", "part": "shaft"}
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    shaft = load_params(path, "shaft")
+    assert shaft.camera.distance_m == 1.4 and shaft.scene_import.voxel_size_m == 0.008
+    assert shaft.camera.width_px == load_params(path).camera.width_px  # the rest as before
+    assert load_params(path, "t_joint").scene_import.voxel_size_m == 0.002
+    from stages import import_scene
+
+    seen = []
+    monkeypatch.setattr(import_scene, "run", lambda params, *args, **kwargs: seen.append(params.scene_import.voxel_size_m))
+    assert import_scene.main(["--params", str(path), "--name", "monday", "--capture", "monday.ply", "--out", str(tmp_path / "c.npz")]) == 0
+    assert seen == [0.008]
+
+
 def test_deep_merge_nested():
     assert deep_merge({"a": {"x": 1, "y": 2}, "b": 1}, {"a": {"y": 3}}) == {"a": {"x": 1, "y": 3}, "b": 1}
 

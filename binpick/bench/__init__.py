@@ -16,6 +16,7 @@ def machine() -> dict[str, object]:
 
     return {
         "cpu_count": os.cpu_count(),
+        "cores_usable": len(os.sched_getaffinity(0)),  # 1 under `taskset -c 0`
         "torch_threads": torch.get_num_threads(),
         "platform": platform.platform(),
         "processor": platform.processor() or platform.machine(),

@@ -24,7 +24,13 @@ COUNTS = (5, 10, 20)
 BASELINE_RETRIES = 20  # K of the original: new random poses tried per object
 BASELINE_POINTS = 500  # downsampled points of a new object tested against earlier ones
 PENETRATION_POINTS = 2000
-VIEW = ViewParams(voxel_size_m=0.002, normal_radius_m=0.006)  # the pipeline's defaults
+
+
+def view_for(part: PartModel) -> ViewParams:
+    """The network's view as a user would set it for the part: the pipeline's defaults (2 mm
+    voxels, 6 mm normal radius) for parts up to 0.1 m, about 50 voxels across larger ones."""
+    voxel = max(0.002, part.diameter_m / 50.0)
+    return ViewParams(voxel_size_m=voxel, normal_radius_m=3.0 * voxel)
 
 
 def bin_for(part: PartModel) -> BinParams:
@@ -72,20 +78,21 @@ def bench_generate(
     models = bench_parts(parts)
     out: dict[str, object] = {"setup": {"parts": [p.name for p in models], "counts": list(counts), "scenes": scenes,
                                         "baseline_scenes": baseline_scenes, "baseline_retries": BASELINE_RETRIES,
-                                        "resolution": "1920x1200", "rendering": "ray casting, sensor noise, visibility, network view", "machine": machine()}}
+                                        "resolution": "1920x1200", "rendering": "ray casting, sensor noise, visibility, network view (voxel max(2 mm, diameter / 50))", "machine": machine()}}
     ours: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
     base: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": []} for n in counts}
     physics: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
     for part in models:
         bin_params = bin_for(part)
         camera = CameraParams(distance_m=max(0.5, 1.6 * bin_params.inner_x_m))
+        view = view_for(part)
         for n in counts:
             for k in range(scenes):
                 rng = np.random.default_rng([seed, n, k])
                 t0 = time.perf_counter()
                 placed = place_objects(part.points_m, n, bin_params, PlacementParams(), rng)
                 t1 = time.perf_counter()
-                render_scene(part, placed.T_bin_from_model, GenerateParams(bin=bin_params), camera, VIEW, rng)
+                render_scene(part, placed.T_bin_from_model, GenerateParams(bin=bin_params), camera, view, rng)
                 t2 = time.perf_counter()
                 r = ours[str(n)]
                 r["s"].append(t2 - t0)
@@ -99,7 +106,7 @@ def bench_generate(
                 t3 = time.perf_counter()
                 settled = settle_in_bin(part, placed.T_bin_from_model, gen, rng)
                 t4 = time.perf_counter()
-                render_scene(part, settled, gen, camera, VIEW, rng)
+                render_scene(part, settled, gen, camera, view, rng)
                 t5 = time.perf_counter()
                 f = physics[str(n)]
                 f["s"].append((t1 - t0) + (t5 - t3))

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import open3d as o3d
+from numba import njit
 
 from binpick.params import CameraParams, NoiseParams
 
@@ -58,7 +59,8 @@ def _rays(intr: Intrinsics) -> np.ndarray:
     return rays
 
 
-VISIBILITY_STRIDE = 2
+# Pixels sampled per object when measuring its visible share (a share needs no more).
+VISIBILITY_SAMPLES = 2000
 
 
 @dataclass(frozen=True)
@@ -83,31 +85,94 @@ def _scene(meshes: list[tuple[np.ndarray, np.ndarray]]) -> o3d.t.geometry.Raycas
     return scene
 
 
-def render(meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: Intrinsics) -> Render:
+def _pixel_box(vertices: np.ndarray, intr: Intrinsics) -> tuple[int, int, int, int] | None:
+    """(v0, v1, u0, u1): the pixel rows and columns the mesh's projection can cover, None when
+    it covers none; the whole frame when part of it lies behind the camera."""
+    v = np.asarray(vertices, dtype=np.float64)
+    if (v[:, 2] <= 1e-6).any():
+        return (0, intr.height, 0, intr.width) if (v[:, 2] > 1e-6).any() else None
+    u = intr.fx * v[:, 0] / v[:, 2] + intr.cx
+    w = intr.fy * v[:, 1] / v[:, 2] + intr.cy
+    u0, u1 = int(max(np.floor(u.min()), 0)), int(min(np.ceil(u.max()) + 1, intr.width))
+    v0, v1 = int(max(np.floor(w.min()), 0)), int(min(np.ceil(w.max()) + 1, intr.height))
+    return (v0, v1, u0, u1) if u0 < u1 and v0 < v1 else None
+
+
+def render(
+    meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: Intrinsics, background: Render | None = None
+) -> Render:
     """Ray-cast meshes (vertices (v, 3) in the camera frame, metres; faces (f, 3)) into an organized frame.
 
     mesh_labels[i] is the label of the points that hit mesh i (-1 for bin, floor, clutter).
+    background: a render of static geometry (the bin, see render_background) at these intrinsics;
+    then only the rays that can reach one of the meshes are cast, and the nearer hit wins, which
+    is what casting the meshes together with the static geometry gives.
     """
     if len(meshes_cam) != len(mesh_labels):
         raise ValueError("one label per mesh is needed")
-    rays = _rays(intr)
-    dirs = rays[..., 3:]
-    hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays))
-    t = hit["t_hit"].numpy()
-    ok = np.isfinite(t)
-    # Misses carry Open3D's invalid id, clipped here onto the trailing -1 of the lookup.
-    geom = np.minimum(hit["geometry_ids"].numpy(), len(mesh_labels)).astype(np.int64)
-    label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
-    labels = label_of[geom]
-    labels[~ok] = -1
-    xyz = dirs * t[..., None]
-    xyz[~ok] = np.nan
-    normals = hit["primitive_normals"].numpy()
-    # Face normals of closed meshes point outward; a visible face looks toward the camera anyway,
-    # but open meshes may be hit from behind.
-    normals[np.einsum("hwi,hwi->hw", normals, dirs) > 0] *= -1.0
-    normals[~ok] = np.nan
-    return Render(xyz_m=xyz, normals=normals, labels=labels)
+    H, W = intr.height, intr.width
+    if background is None:
+        xyz = np.full((H * W, 3), np.nan, np.float32)
+        normals = np.full((H * W, 3), np.nan, np.float32)
+        labels = np.full(H * W, -1, np.int32)
+        sel = np.arange(H * W)
+    else:
+        if background.labels.shape != (H, W):
+            raise ValueError("the background was rendered at other intrinsics")
+        xyz, normals = background.xyz_m.reshape(-1, 3).copy(), background.normals.reshape(-1, 3).copy()
+        labels = background.labels.reshape(-1).astype(np.int32)
+        mask = np.zeros((H, W), dtype=bool)
+        for vertices, _ in meshes_cam:
+            box = _pixel_box(vertices, intr)
+            if box is not None:
+                mask[box[0] : box[1], box[2] : box[3]] = True
+        sel = np.flatnonzero(mask)
+    if len(sel) and meshes_cam:
+        rays = _rays(intr).reshape(-1, 6)
+        hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))
+        label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
+        _composite(sel, hit["t_hit"].numpy(), hit["geometry_ids"].numpy(), hit["primitive_normals"].numpy(), rays[:, 3:], label_of,
+                   xyz, normals, labels)
+    return Render(xyz_m=xyz.reshape(H, W, 3), normals=normals.reshape(H, W, 3), labels=labels.reshape(H, W))
+
+
+@njit(cache=True)
+def _composite(sel, t, geom, prim_normals, dirs, label_of, xyz, normals, labels):  # pragma: no cover - numba
+    """Write each hit of ray sel[k] into the flat frame (xyz (HW, 3), normals, labels) where it is
+    nearer than what is there (NaN there = nothing). Normals are turned toward the camera; a
+    geometry id past label_of (Open3D's invalid id) cannot occur for a finite hit."""
+    for k in range(len(sel)):
+        tk = t[k]
+        if not np.isfinite(tk):
+            continue
+        i = sel[k]
+        if xyz[i, 2] <= tk:
+            continue
+        d0, d1, d2 = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        n0, n1, n2 = prim_normals[k, 0], prim_normals[k, 1], prim_normals[k, 2]
+        if n0 * d0 + n1 * d1 + n2 * d2 > 0:
+            n0, n1, n2 = -n0, -n1, -n2
+        xyz[i, 0], xyz[i, 1], xyz[i, 2] = d0 * tk, d1 * tk, d2 * tk
+        normals[i, 0], normals[i, 1], normals[i, 2] = n0, n1, n2
+        labels[i] = label_of[geom[k]]
+
+
+@functools.lru_cache(maxsize=4)
+def _background(intr: Intrinsics, meshes: tuple[tuple[bytes, bytes], ...]) -> Render:
+    arrays = [(np.frombuffer(v, np.float64).reshape(-1, 3), np.frombuffer(f, np.int64).reshape(-1, 3)) for v, f in meshes]
+    r = render(arrays, [-1] * len(arrays), intr)
+    for a in (r.xyz_m, r.normals, r.labels):
+        a.flags.writeable = False
+    return r
+
+
+def render_background(meshes_cam: list[tuple[np.ndarray, np.ndarray]], intr: Intrinsics) -> Render:
+    """The render of static, unlabelled geometry (bin, floor), cached by content: every scene of a
+    data set shares it, so each scene casts only the rays that can reach its objects."""
+    meshes = tuple(
+        (np.ascontiguousarray(v, np.float64).tobytes(), np.ascontiguousarray(f, np.int64).tobytes()) for v, f in meshes_cam
+    )
+    return _background(intr, meshes)
 
 
 def apply_sensor_noise(render_: Render, noise: NoiseParams, rng: np.random.Generator) -> Render:
@@ -116,22 +181,31 @@ def apply_sensor_noise(render_: Render, noise: NoiseParams, rng: np.random.Gener
     Range noise std: depth_sigma_m + depth_sigma_per_m2 * range^2. A return whose incidence angle
     (between the ray and the surface normal) exceeds max_incidence_deg is dropped.
     """
-    # Whole frames in float32 (the noise is far above its precision); NaN marks no return and
-    # compares False, so pixels without one stay empty.
-    xyz, normals = render_.xyz_m, render_.normals
-    rng_m = np.sqrt(np.einsum("hwi,hwi->hw", xyz, xyz))
-    ray = xyz / rng_m[..., None]
-    with np.errstate(invalid="ignore"):
-        keep = -np.einsum("hwi,hwi->hw", ray, normals) >= np.float32(np.cos(np.radians(noise.max_incidence_deg)))
-    if noise.dropout_fraction > 0:
-        keep &= rng.random(keep.shape) >= noise.dropout_fraction
-    sigma = np.float32(noise.depth_sigma_m) + np.float32(noise.depth_sigma_per_m2) * rng_m * rng_m
-    xyz_out = xyz + ray * (rng.standard_normal(rng_m.shape, dtype=np.float32) * sigma)[..., None]
-    xyz_out[~keep] = np.nan
-    normals_out = normals.copy()
-    normals_out[~keep] = np.nan
-    labels = np.where(keep, render_.labels, -1).astype(np.int32)
-    return Render(xyz_m=xyz_out, normals=normals_out, labels=labels)
+    shape = render_.labels.shape
+    # One draw per pixel, in a fixed order, whatever the pixel holds: the same seed gives the same frame.
+    dropped = rng.random(shape) < noise.dropout_fraction if noise.dropout_fraction > 0 else np.zeros(shape, bool)
+    draw = rng.standard_normal(shape, dtype=np.float32)
+    xyz, normals, labels = render_.xyz_m.copy(), render_.normals.copy(), render_.labels.astype(np.int32)
+    _noise(xyz.reshape(-1, 3), normals.reshape(-1, 3), labels.reshape(-1), draw.reshape(-1), dropped.reshape(-1),
+           np.cos(np.radians(noise.max_incidence_deg)), noise.depth_sigma_m, noise.depth_sigma_per_m2)
+    return Render(xyz_m=xyz, normals=normals, labels=labels)
+
+
+@njit(cache=True)
+def _noise(xyz, normals, labels, draw, dropped, min_cos, sigma0, sigma2):  # pragma: no cover - numba
+    """In place on flat frames: returns seen at a grazing angle or dropped become NaN / -1, the
+    others move along their ray by draw * (sigma0 + sigma2 * range^2)."""
+    for i in range(len(labels)):
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        r = np.sqrt(x * x + y * y + z * z)
+        cos = -(x * normals[i, 0] + y * normals[i, 1] + z * normals[i, 2]) / r
+        if not (cos >= min_cos) or dropped[i]:  # NaN (no return) fails the test too
+            xyz[i, 0] = xyz[i, 1] = xyz[i, 2] = np.nan
+            normals[i, 0] = normals[i, 1] = normals[i, 2] = np.nan
+            labels[i] = -1
+            continue
+        scale = 1.0 + draw[i] * (sigma0 + sigma2 * r * r) / r
+        xyz[i, 0], xyz[i, 1], xyz[i, 2] = x * scale, y * scale, z * scale
 
 
 def visible_fractions(
@@ -140,28 +214,19 @@ def visible_fractions(
     """(k,) share of the pixels each object would cover alone that show it in the scene.
 
     meshes_cam are the k objects (camera frame); labels (H, W) is the scene's label image before
-    noise. Each object is cast alone only over the pixel box of its projection, on every
-    VISIBILITY_STRIDE-th pixel row and column (a share of thousands of pixels needs no more).
+    noise. Each object is cast alone only over the pixel box of its projection, on a pixel grid
+    with about VISIBILITY_SAMPLES nodes in that box.
     """
     out = np.zeros(len(meshes_cam))
-    s = VISIBILITY_STRIDE
     rays_all = _rays(intr)
     for i, (vertices, faces) in enumerate(meshes_cam):
-        v = np.asarray(vertices, dtype=np.float64)
-        front = v[:, 2] > 1e-6
-        if not front.any():
+        box = _pixel_box(vertices, intr)
+        if box is None:
             continue
-        u = intr.fx * v[front, 0] / v[front, 2] + intr.cx
-        w = intr.fy * v[front, 1] / v[front, 2] + intr.cy
-        u0, u1 = int(max(np.floor(u.min()), 0)), int(min(np.ceil(u.max()) + 1, intr.width))
-        v0, v1 = int(max(np.floor(w.min()), 0)), int(min(np.ceil(w.max()) + 1, intr.height))
-        if u0 >= u1 or v0 >= v1:
-            continue
-        v0, u0 = v0 + (-v0) % s, u0 + (-u0) % s  # on the strided grid of the whole frame
+        v0, v1, u0, u1 = box
+        s = max(1, int(np.sqrt((v1 - v0) * (u1 - u0) / VISIBILITY_SAMPLES)))
         rays = np.ascontiguousarray(rays_all[v0:v1:s, u0:u1:s])
-        if rays.size == 0:
-            continue
         alone = np.isfinite(_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()
         if alone:
-            out[i] = min(1.0, np.count_nonzero(labels[::s, ::s] == i) / alone)
+            out[i] = min(1.0, np.count_nonzero(labels[v0:v1:s, u0:u1:s] == i) / alone)
     return out

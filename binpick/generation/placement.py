@@ -99,6 +99,20 @@ def _stamp(top, p, ox, oy, tz, cell):  # pragma: no cover - compiled
         top[i, j] = max(top[i, j], p[k, 2] + tz)
 
 
+def _update_support(support: np.ndarray, top: np.ndarray, p: np.ndarray, ox: float, oy: float, cell: float) -> None:
+    """Recompute, in place, the one-cell dilation `support` of the height map `top` where stamping
+    the points p (shifted by ox, oy onto the grid) can have changed it; elsewhere it still holds."""
+    nx, ny = top.shape
+    lo, hi, _ = _bounds(p)
+    i0, i1 = (min(max(int((v + ox) / cell), 0), nx - 1) for v in (lo[0], hi[0]))
+    j0, j1 = (min(max(int((v + oy) / cell), 0), ny - 1) for v in (lo[1], hi[1]))
+    # Cells one beyond the stamped box can change; their neighbours, one further, are read.
+    a0, a1, b0, b1 = max(i0 - 2, 0), min(i1 + 3, nx), max(j0 - 2, 0), min(j1 + 3, ny)
+    r0, r1, c0, c1 = max(i0 - 1, 0), min(i1 + 2, nx), max(j0 - 1, 0), min(j1 + 2, ny)
+    near = maximum_filter(top[a0:a1, b0:b1], size=3, mode="nearest")
+    support[r0:r1, c0:c1] = near[r0 - a0 : r1 - a0, c0 - b0 : c1 - b0]
+
+
 def place_objects(
     model_points_m: np.ndarray,
     n_objects: int,
@@ -119,13 +133,15 @@ def place_objects(
     X, Y = bin_params.inner_x_m, bin_params.inner_y_m
     shape = (int(np.ceil(X / cell)), int(np.ceil(Y / cell)))
     top = np.zeros(shape)  # pile height per column; the floor is z = 0
+    # The pile's height map dilated by one cell (see above); kept up to date around each new
+    # object, so that a large bin costs no more per object than a small one.
+    support = top.copy()
     poses: list[np.ndarray] = []
     for _ in range(n_objects):
         floor_gap = start_height(rng, placement, bin_params)
         # Of several random candidates, the one that comes to rest lowest: piles stay flat and
         # dense like a settled bin instead of growing towers on single contact points.
         best: tuple[float, np.ndarray, np.ndarray] | None = None
-        support = maximum_filter(top, size=3, mode="nearest")  # one cell of dilation, see above
         for _candidate in range(placement.candidates_per_object):
             R = sample_orientation(rng, placement.orientation)
             p = pts @ R.T
@@ -144,6 +160,7 @@ def place_objects(
             break
         _, pose, p = best
         _stamp(top, p, pose[0, 3] + X / 2, pose[1, 3] + Y / 2, pose[2, 3], cell)
+        _update_support(support, top, p, pose[0, 3] + X / 2, pose[1, 3] + Y / 2, cell)
         poses.append(pose)
     T = np.stack(poses) if poses else np.zeros((0, 4, 4))
     return Placement(T_bin_from_model=T, n_requested=n_objects)

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
-from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, visible_fractions
+from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, render_background, visible_fractions
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
@@ -93,7 +93,7 @@ def render_scene(
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(generate.bin)]
     intr = Intrinsics.from_params(camera)
-    clean = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
+    clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
     noisy = apply_sensor_noise(clean, generate.noise, rng)
     vp, vn, vl = make_view(noisy.xyz_m, noisy.labels, view)

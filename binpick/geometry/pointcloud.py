@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
+from numba import njit
 from scipy.spatial import cKDTree
 
 
@@ -25,6 +26,11 @@ def _o3d_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> o3d.geo
     return pcd
 
 
+# Voxel grids up to this many cells are marked in a dense array (one linear pass); larger ones
+# sort their keys instead.
+DENSE_VOXEL_CELLS = 1 << 24
+
+
 def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float) -> np.ndarray:
     """Indices (m,) of one point per occupied voxel: the first point of each voxel, sorted.
 
@@ -33,12 +39,45 @@ def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float) -> np.ndar
     points = _check_points(points)
     if voxel_size_m <= 0 or len(points) == 0:
         return np.arange(len(points))
-    keys = np.floor(points / voxel_size_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    flat = (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    flat, n_cells = _voxel_keys(points, 1.0 / voxel_size_m)
+    if n_cells <= DENSE_VOXEL_CELLS:
+        return _first_in_cell(flat, n_cells)
     _, first = np.unique(flat, return_index=True)
     return np.sort(first)
+
+
+@njit(cache=True)
+def _voxel_keys(points, inv_size):  # pragma: no cover - numba
+    """Flat voxel index of each point (x varies fastest, so neighbouring pixels of a frame fall in
+    neighbouring cells) and the number of cells of the occupied box."""
+    n = len(points)
+    keys = np.empty((n, 3), np.int64)
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, np.iinfo(np.int64).min)
+    for i in range(n):
+        for a in range(3):
+            k = np.int64(np.floor(points[i, a] * inv_size))
+            keys[i, a] = k
+            lo[a] = min(lo[a], k)
+            hi[a] = max(hi[a], k)
+    span = hi - lo + 1
+    flat = np.empty(n, np.int64)
+    for i in range(n):
+        flat[i] = ((keys[i, 2] - lo[2]) * span[1] + keys[i, 1] - lo[1]) * span[0] + keys[i, 0] - lo[0]
+    return flat, span[0] * span[1] * span[2]
+
+
+@njit(cache=True)
+def _first_in_cell(flat, n_cells):  # pragma: no cover - numba
+    seen = np.zeros(n_cells, np.bool_)
+    out = np.empty(len(flat), np.int64)
+    m = 0
+    for i in range(len(flat)):
+        if not seen[flat[i]]:
+            seen[flat[i]] = True
+            out[m] = i
+            m += 1
+    return out[:m]
 
 
 def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray | None = None, max_nn: int = 30) -> np.ndarray:
