@@ -31,12 +31,12 @@ from binpick.params import RegisterParams
 # systems is too old for numba and would only print a warning.
 numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
 
-TOP_CLUSTERS = 4  # clusters re-scored and refined per segment
+TOP_CLUSTERS = 4  # clusters refined by coarse ICP and scored per segment
+FINE_CLUSTERS = 2  # of those, the best refined by fine ICP
 COARSE_STRIDE = 4  # coarse ICP: every 4th dense model point is a target
 FINE_STRIDE = 2  # fine ICP: every 2nd
 SCORE_STRIDE = 2  # scoring: every 2nd dense model point must find a scene point
 MAX_CLUSTER_CANDIDATES = 160  # per segment: the strongest accumulator peaks that are clustered
-PAIRWISE_CLUSTER_LIMIT = 2_000_000  # candidates^2 * symmetries up to which clustering is one matrix
 PEAKS_PER_REFERENCE = 2
 SCENE_REFS_PER_CHUNK = 64  # whole-scene voting: references per accumulator
 SCENE_CLUSTERS_PER_INSTANCE = 3  # whole-scene matching: clusters refined per instance sought
@@ -255,39 +255,62 @@ def _cluster(
     order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])[:max_candidates]
     if not order:
         return []
-    trans_thr = params.cluster_translation_rel * model.diameter_m
-    m = len(model.symmetries)
-    poses = np.stack([candidates[k][0] for k in order])
-    weights = np.array([candidates[k][1] for k in order])
-    if len(order) * len(order) * m <= PAIRWISE_CLUSTER_LIMIT:
-        # All pairwise closeness tests at once: near[i, j] = pose j is close to a twin of pose i.
-        twins = (poses[:, None] @ model.symmetries[None]).reshape(-1, 4, 4)  # (n * m, 4, 4), pose-major
-        near = _close(twins, poses, params.cluster_rotation_deg, trans_thr).reshape(len(order), m, len(order)).any(axis=1)
-        reps_idx: list[int] = []
-        votes = []
-        for k in range(len(order)):
-            hit = np.flatnonzero(near[reps_idx, k]) if reps_idx else ()
-            if len(hit):
-                votes[hit[0]] += weights[k]
-                continue
-            reps_idx.append(k)
-            votes.append(float(weights[k]))
-        reps = [poses[k] for k in reps_idx]
-    else:
-        twins_buf = np.empty((len(order) * m, 4, 4))  # twins of each cluster's best pose, cluster-major
-        reps, votes = [], []
-        for T, v in zip(poses, weights):
-            n = len(reps) * m
-            if n:
-                hit = np.flatnonzero(_near(twins_buf[:n], T, params.cluster_rotation_deg, trans_thr))
-                if len(hit):
-                    votes[hit[0] // m] += v
-                    continue
-            twins_buf[n : n + m] = T[None] @ model.symmetries
-            reps.append(T)
-            votes.append(float(v))
+    poses = np.ascontiguousarray(np.stack([candidates[k][0] for k in order]), dtype=np.float64)
+    weights = np.array([candidates[k][1] for k in order], dtype=np.float64)
+    reps, votes = _greedy_clusters(
+        poses, weights, np.ascontiguousarray(model.symmetries, dtype=np.float64),
+        np.cos(np.radians(params.cluster_rotation_deg)), params.cluster_translation_rel * model.diameter_m,
+    )
     ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
-    return [(reps[c], votes[c]) for c in ranked]
+    return [(poses[reps[c]], float(votes[c])) for c in ranked]
+
+
+@numba.njit(cache=True)
+def _greedy_clusters(poses, weights, symmetries, min_cos, max_dist):  # pragma: no cover - compiled
+    """Indices of the cluster representatives (in order of creation) and each cluster's votes.
+
+    The twins (pose @ symmetry) of each representative are made once; a pose is tested against
+    a twin's translation first (three numbers) and only then its rotation: cos of the relative
+    angle = (trace(R_twin^T R) - 1) / 2."""
+    n, m = len(poses), len(symmetries)
+    twins = np.empty((n * m, 3, 4))
+    reps = np.empty(n, np.int64)
+    votes = np.zeros(n)
+    n_reps = 0
+    d2 = max_dist * max_dist
+    for k in range(n):
+        T = poses[k]
+        found = -1
+        for c in range(n_reps):
+            for s in range(m):
+                W = twins[c * m + s]
+                dx, dy, dz = W[0, 3] - T[0, 3], W[1, 3] - T[1, 3], W[2, 3] - T[2, 3]
+                if dx * dx + dy * dy + dz * dz >= d2:
+                    continue
+                tr = 0.0
+                for a in range(3):
+                    for b in range(3):
+                        tr += W[a, b] * T[a, b]
+                if (tr - 1.0) / 2.0 > min_cos:
+                    found = c
+                    break
+            if found >= 0:
+                break
+        if found >= 0:
+            votes[found] += weights[k]
+            continue
+        for s in range(m):
+            S = symmetries[s]
+            for a in range(3):
+                for b in range(4):
+                    v = 0.0
+                    for e in range(4):
+                        v += T[a, e] * S[e, b]
+                    twins[n_reps * m + s, a, b] = v
+        reps[n_reps] = k
+        votes[n_reps] = weights[k]
+        n_reps += 1
+    return reps[:n_reps], votes[:n_reps]
 
 
 def score_pose(
@@ -382,11 +405,15 @@ def match_segment(
     scene_points = scene_points[voxel_downsample_indices(scene_points, params.refine_step_rel * model.diameter_m)]
     inlier = params.score_inlier_rel * model.diameter_m
     scene_tree = cKDTree(scene_points)
-    # Each strong cluster is refined (coarse ICP on a subsample of the model, then fine ICP) and
-    # scored; comparing clusters only after both keeps a pose slid along a long part from winning.
-    best: PoseEstimate | None = None
+    # Each strong cluster is refined by coarse ICP (on a subsample of the model) and scored;
+    # comparing clusters only after ICP keeps a pose slid along a long part from winning. The
+    # FINE_CLUSTERS best get the fine ICP and are scored again.
+    coarse: list[tuple[float, np.ndarray, float]] = []
     for T, votes in _cluster(candidates, model, params, MAX_CLUSTER_CANDIDATES)[:TOP_CLUSTERS]:
         T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations, COARSE_STRIDE)
+        coarse.append((score_pose(model, T, scene_points, inlier, scene_tree), T, votes))
+    best: PoseEstimate | None = None
+    for _, T, votes in sorted(coarse, key=lambda c: -c[0])[:FINE_CLUSTERS]:
         T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, scene_points, inlier, scene_tree)
         if best is None or score > best.score:
