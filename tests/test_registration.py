@@ -94,3 +94,25 @@ def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
         ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
     )
     assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 2 / 3, summary
+
+
+def test_scene_pairs_match_the_training_features():
+    """The scene side (one compiled pass) must quantise exactly like the model table, built from
+    _features, _keys and _alpha, or votes miss their model pairs."""
+    from binpick.registration.ppf import _align_to_x, _alpha, _features, _keys, _scene_pairs
+
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.05, 0.05, (300, 3))
+    nrm = rng.normal(size=(300, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    refs = np.sort(rng.choice(300, 40, replace=False))
+    radius, step, bins = 0.06, 0.004, 30
+    T = _align_to_x(pts, nrm)
+    starts, keys, alpha = _scene_pairs(pts, nrm, np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3]), refs, radius, step, bins)
+    first = np.concatenate([np.full(starts[a + 1] - starts[a], r) for a, r in enumerate(refs)])
+    d = np.linalg.norm(pts[refs][:, None] - pts[None], axis=2)
+    expected_second = [np.flatnonzero((d[a] <= radius) & (np.arange(300) != r)) for a, r in enumerate(refs)]
+    second = np.concatenate(expected_second)
+    assert len(keys) == len(second) > 1000
+    assert np.array_equal(keys, _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), step, bins))
+    assert np.allclose(alpha, _alpha(T[first], pts[second]), atol=1e-9)

@@ -126,17 +126,6 @@ def _alpha(T_align: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.arctan2(-p[:, 2], p[:, 1])
 
 
-def _pairs_within(points: np.ndarray, refs: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """Index pairs (ref, other), other != ref, with distance <= radius."""
-    tree = cKDTree(points)
-    lists = tree.query_ball_point(points[refs], r=radius)
-    counts = np.fromiter((len(x) for x in lists), dtype=np.int64, count=len(lists))
-    first = np.repeat(refs, counts)
-    second = np.concatenate([np.asarray(x, dtype=np.int64) for x in lists]) if len(lists) else np.zeros(0, np.int64)
-    keep = first != second
-    return first[keep], second[keep]
-
-
 def train_ppf(
     dense_points_m: np.ndarray, dense_normals: np.ndarray, diameter_m: float, symmetries: np.ndarray, params: RegisterParams
 ) -> PPFModel:
@@ -173,16 +162,16 @@ def train_ppf(
 
 def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference."""
-    first, second = _pairs_within(pts, refs, model.diameter_m)
-    if len(first) == 0:
-        return []
-    keys = _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), model.distance_step_m, model.angle_bins)
     T_s = _align_to_x(pts, nrm)
-    alpha_s = _alpha(T_s[first], pts[second])
-    ref_slot = np.searchsorted(refs, first)
+    group_start, keys, alpha_s = _scene_pairs(
+        pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), np.ascontiguousarray(T_s[:, :3, :3]),
+        np.ascontiguousarray(T_s[:, :3, 3]), refs.astype(np.int64), model.diameter_m, model.distance_step_m, model.angle_bins,
+    )
+    if len(keys) == 0:
+        return []
     A = model.angle_bins
     peak_flat, peak_votes = _accumulate_peaks(
-        ref_slot.astype(np.int64), keys.astype(np.int64), alpha_s.astype(np.float64), model.key_starts.astype(np.int64),
+        group_start, keys, alpha_s, model.key_starts.astype(np.int64),
         model.ref_index.astype(np.int64), model.alpha.astype(np.float64), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
         4 * numba.get_num_threads(),
     )
@@ -199,18 +188,63 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _accumulate_peaks(ref_slot, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks, n_chunks):  # pragma: no cover - compiled
+def _scene_pairs(pts, unit_normals, R_align, t_align, refs, radius, distance_step, n_angles):  # pragma: no cover - compiled
+    """Every pair (reference refs[a], other point within radius), grouped by reference: the group
+    bounds (n_refs + 1,), the quantised feature key of each pair and the angle alpha that turns
+    the aligned partner into the half-plane y > 0, z = 0 (the same quantities as _features,
+    _keys and _alpha, in one pass without temporaries; references spread over the cores)."""
+    n_refs, n = len(refs), len(pts)
+    r2 = radius * radius
+    counts = np.zeros(n_refs + 1, np.int64)
+    for a in numba.prange(n_refs):
+        i = refs[a]
+        c = 0
+        for j in range(n):
+            dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
+            if j != i and dx * dx + dy * dy + dz * dz <= r2:
+                c += 1
+        counts[a + 1] = c
+    starts = np.cumsum(counts)
+    keys = np.empty(starts[-1], np.int64)
+    alpha = np.empty(starts[-1])
+    for a in numba.prange(n_refs):
+        i = refs[a]
+        k = starts[a]
+        for j in range(n):
+            dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
+            d2 = dx * dx + dy * dy + dz * dz
+            if j == i or d2 > r2:
+                continue
+            dist = np.sqrt(d2)
+            inv = 1.0 / max(dist, 1e-12)
+            ux, uy, uz = dx * inv, dy * inv, dz * inv
+            c1 = unit_normals[i, 0] * ux + unit_normals[i, 1] * uy + unit_normals[i, 2] * uz
+            c2 = unit_normals[j, 0] * ux + unit_normals[j, 1] * uy + unit_normals[j, 2] * uz
+            c3 = unit_normals[i, 0] * unit_normals[j, 0] + unit_normals[i, 1] * unit_normals[j, 1] + unit_normals[i, 2] * unit_normals[j, 2]
+            key = np.int64(np.floor(dist / distance_step))
+            for cosine in (c1, c2, c3):
+                q = np.int64(np.arccos(min(max(cosine, -1.0), 1.0)) / np.pi * n_angles)
+                key = key * n_angles + min(q, n_angles - 1)
+            keys[k] = key
+            py = R_align[i, 1, 0] * pts[j, 0] + R_align[i, 1, 1] * pts[j, 1] + R_align[i, 1, 2] * pts[j, 2] + t_align[i, 1]
+            pz = R_align[i, 2, 0] * pts[j, 0] + R_align[i, 2, 1] * pts[j, 1] + R_align[i, 2, 2] * pts[j, 2] + t_align[i, 2]
+            alpha[k] = np.arctan2(-pz, py)
+            k += 1
+    return starts, keys, alpha
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _accumulate_peaks(group_start, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks, n_chunks):  # pragma: no cover - compiled
     """The voting loop: every scene pair votes for (model reference point, alpha bin) of each
     model pair with its key; per scene reference, the n_peaks strongest accumulator cells.
 
-    Pairs must come grouped by reference (ref_slot non-decreasing), as _pairs_within makes them.
+    The pairs of reference r are group_start[r]:group_start[r + 1], as _scene_pairs makes them.
     References are spread over the cores in chunks, each with its own accumulator row, reset
     between references (only the touched cells), so the result does not depend on the cores.
     Returns (n_refs, n_peaks) flat cell indices (model point * n_angles + alpha bin) and votes.
     """
     peak_flat = np.zeros((n_refs, n_peaks), np.int64)
     peak_votes = np.zeros((n_refs, n_peaks), np.int32)
-    group_start = np.searchsorted(ref_slot, np.arange(n_refs + 1))
     n_keys = len(key_starts) - 1
     scale = n_angles / (2.0 * np.pi)
     n_chunks = min(n_chunks, n_refs)
