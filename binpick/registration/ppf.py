@@ -171,8 +171,9 @@ def _vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -
         return []
     A = model.angle_bins
     peak_flat, peak_votes = _accumulate_peaks(
-        group_start, keys, alpha_s, model.key_starts.astype(np.int64),
-        model.ref_index.astype(np.int64), model.alpha.astype(np.float64), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
+        # The table as stored (int64 / int32 / float32): a converted copy would cost more than the voting.
+        group_start, keys, alpha_s, np.asarray(model.key_starts, np.int64),
+        np.asarray(model.ref_index, np.int32), np.asarray(model.alpha, np.float32), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
         4 * numba.get_num_threads(),
     )
     valid = peak_votes > 0
@@ -256,9 +257,14 @@ def _accumulate_peaks(group_start, keys, alpha_s, key_starts, ref_index, alpha_m
             for p in range(group_start[r], group_start[r + 1]):
                 k = keys[p]
                 if k < n_keys:
+                    # bin of (alpha_m - alpha_s + pi) * scale, shifted by n_angles to be positive
+                    # (truncation is then floor) and wrapped by at most two subtractions.
+                    offset = (np.pi - alpha_s[p]) * scale + n_angles
                     for q in range(key_starts[k], key_starts[k + 1]):
-                        b = int(np.floor((alpha_m[q] - alpha_s[p] + np.pi) * scale)) % n_angles
-                        cell = ref_index[q] * n_angles + b
+                        b = int(alpha_m[q] * scale + offset)
+                        while b >= n_angles:
+                            b -= n_angles
+                        cell = np.int64(ref_index[q]) * n_angles + b
                         if acc[cell] == 0:
                             touched[n_touched] = cell
                             n_touched += 1
@@ -349,18 +355,18 @@ def _greedy_clusters(poses, weights, symmetries, min_cos, max_dist):  # pragma: 
 
 def score_pose(
     model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: cKDTree | None = None,
-    whole_scene: bool = False,
+    whole_scene: bool = False, stride: int = SCORE_STRIDE,
 ) -> float:
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
     point within inlier_m, and the share of scene points within inlier_m of the model. On a
     whole scene (other parts around) only the first share counts."""
     if len(scene_points) == 0:
         return 0.0
-    facing = _facing(model, T_cam_from_model, SCORE_STRIDE)
+    facing = _facing(model, T_cam_from_model, stride)
     if not facing.any():
         return 0.0
     scene_tree = scene_tree or cKDTree(scene_points)
-    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[::SCORE_STRIDE][facing]), distance_upper_bound=inlier_m)
+    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[::stride][facing]), distance_upper_bound=inlier_m)
     if whole_scene:
         return float(np.mean(np.isfinite(d_model)))
     # Scene points against the model's own tree, in the model frame: built once per model.
@@ -414,7 +420,7 @@ def refine_icp(
         max_distance_m,
         invert_T(T_cam_from_model),
         o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(max_iteration=iterations),
+        o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=1e-4, relative_rmse=1e-4, max_iteration=iterations),
     )
     return invert_T(np.asarray(result.transformation))
 
@@ -445,7 +451,7 @@ def match_segment(
     coarse: list[tuple[float, np.ndarray, float]] = []
     for T, votes in _cluster(candidates, model, params, MAX_CLUSTER_CANDIDATES)[:TOP_CLUSTERS]:
         T = refine_icp(model, T, scene_points, 2.0 * params.sample_step_rel * model.diameter_m, params.icp_iterations, COARSE_STRIDE)
-        coarse.append((score_pose(model, T, scene_points, inlier, scene_tree), T, votes))
+        coarse.append((score_pose(model, T, scene_points, inlier, scene_tree, stride=COARSE_STRIDE), T, votes))
     best: PoseEstimate | None = None
     for _, T, votes in sorted(coarse, key=lambda c: -c[0])[:FINE_CLUSTERS]:
         T = refine_icp(model, T, scene_points, 2.0 * inlier, params.icp_iterations, FINE_STRIDE)
