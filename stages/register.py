@@ -61,7 +61,7 @@ def run(
             per_instance_ms.append(1000.0 * (time.perf_counter() - t))
             if est is not None and est.score >= params.registration.min_score:
                 found.append((seg, est))
-        kept = suppress_duplicates(ppf, [e for _, e in found], params.registration)
+        kept = suppress_duplicates(ppf, [e for _, e in found], params.registration, cloud.points_m)
         estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
         n_duplicates = len(found) - len(kept)
     if mode in ("whole_scene", "segments_then_scene"):

@@ -61,6 +61,21 @@ def test_duplicate_poses_are_suppressed_up_to_symmetry(ppf):
     assert suppress_duplicates(ppf, ests, RegisterParams()) == [1, 2]
 
 
+def test_a_wrong_fit_on_a_fragment_of_a_part_found_whole_is_suppressed(t_joint, ppf):
+    """One part split into two segments: the big one gives the right pose, the fragment a pose
+    turned 30 degrees and shifted (no pose duplicate). The fragment's supporting points are all
+    explained by the right pose, so it goes; a second part elsewhere stays."""
+    from binpick.registration.ppf import PoseEstimate, suppress_duplicates
+
+    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    pts = scene.view_points_m.astype(np.float64)
+    right, elsewhere = scene.T_cam_from_model[0], scene.T_cam_from_model[1]
+    wrong = right @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(30)), np.array([0.004, 0.0, 0.0]))
+    ests = [PoseEstimate(right, 0.7, 10), PoseEstimate(wrong, 0.5, 10), PoseEstimate(elsewhere, 0.4, 10)]
+    assert suppress_duplicates(ppf, ests, RegisterParams()) == [0, 1, 2]  # pose duplicates only
+    assert suppress_duplicates(ppf, ests, RegisterParams(), pts) == [0, 2]
+
+
 def test_whole_scene_matching_finds_every_part_without_segments(t_joint, ppf):
     """The network's view of a rendered bin, no labels: every pickable part is found once, at
     its ground-truth pose, and nothing else."""

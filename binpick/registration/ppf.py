@@ -491,14 +491,10 @@ def match_scene(
     estimates: list[PoseEstimate] = []
     support: list[np.ndarray] = []
     centre = model.dense_points_m.mean(axis=0)
-    reach = 0.5 * model.diameter_m + 2.0 * params.sample_step_rel * model.diameter_m
+    reach = _reach(model, params)
 
     def explained(T: np.ndarray) -> np.ndarray:
-        near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
-        if len(near) == 0:
-            return near
-        d, _ = _model_tree(model).query(transform_points(invert_T(T), fine[near]), distance_upper_bound=inlier)
-        return near[np.isfinite(d)]
+        return _explained(model, T, fine, tree, inlier, reach)
 
     for T, votes in _cluster(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
         # ICP and support only see the scene around the pose: the rest cannot match this part.
@@ -512,19 +508,38 @@ def match_scene(
         if score >= params.min_score:
             estimates.append(PoseEstimate(T_cam_from_model=T, score=score, votes=votes))
             support.append(explained(T))
-    # Non-maximum suppression by explained points, best first: a pose whose supporting scene
-    # points are mostly explained by a better pose already (a repeat, or a fit bridging two
-    # neighbouring parts) is dropped, whatever its pose.
     claimed = np.zeros(len(fine), bool)
     for T in known:
         claimed[explained(np.asarray(T))] = True
-    kept: list[PoseEstimate] = []
-    for k in sorted(range(len(estimates)), key=lambda k: -estimates[k].score):
+    return [estimates[k] for k in _suppress_by_support([e.score for e in estimates], support, claimed)][:max_instances]
+
+
+def _reach(model: PPFModel, params: RegisterParams) -> float:
+    """Radius around a pose's centre within which scene points can belong to it."""
+    return 0.5 * model.diameter_m + 2.0 * params.sample_step_rel * model.diameter_m
+
+
+def _explained(model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float) -> np.ndarray:
+    """Indices of the scene points (n, 3), in `tree`, within inlier_m of the model surface at pose T."""
+    near = np.asarray(tree.query_ball_point(T[:3, :3] @ model.dense_points_m.mean(axis=0) + T[:3, 3], reach_m), dtype=np.int64)
+    if len(near) == 0:
+        return near
+    d, _ = _model_tree(model).query(transform_points(invert_T(T), points[near]), distance_upper_bound=inlier_m)
+    return near[np.isfinite(d)]
+
+
+def _suppress_by_support(scores: Sequence[float], support: Sequence[np.ndarray], claimed: np.ndarray) -> list[int]:
+    """Non-maximum suppression by explained points, best score first: a pose whose supporting
+    scene points are mostly claimed by a better pose already (a repeat, a wrong fit on a fragment
+    of a part found whole, or a fit bridging two neighbouring parts) is dropped, whatever its
+    pose. claimed (n,) bool, updated in place. Returns the kept indices, best first."""
+    kept: list[int] = []
+    for k in sorted(range(len(scores)), key=lambda k: -scores[k]):
         if len(support[k]) == 0 or claimed[support[k]].mean() > SCENE_MAX_SHARED_SUPPORT:
             continue
         claimed[support[k]] = True
-        kept.append(estimates[k])
-    return kept[:max_instances]
+        kept.append(k)
+    return kept
 
 
 def _close(A: np.ndarray, B: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
@@ -545,9 +560,13 @@ def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: f
     return bool(_near(T_a[None] @ model.symmetries, T_b, rotation_deg, translation_m).any())
 
 
-def suppress_duplicates(model: PPFModel, estimates: list[PoseEstimate], params: RegisterParams) -> list[int]:
+def suppress_duplicates(
+    model: PPFModel, estimates: list[PoseEstimate], params: RegisterParams, scene_points: np.ndarray | None = None
+) -> list[int]:
     """Indices of the estimates kept by non-maximum suppression, best score first: an estimate
-    that repeats the pose of a better one (one part split into two segments) is dropped."""
+    that repeats the pose of a better one (one part split into two segments) is dropped; with
+    the whole scene's points (n, 3), so is one whose supporting points a better one explains
+    (a wrong fit on the fragment of a part that another segment gave whole)."""
     order = sorted(range(len(estimates)), key=lambda k: -estimates[k].score)
     kept: list[int] = []
     trans_thr = params.cluster_translation_rel * model.diameter_m
@@ -555,4 +574,11 @@ def suppress_duplicates(model: PPFModel, estimates: list[PoseEstimate], params: 
         T = estimates[k].T_cam_from_model
         if not any(same_pose(model, estimates[j].T_cam_from_model, T, params.cluster_rotation_deg, trans_thr) for j in kept):
             kept.append(k)
-    return kept
+    if scene_points is None or len(kept) < 2:
+        return kept
+    fine = scene_points[voxel_downsample_indices(scene_points, params.refine_step_rel * model.diameter_m)]
+    tree = cKDTree(fine)
+    inlier, reach = params.score_inlier_rel * model.diameter_m, _reach(model, params)
+    support = [_explained(model, estimates[k].T_cam_from_model, fine, tree, inlier, reach) for k in kept]
+    by_support = _suppress_by_support([estimates[k].score for k in kept], support, np.zeros(len(fine), bool))
+    return [kept[i] for i in by_support]
