@@ -248,11 +248,13 @@ class SceneImportParams(_Strict):
 
 class SegmentParams(_Strict):
     n_points: int = Field(4096, ge=64, description="points per network pass; larger scenes are covered by blocks")
-    centre_threshold: float = Field(0.3, gt=0, lt=1)
+    # Centre candidates score above this. null = the value calibrated on the validation scenes
+    # when the part was trained (stored in its checkpoint).
+    centre_threshold: float | None = Field(None, gt=0, lt=1)
     # Radius of the non-maximum suppression of centres; null = 0.25 * part diameter.
     nms_radius_m: float | None = Field(None, gt=0)
-    # A point farther than this from every centre in embedding space is noise (-1).
-    embedding_threshold: float = Field(1.5, gt=0)
+    # A point farther than this from every centre in embedding space is noise (-1); null = calibrated.
+    embedding_threshold: float | None = Field(None, gt=0)
     min_points: int = Field(30, ge=1, description="smaller instances become noise")
 
 

@@ -28,7 +28,7 @@ def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_p
     t0 = time.perf_counter()
     labels = segment_scene(
         model, cloud.points_m, cloud.normals, extra["features"], extra["d_max_m"], params.segment.n_points,
-        cluster_params(params.segment, extra["part_diameter_m"]), np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))),
+        cluster_params(params.segment, extra["part_diameter_m"], extra.get("clustering")), np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))),
     )
     seconds = time.perf_counter() - t0
     save_segments(out, labels)

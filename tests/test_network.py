@@ -138,3 +138,41 @@ def test_checkpoint_rebuilds_the_network_alone(tmp_path):
     f = input_features(x, torch.nn.functional.normalize(torch.randn(1, 64, 3), dim=-1), "normals", 0.02)
     assert torch.equal(model(f, x)[0], back(f, x)[0])
     assert state["epoch"] == 3 and state["extra"]["d_max_m"] == 0.02
+
+
+class _CloseBandsNet(_OracleNet):
+    """The oracle with its three instances only 1.3 apart in embedding space."""
+
+    def forward(self, features, xyz):
+        emb, ctr = super().forward(features, xyz)
+        return emb * (1.3 / 3.0), ctr
+
+
+def test_calibration_finds_the_embedding_threshold_that_separates_the_instances():
+    """Instances 1.3 apart in embedding space: any threshold above 1.3 merges them (the default
+    1.5 does), 1.2 keeps them apart; calibration on labelled views must find it."""
+    from binpick.metrics.segmentation import scene_counts
+    from binpick.network.calibrate import calibrate_clustering
+    from binpick.network.infer import DEFAULT_CENTRE_THRESHOLD, DEFAULT_EMBEDDING_THRESHOLD
+
+    rng = np.random.default_rng(0)
+    views = []
+    for _ in range(2):
+        pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)])
+        views.append((pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)), np.repeat(np.arange(3), 300)))
+    net = _CloseBandsNet()
+    default = segment_scene(net, views[0][0], views[0][1], "normals", 0.03, 2048,
+                            ClusterParams(DEFAULT_CENTRE_THRESHOLD, 0.03, DEFAULT_EMBEDDING_THRESHOLD, 10), np.random.default_rng(1))
+    assert scene_counts(default, views[0][2], 0.5).summary()["precision"] < 0.5
+    chosen = calibrate_clustering(net, views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1))
+    assert chosen["embedding_threshold"] < 1.3 and chosen["precision"] == chosen["recall"] == 1.0
+
+
+def test_segment_params_override_calibrated_thresholds():
+    from binpick.network.infer import cluster_params
+    from binpick.params import SegmentParams
+
+    calibrated = {"centre_threshold": 0.5, "embedding_threshold": 1.2}
+    assert cluster_params(SegmentParams(), 0.1, calibrated).embedding_threshold == 1.2
+    assert cluster_params(SegmentParams(embedding_threshold=1.7), 0.1, calibrated).embedding_threshold == 1.7
+    assert cluster_params(SegmentParams(), 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults

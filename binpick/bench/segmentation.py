@@ -51,7 +51,7 @@ def bench_segment(
     device = default_device()
     model, state = load_checkpoint(checkpoint, device)
     extra = state["extra"]
-    cp = cluster_params(segment, extra["part_diameter_m"])
+    cp = cluster_params(segment, extra["part_diameter_m"], extra.get("clustering"))
     paths = list_scenes(scenes / "test")
     if not paths:
         raise ValueError(f"{scenes / 'test'} holds no scenes")

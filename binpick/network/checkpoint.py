@@ -37,6 +37,18 @@ def save_checkpoint(
         "metrics": metrics,
         "extra": extra,
     }
+    _write(path, state)
+
+
+def update_extra(source: str | Path, out: str | Path, **entries: Any) -> None:
+    """Write the checkpoint at source to out with entries added to its extra (e.g. settings
+    chosen after training)."""
+    state = read_checkpoint(source)
+    state["extra"] = {**state["extra"], **entries}
+    _write(out, state)
+
+
+def _write(path: str | Path, state: dict[str, Any]) -> None:
     # Through a buffer: torch names the archive inside the file after the file, and the atomic
     # write's temporary name would make equal checkpoints differ byte for byte.
     buffer = io.BytesIO()

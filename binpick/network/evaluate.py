@@ -25,7 +25,7 @@ def segment_and_count(
     """Segment the network's view of a generated scene and match the instances against its
     labels. extra: the checkpoint's inference settings (part, part_diameter_m, features, d_max_m).
     Returns the labels (N,) and the counts."""
-    cp = cluster_params(segment, extra["part_diameter_m"])
+    cp = cluster_params(segment, extra["part_diameter_m"], extra.get("clustering"))
     rng = np.random.default_rng(scene_seed(seed, extra["part"], index))
     labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)
     return labels, scene_counts(labels, scene.view_labels, iou_threshold, segment.min_points)

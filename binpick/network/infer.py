@@ -87,21 +87,39 @@ def segment_scene(
     rng: np.random.Generator,
 ) -> np.ndarray:
     """Labels (M,) int32 for every one of the M scene points (camera frame, metres, on the voxel
-    grid the network was trained at).
+    grid the network was trained at): predict_blocks, then label_blocks."""
+    return label_blocks(points, predict_blocks(model, points, normals, features, length_scale_m, n_points, rng), params)
 
-    Scenes larger than n_points are covered by blocks of n_points neighbours (see blocks.cover).
+
+Block = tuple[int, np.ndarray, np.ndarray, np.ndarray]  # seed point, point indices, embeddings, centre scores
+
+
+def predict_blocks(
+    model: FPCC, points: np.ndarray, normals: np.ndarray, features: str, length_scale_m: float, n_points: int, rng: np.random.Generator
+) -> list[Block]:
+    """The network's outputs on a cover of the scene: scenes larger than n_points are covered by
+    blocks of n_points neighbours (see blocks.cover)."""
+    if len(points) == 0:
+        return []
+    blocks = []
+    for seed, idx in cover(points, n_points, rng):
+        emb, ctr = predict(model, points[idx], normals[idx], features, length_scale_m)
+        blocks.append((seed, idx, emb, ctr))
+    return blocks
+
+
+def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams) -> np.ndarray:
+    """Labels (M,) int32 of the M scene points from the clustered blocks.
+
     Each point keeps the label of the block whose seed is nearest to it (where it had the most
     context); an instance of a block joins the instance that already holds most of its points
     (MERGE_OVERLAP of them or more), else it is new.
     """
     M = len(points)
-    if M == 0:
-        return np.zeros(0, np.int32)
     labels = np.full(M, -1, np.int32)
     best_dist = np.full(M, np.inf)
     n_instances = 0
-    for seed, idx in cover(points, n_points, rng):
-        emb, ctr = predict(model, points[idx], normals[idx], features, length_scale_m)
+    for seed, idx, emb, ctr in blocks:
         local = cluster(points[idx], emb, ctr, params)
         mapping = np.full(int(local.max()) + 2, -1, np.int32)  # local id -> global id; last slot: noise
         for j in range(int(local.max()) + 1):
@@ -129,11 +147,24 @@ def segment_scene(
 NMS_RADIUS_PER_DIAMETER = 0.25
 
 
-def cluster_params(segment: SegmentParams, diameter_m: float) -> ClusterParams:
-    """Clustering settings from the segment params, with size-derived defaults filled in."""
+# Used where neither params.yaml nor the checkpoint sets them (a checkpoint from before
+# calibration, or the sample predictions during training).
+DEFAULT_CENTRE_THRESHOLD = 0.3
+DEFAULT_EMBEDDING_THRESHOLD = 1.5
+
+
+def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: dict | None = None) -> ClusterParams:
+    """Clustering settings: the segment params where set, else the thresholds calibrated on the
+    validation scenes at training (the checkpoint's extra["clustering"]), else the defaults;
+    the suppression radius defaults to a share of the part's diameter."""
+    calibrated = calibrated or {}
+
+    def pick(value: float | None, key: str, default: float) -> float:
+        return float(value) if value is not None else float(calibrated.get(key, default))
+
     return ClusterParams(
-        centre_threshold=segment.centre_threshold,
+        centre_threshold=pick(segment.centre_threshold, "centre_threshold", DEFAULT_CENTRE_THRESHOLD),
         nms_radius_m=segment.nms_radius_m if segment.nms_radius_m is not None else NMS_RADIUS_PER_DIAMETER * diameter_m,
-        embedding_threshold=segment.embedding_threshold,
+        embedding_threshold=pick(segment.embedding_threshold, "embedding_threshold", DEFAULT_EMBEDDING_THRESHOLD),
         min_points=segment.min_points,
     )
