@@ -6,18 +6,52 @@ from binpick.network.blocks import cover, crop
 from binpick.network.checkpoint import load_checkpoint, save_checkpoint
 from binpick.network.infer import ClusterParams, cluster, segment_scene
 from binpick.network.loss import centre_score_targets, fpcc_loss
-from binpick.network.model import FPCC, FPCCConfig, input_features, knn_indices
+from binpick.network.model import (
+    FPCC,
+    EdgeConv,
+    FPCCConfig,
+    gather_neighbours,
+    input_features,
+    knn_by_distance_blocks,
+    knn_by_tree,
+    knn_indices,
+    neighbour_max,
+)
 from binpick.network.train import Views, train_fpcc
 from binpick.params import TrainParams
 
 
-def test_knn_matches_brute_force():
+@pytest.mark.parametrize("knn", [knn_indices, knn_by_tree, knn_by_distance_blocks])
+def test_knn_matches_brute_force(knn):
     xyz = torch.rand(2, 300, 3)
-    idx = knn_indices(xyz, 8)
+    idx = knn(xyz, 8)
     d = torch.cdist(xyz, xyz)
     brute = d.topk(8, dim=-1, largest=False).values
     got = torch.gather(d, 2, idx)
+    assert idx.shape == (2, 300, 8) and idx.dtype == torch.long
     assert torch.allclose(got, brute)
+
+
+def test_neighbour_max_matches_gathered_max():
+    x, idx = torch.randn(3, 4, 50), knn_indices(torch.rand(3, 50, 3), 5)
+    assert torch.equal(neighbour_max(x, idx), gather_neighbours(x, idx).max(dim=-1).values)
+
+
+@pytest.mark.parametrize("training", [True, False])
+def test_edgeconv_equals_the_mlp_applied_to_every_edge(training):
+    """The decomposed EdgeConv against the textbook one: MLP on [x_j - x_i, x_i] for every edge, max over j."""
+    torch.manual_seed(0)
+    layer = EdgeConv(5, 7)
+    with torch.no_grad():  # statistics and a scale of either sign, as after training
+        bn = layer.mlp[1]
+        bn.weight.normal_(), bn.bias.normal_(), bn.running_mean.normal_(), bn.running_var.uniform_(0.5, 2.0)
+    layer.train(training)
+    x = torch.randn(2, 5, 200)
+    idx = knn_indices(torch.rand(2, 200, 3), 6)
+    nbr = gather_neighbours(x, idx)  # (B, C, N, k)
+    centre = x.unsqueeze(-1).expand_as(nbr)
+    expected = layer.mlp(torch.cat([nbr - centre, centre], dim=1)).max(dim=-1).values
+    assert torch.allclose(layer(x, idx), expected, atol=1e-5)
 
 
 @pytest.mark.parametrize("backbone", ["dgcnn", "pointnet"])
@@ -61,6 +95,35 @@ def test_cluster_recovers_handmade_instances():
     labels = cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 1))
     assert labels.tolist() == [0, 0, 1, 1, -1]
     assert (cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 3)) == -1).all()  # all too small
+
+
+def _cluster_by_definition(points, embedding, centre, params):
+    """The inference rule read literally: greedy suppression by score, nearest centre or noise."""
+    cands = [i for i in np.argsort(-centre, kind="stable") if centre[i] > params.centre_threshold]
+    centres = []
+    for c in cands:
+        if all(
+            np.linalg.norm(points[c] - points[k]) >= params.nms_radius_m
+            and np.linalg.norm(embedding[c] - embedding[k]) >= params.embedding_threshold
+            for k in centres
+        ):
+            centres.append(c)
+    d = np.linalg.norm(embedding[:, None] - embedding[centres][None], axis=2)
+    labels = np.where(d.min(axis=1) <= params.embedding_threshold, d.argmin(axis=1), -1)
+    sizes = np.bincount(labels[labels >= 0], minlength=len(centres))
+    labels[(labels >= 0) & (sizes[np.maximum(labels, 0)] < params.min_points)] = -1
+    kept = np.flatnonzero(sizes >= params.min_points)
+    return np.array([-1 if l < 0 else int(np.searchsorted(kept, l)) for l in labels])
+
+
+def test_cluster_matches_the_rule_read_literally():
+    rng = np.random.default_rng(3)
+    truth = rng.integers(0, 6, 600)
+    points = rng.normal(size=(6, 3))[truth] * 0.1 + rng.normal(scale=0.01, size=(600, 3))
+    embedding = rng.normal(size=(6, 16))[truth] * 2.0 + rng.normal(scale=0.3, size=(600, 16))
+    centre = rng.random(600)
+    for params in (ClusterParams(0.5, 0.03, 1.5, 5), ClusterParams(0.2, 0.01, 2.5, 1), ClusterParams(0.8, 0.1, 1.6, 20)):
+        assert np.array_equal(cluster(points, embedding, centre, params), _cluster_by_definition(points, embedding, centre, params))
 
 
 class _OracleNet(torch.nn.Module):

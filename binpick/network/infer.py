@@ -40,20 +40,28 @@ def cluster(points: np.ndarray, embedding: np.ndarray, centre: np.ndarray, param
         return np.zeros(0, np.int32)
     order = np.argsort(-centre, kind="stable")
     candidates = order[centre[order] > params.centre_threshold]
+    cand_xyz, cand_emb = points[candidates], embedding[candidates]
+    cand_sq = np.einsum("ij,ij->i", cand_emb, cand_emb)
+    r_xyz_sq, r_emb_sq = params.nms_radius_m**2, params.embedding_threshold**2
     alive = np.ones(len(candidates), dtype=bool)
     centres: list[int] = []
-    for i, c in enumerate(candidates):
-        if not alive[i]:
-            continue
-        centres.append(int(c))
-        near_xyz = np.linalg.norm(points[candidates] - points[c], axis=1) < params.nms_radius_m
-        near_emb = np.linalg.norm(embedding[candidates] - embedding[c], axis=1) < params.embedding_threshold
+    i = 0
+    while i < len(candidates):  # candidates by falling score; a centre suppresses its neighbourhood
+        centres.append(int(candidates[i]))
+        dxyz = cand_xyz - cand_xyz[i]
+        near_xyz = np.einsum("ij,ij->i", dxyz, dxyz) < r_xyz_sq
+        near_emb = cand_sq - 2.0 * (cand_emb @ cand_emb[i]) + cand_sq[i] < r_emb_sq
         alive &= ~(near_xyz | near_emb)
+        alive[i] = False
+        nxt = np.flatnonzero(alive[i:])
+        i = i + int(nxt[0]) if len(nxt) else len(candidates)
     if not centres:
         return np.full(N, -1, np.int32)
-    d = np.linalg.norm(embedding[:, None, :] - embedding[centres][None, :, :], axis=2)  # (N, C)
-    labels = d.argmin(axis=1).astype(np.int32)
-    labels[d.min(axis=1) > params.embedding_threshold] = -1
+    # Squared embedding distances (N, C) by the product form: no (N, C, D) difference array.
+    ce = embedding[centres]
+    d_sq = np.einsum("ij,ij->i", embedding, embedding)[:, None] - 2.0 * (embedding @ ce.T) + np.einsum("ij,ij->i", ce, ce)[None, :]
+    labels = d_sq.argmin(axis=1).astype(np.int32)
+    labels[d_sq.min(axis=1) > r_emb_sq] = -1
     sizes = np.bincount(labels[labels >= 0], minlength=len(centres))
     small = sizes < params.min_points
     labels[(labels >= 0) & small[np.maximum(labels, 0)]] = -1
