@@ -238,6 +238,43 @@ def bench_segment_cmd(
     _write_json(out, {"part": part, **result})
 
 
+@app.command()
+def calibrate(
+    out: Path = typer.Option(..., help="checkpoint to write (.pt)"),
+    part: str = typer.Option("t_joint", help="the part (its params entry, checkpoint and scenes)"),
+    checkpoint: Path = typer.Option(None, help="trained checkpoint; default: data/fpcc/<part>/model.pt"),
+    scenes: Path = typer.Option(None, help="data set folder with a val/ split; default: data/scenes/<part>"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Choose a trained network's clustering settings again on the validation scenes, as the train
+    stage does (for a network trained elsewhere, or after a change of segment settings); writes a
+    copy of the checkpoint that holds them."""
+    from binpick.io.scene import list_scenes, load_scene
+    from binpick.network.calibrate import CALIBRATED, calibrate_checkpoint
+    from binpick.network.checkpoint import load_checkpoint, update_extra
+    from binpick.network.train import default_device
+    from binpick.params import load_params
+    from binpick.seeding import derive_seed
+
+    import numpy as np
+
+    root = project_root()
+    checkpoint = checkpoint or root / "data" / "fpcc" / part / "model.pt"
+    val = (scenes or root / "data" / "scenes" / part) / "val"
+    try:
+        p = load_params(params, part)
+        model, state = load_checkpoint(checkpoint, default_device())
+        views = [(s.view_points_m, s.view_normals, s.view_labels) for s in map(load_scene, list_scenes(val))]
+        if not views:
+            raise ValueError(f"{val} holds no scene_*.npz files")
+        chosen = calibrate_checkpoint(model, state["extra"], views, p.segment, p.evaluate.iou_threshold,
+                                      np.random.default_rng(derive_seed(p.seed, "calibrate", part)))
+        update_extra(checkpoint, out, clustering={k: chosen[k] for k in CALIBRATED})
+    except (BinpickError, ValueError, OSError) as exc:
+        _fail(str(exc))
+    log.info("%s: %s on %d validation scenes -> %s", part, ", ".join(f"{k} {v:.3g}" for k, v in chosen.items()), len(views), out)
+
+
 @app.command("eval-labels")
 def eval_labels(
     pred: Path = typer.Option(..., help="labelled scene to evaluate (text)"),

@@ -255,7 +255,11 @@ class SegmentParams(_Strict):
     nms_radius_m: float | None = Field(None, gt=0)
     # A point farther than this from every centre in embedding space is noise (-1); null = calibrated.
     embedding_threshold: float | None = Field(None, gt=0)
-    min_points: int = Field(30, ge=1, description="smaller instances become noise")
+    # Ground-truth instances with fewer visible points are not scored, and no smaller instance is kept.
+    min_points: int = Field(30, ge=1)
+    # Predicted instances with fewer points become noise (slivers of a part); null = calibrated
+    # (at least min_points).
+    min_instance_points: int | None = Field(None, ge=1)
 
 
 class RegisterParams(_Strict):

@@ -11,7 +11,7 @@ import numpy as np
 from binpick.errors import InputError
 from binpick.io.part_model import load_part_model
 from binpick.io.scene import list_scenes, load_scene
-from binpick.network.calibrate import calibrate_clustering
+from binpick.network.calibrate import CALIBRATED, calibrate_checkpoint
 from binpick.network.checkpoint import load_checkpoint, update_extra
 from binpick.network.infer import cluster_params, segment_scene
 from binpick.network.train import BEST, Views, default_device, train_fpcc
@@ -78,18 +78,18 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         finally:
             samples.close()
         mlflow.log_artifact(str(samples.path), artifact_path="samples")
-        best, _ = load_checkpoint(work / BEST, device)
-        chosen = calibrate_clustering(
-            best, [(val_views.points[i], val_views.normals[i], val_views.labels[i]) for i in range(len(val_views))],
-            params.train.features, dm, params.segment.n_points, cp.nms_radius_m, params.segment.min_points, params.train.eps2,
-            params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
+        best, state = load_checkpoint(work / BEST, device)
+        chosen = calibrate_checkpoint(
+            best, state["extra"], [(val_views.points[i], val_views.normals[i], val_views.labels[i]) for i in range(len(val_views))],
+            params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
         )
-        log.info("%s: clustering calibrated on %d validation scenes: centre threshold %.2f, embedding threshold %.2f (P/R %.2f/%.2f)",
-                 part.name, len(val_views), chosen["centre_threshold"], chosen["embedding_threshold"], chosen["precision"], chosen["recall"])
-        metrics.update({f"calibrated_{k}" if "threshold" in k else f"val_{k}": v for k, v in chosen.items()})
-        mlflow.log_metrics({k: metrics[k] for k in ("calibrated_centre_threshold", "calibrated_embedding_threshold", "val_precision", "val_recall")})
+        log.info("%s: clustering calibrated on %d validation scenes: centre threshold %.2f, embedding threshold %.2f, "
+                 "smallest instance %d points (P/R %.2f/%.2f)", part.name, len(val_views), chosen["centre_threshold"],
+                 chosen["embedding_threshold"], chosen["min_instance_points"], chosen["precision"], chosen["recall"])
+        metrics.update({f"calibrated_{k}" if k in CALIBRATED else f"val_{k}": v for k, v in chosen.items()})
+        mlflow.log_metrics({k: metrics[k] for k in [f"calibrated_{k}" for k in CALIBRATED] + ["val_precision", "val_recall"]})
         out.parent.mkdir(parents=True, exist_ok=True)
-        update_extra(work / BEST, out, clustering={k: chosen[k] for k in ("centre_threshold", "embedding_threshold")})
+        update_extra(work / BEST, out, clustering={k: chosen[k] for k in CALIBRATED})
         mlflow.log_artifact(str(out), artifact_path="model")
         version = register_checkpoint(part.name, out, run_, f"train@{part.name}")
         # The run id and version stay in MLflow: the DVC metrics hold only what a rerun reproduces.

@@ -69,3 +69,11 @@ def test_binpick_review_without_results(tmp_path):
 def test_binpick_outside_a_project(tmp_path, args):
     proc = _run("-m", "binpick.cli", *args, cwd=tmp_path)
     _assert_one_line_error(proc, "not inside a binpick project")
+
+
+def test_calibrate_a_damaged_checkpoint(tmp_path):
+    bad = tmp_path / "model.pt"
+    bad.write_bytes(b"not a checkpoint")
+    proc = _run("-m", "binpick.cli", "calibrate", "--checkpoint", str(bad), "--scenes", str(tmp_path), "--out", str(tmp_path / "out.pt"))
+    _assert_one_line_error(proc, "model.pt", "not a readable checkpoint")
+    assert not (tmp_path / "out.pt").exists()

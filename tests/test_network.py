@@ -231,6 +231,37 @@ def test_calibration_finds_the_embedding_threshold_that_separates_the_instances(
     assert chosen["embedding_threshold"] < 1.3 and chosen["precision"] == chosen["recall"] == 1.0
 
 
+class _SliverNet(_OracleNet):
+    """The oracle, but the last eighth of every band along x is embedded apart, with a high centre
+    score: a sliver of each part becomes an instance of its own."""
+
+    def forward(self, features, xyz):
+        emb, ctr = super().forward(features, xyz)
+        band = torch.div(xyz[..., 0] + 0.05, 0.1, rounding_mode="floor")
+        sliver = xyz[..., 0] - band * 0.1 > 0.03
+        emb = emb + torch.stack([torch.zeros_like(band), sliver * 3.0], dim=-1)
+        return emb, torch.where(sliver, torch.full_like(ctr, 0.9), ctr)
+
+
+def test_calibration_drops_slivers_by_instance_size():
+    from binpick.network.calibrate import calibrate_clustering
+    from binpick.network.infer import cluster_params
+    from binpick.params import SegmentParams
+
+    rng = np.random.default_rng(0)
+    views = []
+    for _ in range(2):
+        pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)])
+        views.append((pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)), np.repeat(np.arange(3), 300)))
+    sliver_points = max(int(np.sum(p[:, 0] - np.floor((p[:, 0] + 0.05) / 0.1) * 0.1 > 0.03)) for p, _, _ in views) // 3
+    kept_all = segment_scene(_SliverNet(), views[0][0], views[0][1], "normals", 0.03, 2048, ClusterParams(0.5, 0.03, 1.5, 10), rng)
+    assert len(np.unique(kept_all[kept_all >= 0])) == 6  # three parts and their three slivers
+    chosen = calibrate_clustering(_SliverNet(), views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1))
+    assert chosen["precision"] == chosen["recall"] == 1.0
+    assert sliver_points < chosen["min_instance_points"] < 300 - sliver_points
+    assert cluster_params(SegmentParams(min_points=10), 0.1, chosen).min_points == chosen["min_instance_points"]
+
+
 def test_segment_params_override_calibrated_thresholds():
     from binpick.network.infer import cluster_params
     from binpick.params import SegmentParams
@@ -239,3 +270,5 @@ def test_segment_params_override_calibrated_thresholds():
     assert cluster_params(SegmentParams(), 0.1, calibrated).embedding_threshold == 1.2
     assert cluster_params(SegmentParams(embedding_threshold=1.7), 0.1, calibrated).embedding_threshold == 1.7
     assert cluster_params(SegmentParams(), 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults
+    assert cluster_params(SegmentParams(min_points=25), 0.1, None).min_points == 25
+    assert cluster_params(SegmentParams(min_instance_points=80), 0.1, {"min_instance_points": 60}).min_points == 80

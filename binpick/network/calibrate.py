@@ -11,11 +11,18 @@ from __future__ import annotations
 import numpy as np
 
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-from binpick.network.infer import ClusterParams, Block, label_blocks, predict_blocks
+from binpick.network.infer import Block, ClusterParams, cluster_params, label_blocks, predict_blocks
 from binpick.network.model import FPCC
+from binpick.params import SegmentParams
 
 CENTRE_GRID = (0.3, 0.4, 0.5, 0.6, 0.7)  # long parts (the gear shaft) want the higher ones
 EMBEDDING_GRID_PER_EPS2 = (0.8, 0.9, 1.0, 1.07, 1.17)  # around the margin the loss pushes other instances beyond
+# Smallest instance kept, as shares of the median visible instance of the validation scenes: most
+# false instances are slivers of a part cut off at a block edge or an occlusion (on the ring
+# screw's test scenes 24 of 31 were fragments of one part, median 77 points of about 760).
+INSTANCE_SIZE_GRID_PER_MEDIAN = (0.0, 0.05, 0.1, 0.15, 0.2)
+# The chosen values a checkpoint keeps (extra["clustering"]), read by infer.cluster_params.
+CALIBRATED = ("centre_threshold", "embedding_threshold", "min_instance_points")
 
 
 def calibrate_clustering(
@@ -32,18 +39,43 @@ def calibrate_clustering(
 ) -> dict[str, float]:
     """The grid point with the best min(precision, recall) on the views (points (N, 3) metres,
     normals (N, 3), labels (N,)), ties to the higher sum; returns its centre_threshold,
-    embedding_threshold, precision and recall."""
+    embedding_threshold, min_instance_points, precision and recall. Ground-truth instances with
+    fewer than min_points points are not scored, and no smaller instance is kept."""
     predicted: list[list[Block]] = [predict_blocks(model, p, n, features, length_scale_m, n_points, rng) for p, n, _ in views]
+    sizes = [np.bincount(labels[labels >= 0]) for _, _, labels in views]
+    sizes_scored = np.concatenate([s[s >= min_points] for s in sizes]) if sizes else np.zeros(0)
+    median_size = float(np.median(sizes_scored)) if len(sizes_scored) else 0.0
+    size_grid = sorted({max(min_points, int(round(f * median_size))) for f in INSTANCE_SIZE_GRID_PER_MEDIAN})
     best: tuple[tuple[float, float], dict[str, float]] | None = None
     for centre in CENTRE_GRID:
         for rel in EMBEDDING_GRID_PER_EPS2:
-            cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_points)
-            counts = SegmentationCounts()
-            for (points, _, labels), blocks in zip(views, predicted):
-                counts = counts.add(scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points))
-            s = counts.summary()
-            rank = (min(s["precision"], s["recall"]), s["precision"] + s["recall"])
-            if best is None or rank > best[0]:
-                best = (rank, {"centre_threshold": centre, "embedding_threshold": rel * eps2, "precision": s["precision"], "recall": s["recall"]})
+            for min_size in size_grid:
+                cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size)
+                counts = SegmentationCounts()
+                for (points, _, labels), blocks in zip(views, predicted):
+                    counts = counts.add(scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points))
+                s = counts.summary()
+                rank = (min(s["precision"], s["recall"]), s["precision"] + s["recall"])
+                if best is None or rank > best[0]:
+                    best = (rank, {"centre_threshold": centre, "embedding_threshold": rel * eps2, "min_instance_points": min_size,
+                                   "precision": s["precision"], "recall": s["recall"]})
     assert best is not None
     return best[1]
+
+
+def calibrate_checkpoint(
+    model: FPCC,
+    extra: dict,
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    segment: SegmentParams,
+    iou_threshold: float,
+    rng: np.random.Generator,
+) -> dict[str, float]:
+    """calibrate_clustering for a trained checkpoint: its inference settings from extra
+    (part_diameter_m, features, d_max_m, train_params), the suppression radius, block size and
+    scored instance size from segment."""
+    return calibrate_clustering(
+        model, views, extra["features"], extra["d_max_m"], segment.n_points,
+        cluster_params(segment, extra["part_diameter_m"]).nms_radius_m, segment.min_points,
+        extra["train_params"]["eps2"], iou_threshold, rng,
+    )

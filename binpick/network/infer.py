@@ -162,9 +162,10 @@ DEFAULT_EMBEDDING_THRESHOLD = 1.5
 
 
 def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: dict | None = None) -> ClusterParams:
-    """Clustering settings: the segment params where set, else the thresholds calibrated on the
-    validation scenes at training (the checkpoint's extra["clustering"]), else the defaults;
-    the suppression radius defaults to a share of the part's diameter."""
+    """Clustering settings: the segment params where set, else the values calibrated on the
+    validation scenes at training (the checkpoint's extra["clustering"]), else the defaults
+    (smallest instance: segment.min_points); the suppression radius defaults to a share of the
+    part's diameter."""
     calibrated = calibrated or {}
 
     def pick(value: float | None, key: str, default: float) -> float:
@@ -174,5 +175,5 @@ def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: dict |
         centre_threshold=pick(segment.centre_threshold, "centre_threshold", DEFAULT_CENTRE_THRESHOLD),
         nms_radius_m=segment.nms_radius_m if segment.nms_radius_m is not None else NMS_RADIUS_PER_DIAMETER * diameter_m,
         embedding_threshold=pick(segment.embedding_threshold, "embedding_threshold", DEFAULT_EMBEDDING_THRESHOLD),
-        min_points=segment.min_points,
+        min_points=max(segment.min_points, int(pick(segment.min_instance_points, "min_instance_points", segment.min_points))),
     )
