@@ -214,6 +214,13 @@ def bench_generate_cmd(
     _write_json(out, result)
 
 
+def _trained_part_paths(part: str, checkpoint: Path | None, scenes: Path | None) -> tuple[Path, Path]:
+    """The part's checkpoint and generated data set, where the train and generate stages put them
+    unless given."""
+    root = project_root()
+    return checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part
+
+
 @bench_app.command("segment")
 def bench_segment_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),
@@ -226,13 +233,10 @@ def bench_segment_cmd(
     from binpick.bench.segmentation import bench_segment
     from binpick.params import load_params
 
-    root = project_root()
+    checkpoint, scenes = _trained_part_paths(part, checkpoint, scenes)
     try:
         p = load_params(params, part)
-        result = bench_segment(
-            checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part,
-            p.segment, p.scene_import.voxel_size_m, p.seed, p.evaluate.iou_threshold,
-        )
+        result = bench_segment(checkpoint, scenes, p.segment, p.scene_import.voxel_size_m, p.seed, p.evaluate.iou_threshold)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, {"part": part, **result})
@@ -258,9 +262,8 @@ def calibrate(
 
     import numpy as np
 
-    root = project_root()
-    checkpoint = checkpoint or root / "data" / "fpcc" / part / "model.pt"
-    val = (scenes or root / "data" / "scenes" / part) / "val"
+    checkpoint, scenes = _trained_part_paths(part, checkpoint, scenes)
+    val = scenes / "val"
     try:
         p = load_params(params, part)
         model, state = load_checkpoint(checkpoint, default_device())
