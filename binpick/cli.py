@@ -253,23 +253,19 @@ def calibrate(
     """Choose a trained network's clustering settings again on the validation scenes, as the train
     stage does (for a network trained elsewhere, or after a change of segment settings); writes a
     copy of the checkpoint that holds them."""
-    from binpick.io.scene import list_scenes, load_scene
     from binpick.network.calibrate import CALIBRATED, calibrate_checkpoint
     from binpick.network.checkpoint import load_checkpoint, update_extra
-    from binpick.network.train import default_device
+    from binpick.network.train import default_device, load_views
     from binpick.params import load_params
     from binpick.seeding import derive_seed
 
     import numpy as np
 
     checkpoint, scenes = _trained_part_paths(part, checkpoint, scenes)
-    val = scenes / "val"
     try:
         p = load_params(params, part)
         model, state = load_checkpoint(checkpoint, default_device())
-        views = [(s.view_points_m, s.view_normals, s.view_labels) for s in map(load_scene, list_scenes(val))]
-        if not views:
-            raise ValueError(f"{val} holds no scene_*.npz files")
+        views = load_views(scenes / "val")
         chosen = calibrate_checkpoint(model, state["extra"], views, p.segment, p.evaluate.iou_threshold,
                                       np.random.default_rng(derive_seed(p.seed, "calibrate", part)))
         update_extra(checkpoint, out, clustering={k: chosen[k] for k in CALIBRATED})

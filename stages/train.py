@@ -8,31 +8,17 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.errors import InputError
 from binpick.io.part_model import load_part_model
-from binpick.io.scene import list_scenes, load_scene
 from binpick.network.calibrate import CALIBRATED, calibrate_checkpoint
 from binpick.network.checkpoint import load_checkpoint, update_extra
 from binpick.network.infer import cluster_params, segment_scene
-from binpick.network.train import BEST, Views, default_device, train_fpcc
+from binpick.network.train import BEST, default_device, load_views, train_fpcc
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int, derive_seed
 from stages.common import entry, flat_params, mlflow_run, parser, register_checkpoint, registered_name, start, write_metrics
 from stages.recording import TrainingRecording
 
 log = logging.getLogger("binpick.stage.train")
-
-
-def load_views(folder: Path) -> Views:
-    """The training views of every scene in a split folder."""
-    scenes = [load_scene(p) for p in list_scenes(folder)]
-    if not scenes:
-        raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
-    return Views(
-        points=[s.view_points_m for s in scenes],
-        normals=[s.view_normals for s in scenes],
-        labels=[s.view_labels.astype(np.int64) for s in scenes],
-    )
 
 
 def d_max(params: Params, diameter_m: float) -> float:
@@ -80,8 +66,7 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         mlflow.log_artifact(str(samples.path), artifact_path="samples")
         best, state = load_checkpoint(work / BEST, device)
         chosen = calibrate_checkpoint(
-            best, state["extra"], [(val_views.points[i], val_views.normals[i], val_views.labels[i]) for i in range(len(val_views))],
-            params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
+            best, state["extra"], val_views, params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
         )
         log.info("%s: clustering calibrated on %d validation scenes: centre threshold %.2f, embedding threshold %.2f, "
                  "smallest instance %d points (P/R %.2f/%.2f)", part.name, len(val_views), chosen["centre_threshold"],

@@ -43,9 +43,8 @@ def test_dask_fan_out_on_a_two_worker_cluster_matches_the_local_pool(tmp_path, p
     from distributed import LocalCluster
     from prefect.testing.utilities import prefect_test_harness
 
-    from binpick.network.train import train_fpcc
+    from binpick.network.train import load_views, train_fpcc
     from stages import evaluate, generate
-    from stages.train import load_views
 
     local = _params(tmp_path, workers=2)
     generate.run(local, part_path, tmp_path / "local", progress=False)

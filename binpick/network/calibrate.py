@@ -13,6 +13,7 @@ import numpy as np
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.infer import Block, ClusterParams, cluster_params, label_blocks, predict_blocks
 from binpick.network.model import FPCC
+from binpick.network.train import Views
 from binpick.params import SegmentParams
 
 CENTRE_GRID = (0.3, 0.4, 0.5, 0.6, 0.7)  # long parts (the gear shaft) want the higher ones
@@ -66,7 +67,7 @@ def calibrate_clustering(
 def calibrate_checkpoint(
     model: FPCC,
     extra: dict,
-    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    views: Views,
     segment: SegmentParams,
     iou_threshold: float,
     rng: np.random.Generator,
@@ -75,7 +76,7 @@ def calibrate_checkpoint(
     (part_diameter_m, features, d_max_m, train_params), the suppression radius, block size and
     scored instance size from segment."""
     return calibrate_clustering(
-        model, views, extra["features"], extra["d_max_m"], segment.n_points,
+        model, views.scenes(), extra["features"], extra["d_max_m"], segment.n_points,
         cluster_params(segment, extra["part_diameter_m"]).nms_radius_m, segment.min_points,
         extra["train_params"]["eps2"], iou_threshold, rng,
     )

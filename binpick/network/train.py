@@ -16,6 +16,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from binpick.errors import InputError
+from binpick.io.scene import list_scenes, load_scene
 from binpick.network.blocks import crop
 from binpick.network.checkpoint import read_checkpoint, save_checkpoint
 from binpick.network.loss import fpcc_loss
@@ -40,6 +42,10 @@ class Views:
     def __len__(self) -> int:
         return len(self.points)
 
+    def scenes(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(points, normals, labels) of each scene."""
+        return list(zip(self.points, self.normals, self.labels))
+
     def fingerprint(self) -> str:
         """A hash of the content: a checkpoint resumes only on the data it was trained on."""
         h = hashlib.sha256()
@@ -47,6 +53,18 @@ class Views:
             for a in arrays:
                 h.update(np.ascontiguousarray(a).tobytes())
         return h.hexdigest()
+
+
+def load_views(folder: Path) -> Views:
+    """The network's views of every scene in a split folder of the generate stage."""
+    scenes = [load_scene(p) for p in list_scenes(folder)]
+    if not scenes:
+        raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
+    return Views(
+        points=[s.view_points_m for s in scenes],
+        normals=[s.view_normals for s in scenes],
+        labels=[s.view_labels.astype(np.int64) for s in scenes],
+    )
 
 
 def default_device() -> torch.device:
