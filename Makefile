@@ -4,9 +4,12 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+# Exact versions of every dependency (pip constraints): a fresh machine installs what the results
+# were measured with. `make lock` rewrites it from the current environment after a deliberate upgrade.
+LOCK := .ci/requirements.lock
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup sysdeps demo test repro clean-runs
+.PHONY: setup sysdeps demo test lint lock repro clean-runs
 
 setup: sysdeps $(STAMP)
 
@@ -16,17 +19,25 @@ sysdeps:
 	  echo "installing libusb-1.0-0 (needed by open3d)"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; }
 
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,bench]'
+	$(BIN)/python -m pip install -q -c $(LOCK) -e '.[dev,bench]'
 	@touch $(STAMP)
 
 demo: setup
 	$(BIN)/binpick demo
 
-test: setup
+test: lint
 	$(BIN)/python -m pytest -q
+
+# ruff (pyflakes, pycodestyle, import order, bugbear, no print) on everything; mypy on the library.
+lint: setup
+	$(BIN)/ruff check .
+	$(BIN)/mypy
+
+lock: setup
+	@{ echo "# Exact versions the project's results were measured with (pip constraints; \`make lock\` rewrites it)."; \
+	  $(BIN)/python -m pip freeze --exclude-editable | grep -v '^binpick' | sed 's/^torch==\(.*\)+cpu$$/torch==\1/'; } > $(LOCK)
 
 repro: setup
 	$(BIN)/dvc repro

@@ -9,10 +9,11 @@ import logging
 import numpy as np
 
 from binpick.errors import BinpickError
-from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, statistical_outliers, voxel_downsample_indices
+from binpick.geometry.pointcloud import fit_plane_ransac, statistical_outliers
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.cloud import CleanCloud
-from binpick.params import SceneImportParams
+from binpick.params import ImportCaptureParams
+from binpick.view import ViewParams, view_grid, view_normals
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +26,7 @@ MIN_POINTS = 10
 
 
 def clean_capture(
-    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: SceneImportParams, seed: int
+    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: ImportCaptureParams, seed: int
 ) -> CleanCloud:
     """Clean a capture.
 
@@ -62,7 +63,8 @@ def clean_capture(
     del xyz
     # The voxel grid comes first: planes are fitted at the density the segmentation works at,
     # shares are shares of that, and RANSAC runs on thousands instead of millions of points.
-    sub = voxel_downsample_indices(pts, params.voxel_size_m)
+    view = ViewParams.of_import(params)
+    sub = view_grid(pts, view)
     pts, idx = pts[sub], idx[sub]
     n_valid = len(pts)
 
@@ -109,7 +111,7 @@ def clean_capture(
     if len(pts) < MIN_POINTS:
         raise BinpickError(f"only {len(pts)} points are left after removing the floor and walls")
 
-    normals = estimate_normals(pts, params.normal_radius_m)
+    normals = view_normals(pts, view)
     organized = frame_shape is not None
     return CleanCloud(
         points_m=pts.astype(np.float32),

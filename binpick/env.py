@@ -19,6 +19,9 @@ _DEFAULTS = {
     "PREFECT_UI_ENABLED": "false",
     "GIT_PYTHON_REFRESH": "quiet",
     "TQDM_MININTERVAL": "2",
+    # The PPF voting loop runs on every core through OpenMP or numba's own pool; the TBB found on
+    # some systems is too old for numba and would only print a warning. Read when numba loads.
+    "NUMBA_THREADING_LAYER_PRIORITY": "omp workqueue tbb",
 }
 
 

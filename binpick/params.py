@@ -5,6 +5,10 @@ params.yaml has one section per stage. Two layers override a section, in this or
      when it changes nothing, so that DVC can track exactly the keys a stage uses);
   2. the part: `parts.<part>.<section>` for the per-part stages.
 Lengths are in metres and angles in degrees, and the key names say so.
+
+params.yaml is the one source of every setting's value: the section models below declare types,
+bounds and meanings, and no defaults (a key missing from the file fails at load, naming it).
+Only the entries of a part or a capture have defaults, for their optional keys.
 """
 
 from __future__ import annotations
@@ -27,12 +31,12 @@ SECTIONS = (
     "generate",
     "train",
     "evaluate",
-    "scene_import",
+    "import_capture",
     "segment",
     "register",
-    "demo_capture",
+    "render_demo",
 )
-PER_PART_SECTIONS = ("ingest", "camera", "generate", "scene_import", "train", "evaluate", "segment", "register")
+PER_PART_SECTIONS = ("ingest", "camera", "generate", "import_capture", "train", "evaluate", "segment", "register")
 
 
 class _Strict(BaseModel):
@@ -76,10 +80,10 @@ class PartParams(_Strict):
     symmetry: SymmetryParams = SymmetryParams()
     ingest: dict[str, Any] = {}
     # A large part needs a larger bin, a camera farther away and a coarser voxel grid; the
-    # part's captures are imported with its scene_import, so training and inference views match.
+    # part's captures are imported with its import_capture, so training and inference views match.
     camera: dict[str, Any] = {}
     generate: dict[str, Any] = {}
-    scene_import: dict[str, Any] = {}
+    import_capture: dict[str, Any] = {}
     train: dict[str, Any] = {}
     evaluate: dict[str, Any] = {}
     segment: dict[str, Any] = {}
@@ -98,69 +102,69 @@ class CaptureParams(_Strict):
     columns: list[str] = ["x", "y", "z"]
     # Depth images: a JSON file with fx, fy, cx, cy in pixels ('' for other formats).
     intrinsics: str = ""
-    # Overrides of the scene_import section for this capture's sensor (noisier sensors need wider
+    # Overrides of the import_capture section for this capture's sensor (noisier sensors need wider
     # plane thresholds).
-    scene_import: dict[str, Any] = {}
+    import_capture: dict[str, Any] = {}
 
 
 class IngestParams(_Strict):
-    n_surface_points: int = Field(20000, ge=100, description="dense surface sample of the part model")
+    n_surface_points: int = Field(ge=100, description="dense surface sample of the part model")
     # Sizes outside these bounds are almost certainly a wrong unit.
-    min_extent_m: float = Field(0.002, gt=0)
-    max_extent_m: float = Field(2.0, gt=0)
+    min_extent_m: float = Field(gt=0)
+    max_extent_m: float = Field(gt=0)
 
 
 class CameraParams(_Strict):
     """Pinhole camera looking straight down at the bin (OpenCV frame: x right, y down, z forward).
 
-    Defaults approximate a Zivid One+ Small (1920 x 1200) at 0.5 m.
+    params.yaml's values approximate a Zivid One+ Small (1920 x 1200) at 0.5 m.
     """
 
-    width_px: int = Field(1920, ge=16)
-    height_px: int = Field(1200, ge=16)
-    fx_px: float = Field(2660.0, gt=0)
-    fy_px: float = Field(2660.0, gt=0)
-    cx_px: float = 960.0
-    cy_px: float = 600.0
+    width_px: int = Field(ge=16)
+    height_px: int = Field(ge=16)
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    cx_px: float
+    cy_px: float
     # Render at 1/downscale of the resolution (intrinsics scaled accordingly), for fast data sets.
-    downscale: int = Field(1, ge=1)
-    distance_m: float = Field(0.5, gt=0, description="camera centre above the bin floor")
+    downscale: int = Field(ge=1)
+    distance_m: float = Field(gt=0, description="camera centre above the bin floor")
 
 
 class BinParams(_Strict):
-    inner_x_m: float = Field(0.30, gt=0)
-    inner_y_m: float = Field(0.20, gt=0)
-    wall_height_m: float = Field(0.08, ge=0)
-    wall_thickness_m: float = Field(0.01, gt=0)
+    inner_x_m: float = Field(gt=0)
+    inner_y_m: float = Field(gt=0)
+    wall_height_m: float = Field(ge=0)
+    wall_thickness_m: float = Field(gt=0)
 
 
 class NoiseParams(_Strict):
     """Sensor model: depth noise along the ray grows with distance; grazing rays return nothing."""
 
-    depth_sigma_m: float = Field(0.0002, ge=0, description="noise std at zero range")
-    depth_sigma_per_m2: float = Field(0.0004, ge=0, description="added std per squared metre of range")
-    max_incidence_deg: float = Field(80.0, gt=0, le=90)
-    dropout_fraction: float = Field(0.0, ge=0, lt=1)
+    depth_sigma_m: float = Field(ge=0, description="noise std at zero range")
+    depth_sigma_per_m2: float = Field(ge=0, description="added std per squared metre of range")
+    max_incidence_deg: float = Field(gt=0, le=90)
+    dropout_fraction: float = Field(ge=0, lt=1)
 
 
 class PlacementParams(_Strict):
-    n_objects_min: int = Field(3, ge=1)
-    n_objects_max: int = Field(10, ge=1)
+    n_objects_min: int = Field(ge=1)
+    n_objects_max: int = Field(ge=1)
     # mostly_lying: tilt about x/y drawn from a normal clipped to (0.25 pi, 0.75 pi).
-    orientation: Literal["uniform", "mostly_lying"] = "uniform"
-    heightmap_cell_m: float = Field(0.001, gt=0, description="grid of the drop-placement height maps")
-    candidates_per_object: int = Field(8, ge=1, description="random poses tried; the lowest resting wins")
-    max_pile_height_m: float = Field(0.25, gt=0, description="an object resting higher means the bin is full")
+    orientation: Literal["uniform", "mostly_lying"]
+    heightmap_cell_m: float = Field(gt=0, description="grid of the drop-placement height maps")
+    candidates_per_object: int = Field(ge=1, description="random poses tried; the lowest resting wins")
+    max_pile_height_m: float = Field(gt=0, description="an object resting higher means the bin is full")
     # Start height of each object's lowest point above the bin floor: `pile` = resting on the pile
     # below; `u_shaped` = drawn from a U-shaped law (Beta(0.5, 0.5)) over [0, bin wall height];
     # `discrete` = one of height_levels_m. Never lower than the pile below. In `drop` mode objects
     # stay there (floating, as in the original work), in `physics` mode they fall from there.
-    heights: Literal["pile", "u_shaped", "discrete"] = "pile"
-    height_levels_m: list[float] = Field([0.0, 0.02, 0.04], min_length=1)
+    heights: Literal["pile", "u_shaped", "discrete"]
+    height_levels_m: list[float] = Field(min_length=1)
     # drop: height-map drop placement (fast); physics: then settled by rigid-body simulation.
-    mode: Literal["drop", "physics"] = "drop"
-    settle_max_s: float = Field(2.0, gt=0, description="physics: simulated time at most")
-    max_penetration_m: float = Field(0.001, ge=0, description="physics: objects reaching deeper into another are removed")
+    mode: Literal["drop", "physics"]
+    settle_max_s: float = Field(gt=0, description="physics: simulated time at most")
+    max_penetration_m: float = Field(ge=0, description="physics: objects reaching deeper into another are removed")
 
     @model_validator(mode="after")
     def _check(self) -> PlacementParams:
@@ -170,34 +174,34 @@ class PlacementParams(_Strict):
 
 
 class GenerateParams(_Strict):
-    n_train: int = Field(200, ge=1)
-    n_val: int = Field(20, ge=1)
-    n_test: int = Field(20, ge=1)
-    placement: PlacementParams = PlacementParams()
-    bin: BinParams = BinParams()
-    noise: NoiseParams = NoiseParams()
+    n_train: int = Field(ge=1)
+    n_val: int = Field(ge=1)
+    n_test: int = Field(ge=1)
+    placement: PlacementParams
+    bin: BinParams
+    noise: NoiseParams
 
 
 class TrainParams(_Strict):
-    backbone: Literal["dgcnn", "pointnet"] = "dgcnn"
-    k_neighbours: int = Field(16, ge=2)
-    width: int = Field(64, ge=8, description="channels of the EdgeConv layers")
-    embedding_dim: int = Field(128, ge=2)
-    features: Literal["normals", "normalised_xyz"] = "normals"
-    n_points: int = Field(4096, ge=64, description="points per training crop (nearest neighbours of a seed)")
-    batch_size: int = Field(4, ge=1)
-    epochs: int = Field(50, ge=1)
-    learning_rate: float = Field(1e-3, gt=0)
-    weight_decay: float = Field(1e-4, ge=0)
-    patience_epochs: int = Field(10, ge=1, description="early stopping on the validation loss")
+    backbone: Literal["dgcnn", "pointnet"]
+    k_neighbours: int = Field(ge=2)
+    width: int = Field(ge=8, description="channels of the EdgeConv layers")
+    embedding_dim: int = Field(ge=2)
+    features: Literal["normals", "normalised_xyz"]
+    n_points: int = Field(ge=64, description="points per training crop (nearest neighbours of a seed)")
+    batch_size: int = Field(ge=1)
+    epochs: int = Field(ge=1)
+    learning_rate: float = Field(gt=0)
+    weight_decay: float = Field(ge=0)
+    patience_epochs: int = Field(ge=1, description="early stopping on the validation loss")
     # d_max of the paper; null = half the part diameter.
-    d_max_m: float | None = Field(None, gt=0)
-    centre_score_form: Literal["linear", "squared"] = "linear"
+    d_max_m: float | None = Field(gt=0)
+    centre_score_form: Literal["linear", "squared"]
     # Hinge margins in embedding space, 0 < eps1 < eps2 (no unit).
-    eps1: float = Field(0.5, gt=0)
-    eps2: float = Field(1.5, gt=0)
-    centre_loss_weight: float = Field(1.0, ge=0)
-    loss_anchors: int = Field(1024, ge=16, description="anchor points per scene for the pair loss")
+    eps1: float = Field(gt=0)
+    eps2: float = Field(gt=0)
+    centre_loss_weight: float = Field(ge=0)
+    loss_anchors: int = Field(ge=16, description="anchor points per scene for the pair loss")
 
     @model_validator(mode="after")
     def _check(self) -> TrainParams:
@@ -207,21 +211,21 @@ class TrainParams(_Strict):
 
 
 class EvaluateParams(_Strict):
-    iou_threshold: float = Field(0.5, gt=0, le=1)
+    iou_threshold: float = Field(gt=0, le=1)
     # A model whose test precision and recall reach these gets the registry alias `accept_alias`.
-    accept_precision: float = Field(0.9, ge=0, le=1)
-    accept_recall: float = Field(0.9, ge=0, le=1)
-    accept_alias: str = "accepted"
+    accept_precision: float = Field(ge=0, le=1)
+    accept_recall: float = Field(ge=0, le=1)
+    accept_alias: str
 
 
-class SceneImportParams(_Strict):
-    min_range_m: float = Field(0.2, ge=0)
-    max_range_m: float = Field(2.0, gt=0)
+class ImportCaptureParams(_Strict):
+    min_range_m: float = Field(ge=0)
+    max_range_m: float = Field(gt=0)
     # Region of interest: a box from roi_min_m to roi_max_m, in the camera frame, or in the frame
     # given by T_cam_from_roi (4 x 4, row-major rows; e.g. the bin frame); null = no crop.
-    roi_min_m: tuple[float, float, float] | None = None
-    roi_max_m: tuple[float, float, float] | None = None
-    T_cam_from_roi: tuple[tuple[float, float, float, float], ...] | None = None
+    roi_min_m: tuple[float, float, float] | None
+    roi_max_m: tuple[float, float, float] | None
+    T_cam_from_roi: tuple[tuple[float, float, float, float], ...] | None
 
     @field_validator("T_cam_from_roi")
     @classmethod
@@ -231,89 +235,89 @@ class SceneImportParams(_Strict):
             if M.shape != (4, 4) or not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(M[3], [0, 0, 0, 1]):
                 raise ValueError("T_cam_from_roi must be a 4 x 4 rigid transform")
         return T
-    plane_threshold_m: float = Field(0.003, gt=0)
-    plane_ransac_iterations: int = Field(1000, ge=10)
-    plane_ransac_confidence: float = Field(0.9999, gt=0, lt=1, description="RANSAC stops once this sure")
-    remove_walls: bool = True
-    max_walls: int = Field(4, ge=0)
-    wall_min_fraction: float = Field(0.02, ge=0, le=1, description="smallest wall, share of points")
-    keep_above_plane_m: float = Field(0.004, ge=0, description="points lower than this are floor")
-    voxel_size_m: float = Field(0.002, ge=0, description="0 = no downsampling")
-    normal_radius_m: float = Field(0.006, gt=0)
-    outlier_neighbours: int = Field(0, ge=0, description="statistical outlier removal; 0 = off")
-    outlier_std_ratio: float = Field(2.0, gt=0)
+    plane_threshold_m: float = Field(gt=0)
+    plane_ransac_iterations: int = Field(ge=10)
+    plane_ransac_confidence: float = Field(gt=0, lt=1, description="RANSAC stops once this sure")
+    remove_walls: bool
+    max_walls: int = Field(ge=0)
+    wall_min_fraction: float = Field(ge=0, le=1, description="smallest wall, share of points")
+    keep_above_plane_m: float = Field(ge=0, description="points lower than this are floor")
+    voxel_size_m: float = Field(ge=0, description="0 = no downsampling")
+    normal_radius_m: float = Field(gt=0)
+    outlier_neighbours: int = Field(ge=0, description="statistical outlier removal; 0 = off")
+    outlier_std_ratio: float = Field(gt=0)
     # A scene whose extent exceeds this is reported as a unit error (1000x too large).
-    max_scene_extent_m: float = Field(10.0, gt=0)
+    max_scene_extent_m: float = Field(gt=0)
 
 
 class SegmentParams(_Strict):
-    n_points: int = Field(4096, ge=64, description="points per network pass; larger scenes are covered by blocks")
+    n_points: int = Field(ge=64, description="points per network pass; larger scenes are covered by blocks")
     # Centre candidates score above this. null = the value calibrated on the validation scenes
     # when the part was trained (stored in its checkpoint).
-    centre_threshold: float | None = Field(None, gt=0, lt=1)
+    centre_threshold: float | None = Field(gt=0, lt=1)
     # Radius of the non-maximum suppression of centres; null = 0.25 * part diameter.
-    nms_radius_m: float | None = Field(None, gt=0)
+    nms_radius_m: float | None = Field(gt=0)
     # A point farther than this from every centre in embedding space is noise (-1); null = calibrated.
-    embedding_threshold: float | None = Field(None, gt=0)
+    embedding_threshold: float | None = Field(gt=0)
     # Ground-truth instances with fewer visible points are not scored, and no smaller instance is kept.
-    min_points: int = Field(30, ge=1)
+    min_points: int = Field(ge=1)
     # Predicted instances with fewer points become noise (slivers of a part); null = calibrated
     # (at least min_points).
-    min_instance_points: int | None = Field(None, ge=1)
+    min_instance_points: int | None = Field(ge=1)
 
 
 class RegisterParams(_Strict):
-    sample_step_rel: float = Field(0.05, gt=0, description="model/scene subsampling, share of diameter")
-    distance_step_rel: float = Field(0.05, gt=0, description="PPF distance bin, share of diameter")
-    angle_bins: int = Field(30, ge=4)
-    scene_ref_fraction: float = Field(0.2, gt=0, le=1)
-    cluster_rotation_deg: float = Field(15.0, gt=0)
-    cluster_translation_rel: float = Field(0.1, gt=0)
-    icp_iterations: int = Field(30, ge=0)
-    refine_step_rel: float = Field(0.02, gt=0, description="grid of the points ICP and scoring use, share of diameter")
-    score_inlier_rel: float = Field(0.02, gt=0, description="scene point within this of the model counts")
-    min_score: float = Field(0.3, ge=0, le=1)
+    sample_step_rel: float = Field(gt=0, description="model/scene subsampling, share of diameter")
+    distance_step_rel: float = Field(gt=0, description="PPF distance bin, share of diameter")
+    angle_bins: int = Field(ge=4)
+    scene_ref_fraction: float = Field(gt=0, le=1)
+    cluster_rotation_deg: float = Field(gt=0)
+    cluster_translation_rel: float = Field(gt=0)
+    icp_iterations: int = Field(ge=0)
+    refine_step_rel: float = Field(gt=0, description="grid of the points ICP and scoring use, share of diameter")
+    score_inlier_rel: float = Field(gt=0, description="scene point within this of the model counts")
+    min_score: float = Field(ge=0, le=1)
     # segments: one pose per segment (then duplicates suppressed); whole_scene: the whole cleaned
     # scene matched without the segments; segments_then_scene: per segment, then the whole scene
     # for parts the segmentation missed or merged. max_instances bounds whole-scene poses.
-    mode: Literal["segments", "whole_scene", "segments_then_scene"] = "segments_then_scene"
-    max_instances: int = Field(30, ge=1)
+    mode: Literal["segments", "whole_scene", "segments_then_scene"]
+    max_instances: int = Field(ge=1)
 
 
-class DemoCaptureParams(_Strict):
+class RenderDemoParams(_Strict):
     """The built-in demo capture: a synthetic bin rendered at full camera resolution."""
 
-    part: str = "t_joint"
-    n_objects: int = Field(8, ge=1)
-    downscale: int = Field(1, ge=1, description="replaces camera.downscale for the demo capture")
+    part: str
+    n_objects: int = Field(ge=1)
+    downscale: int = Field(ge=1, description="replaces camera.downscale for the demo capture")
 
 
-class CaptureSettings(_Strict):
+class ZividCameraParams(_Strict):
     """Zivid capture settings (one acquisition)."""
 
-    serial: str = Field("", description="camera serial number; '' = the first camera found")
-    exposure_time_us: float = Field(10000.0, gt=0)
-    aperture: float = Field(5.66, gt=0, description="f-number")
-    brightness: float = Field(1.0, ge=0)
-    gain: float = Field(1.0, gt=0)
+    serial: str = Field(description="camera serial number; '' = the first camera found")
+    exposure_time_us: float = Field(gt=0)
+    aperture: float = Field(gt=0, description="f-number")
+    brightness: float = Field(ge=0)
+    gain: float = Field(gt=0)
 
 
 class TrackingParams(_Strict):
     # null: a sqlite store in the project (mlflow.db). Any MLflow URI otherwise.
-    mlflow_uri: str | None = None
+    mlflow_uri: str | None
 
 
 class OrchestrationParams(_Strict):
     """How Prefect runs the pipeline. Not tracked by DVC: none of it changes a result."""
 
     # `binpick serve`: when the watcher runs (cron, in schedule_timezone). Default: nightly 02:00.
-    schedule_cron: str = "0 2 * * *"
-    schedule_timezone: str = "UTC"
+    schedule_cron: str
+    schedule_timezone: str
     # Fan-out of scene generation and evaluation: `processes` (a local process pool) or `dask`
     # (a Prefect DaskTaskRunner, on the cluster at dask_address or a local one of `workers`).
-    task_runner: Literal["processes", "dask"] = "processes"
-    dask_address: str | None = None
-    workers: int = Field(0, ge=0, description="processes or local Dask workers; 0 = one per CPU core")
+    task_runner: Literal["processes", "dask"]
+    dask_address: str | None
+    workers: int = Field(ge=0, description="processes or local Dask workers; 0 = one per CPU core")
 
     @field_validator("schedule_cron")
     @classmethod
@@ -324,22 +328,22 @@ class OrchestrationParams(_Strict):
 
 
 class Params(_Strict):
-    seed: int = 0
+    seed: int
     profile: str
     parts: dict[str, PartParams]
     captures: dict[str, CaptureParams] = {}
-    ingest: IngestParams = IngestParams()
-    camera: CameraParams = CameraParams()
-    generate: GenerateParams = GenerateParams()
-    train: TrainParams = TrainParams()
-    evaluate: EvaluateParams = EvaluateParams()
-    scene_import: SceneImportParams = SceneImportParams()
-    segment: SegmentParams = SegmentParams()
-    registration: RegisterParams = Field(RegisterParams(), alias="register")
-    demo_capture: DemoCaptureParams = DemoCaptureParams()
-    capture: CaptureSettings = CaptureSettings()
-    tracking: TrackingParams = TrackingParams()
-    orchestration: OrchestrationParams = OrchestrationParams()
+    ingest: IngestParams
+    camera: CameraParams
+    generate: GenerateParams
+    train: TrainParams
+    evaluate: EvaluateParams
+    import_capture: ImportCaptureParams
+    segment: SegmentParams
+    registration: RegisterParams = Field(alias="register")
+    render_demo: RenderDemoParams
+    zivid_camera: ZividCameraParams
+    tracking: TrackingParams
+    orchestration: OrchestrationParams
 
     @field_validator("parts")
     @classmethod
@@ -349,14 +353,14 @@ class Params(_Strict):
                 raise ValueError(f"part name {name!r} may hold only letters, digits, '_' and '-'")
         return parts
 
-    def scene_import_for(self, capture: str | None) -> SceneImportParams:
-        """The scene_import section with a listed capture's own overrides applied."""
-        if not capture or not self.captures[capture].scene_import:
-            return self.scene_import
+    def import_capture_for(self, capture: str | None) -> ImportCaptureParams:
+        """The import_capture section with a listed capture's own overrides applied."""
+        if not capture or not self.captures[capture].import_capture:
+            return self.import_capture
         try:
-            return SceneImportParams.model_validate(deep_merge(self.scene_import.model_dump(), self.captures[capture].scene_import))
+            return ImportCaptureParams.model_validate(deep_merge(self.import_capture.model_dump(), self.captures[capture].import_capture))
         except ValidationError as exc:
-            raise ParamsError(f"captures.{capture}.scene_import: {_one_line(exc)}") from None
+            raise ParamsError(f"captures.{capture}.import_capture: {_one_line(exc)}") from None
 
     @model_validator(mode="after")
     def _captures_name_parts(self) -> Params:

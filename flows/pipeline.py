@@ -13,7 +13,7 @@ from binpick.params import add_captures, load_raw, part_name_for
 from flows.dvc_tasks import repro_stage
 
 PART_STAGES = ("ingest", "ppf", "generate", "train", "evaluate")
-SCENE_STAGES = ("import_scene", "segment", "register")
+SCENE_STAGES = ("import_capture", "segment", "register")
 
 
 @flow(name="train-part", flow_run_name="train-{part}")
@@ -30,8 +30,8 @@ def process_capture(capture: str, root: Path) -> None:
         repro_stage(f"{stage}@{capture}", root)
 
 
-@task(name="register-new-captures")
-def register_captures(root: Path, folder: Path, part: str, unit: str) -> list[str]:
+@task(name="add-new-captures")
+def add_new_captures(root: Path, folder: Path, part: str, unit: str) -> list[str]:
     """The captures in `folder` (inside the project), as names in params.yaml: files no capture
     lists yet are added for `part` in `unit`. Depth images are skipped (they need intrinsics,
     which an entry in params.yaml gives)."""
@@ -66,7 +66,7 @@ def process_folder(root: Path, folder: Path, part: str, unit: str = "mm") -> dic
     """Every capture in a folder: listed in params.yaml if new, then imported, segmented and
     registered (captures already processed with unchanged inputs are skipped by DVC)."""
     root = Path(root).resolve()
-    names = register_captures(root, Path(folder), part, unit)
+    names = add_new_captures(root, Path(folder), part, unit)
     if not names:
         raise InputError(folder, f"holds no captures ({', '.join(s for s in CAPTURE_SUFFIXES if s != '.png')})")
     for name in names:
@@ -83,7 +83,7 @@ def read_metrics(root: Path, *parts: str) -> dict[str, float]:
 def demo(root: Path, part: str = "t_joint", capture: str = "demo") -> dict[str, dict[str, float]]:
     """The main job on the built-in part: train it, render a demo capture, process the capture."""
     train_part(part, root)
-    repro_stage("demo_capture", root)
+    repro_stage("render_demo", root)
     process_capture(capture, root)
     return {
         "evaluate": read_metrics(root, part, "evaluate.json"),

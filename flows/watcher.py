@@ -19,8 +19,8 @@ from flows.pipeline import PART_STAGES, train_part
 PARTS_FOLDER = Path("data") / "parts"
 
 
-@task(name="register-new-parts")
-def register_new_parts(root: Path) -> list[str]:
+@task(name="add-new-parts")
+def add_new_parts(root: Path) -> list[str]:
     """Mesh files in data/parts/ that no part lists are added to params.yaml (unit: auto)."""
     raw = load_raw(root / "params.yaml")
     listed = {Path(p["mesh"]).as_posix() for p in (raw.get("parts") or {}).values()}
@@ -62,7 +62,7 @@ def stale_parts(root: Path) -> list[str]:
 def watch_parts(root: Path) -> dict[str, list[str]]:
     """Register new parts, then train and evaluate each part that is not up to date."""
     root = Path(root)
-    added = register_new_parts(root)
+    added = add_new_parts(root)
     stale = stale_parts(root)
     logger = get_run_logger()
     for part in stale:

@@ -6,20 +6,20 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from binpick.fanout import fan_out
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts
-from binpick.network.checkpoint import load_checkpoint, read_checkpoint
+from binpick.network.checkpoint import InferenceSettings, read_checkpoint
 from binpick.network.evaluate import segment_and_count
-from binpick.network.train import default_device
+from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import Params, load_params
-from stages.common import accept_checkpoint, entry, flat_params, mlflow_run, parser, registered_name, start, write_metrics
+from stages.common import accept_checkpoint, entry, flat_params, mlflow_run, model_name, parser, start, write_metrics
+from stages.common.fanout import fan_out
 
 log = logging.getLogger("binpick.stage.evaluate")
 
 
 # Per-process cache of the network, so that each worker loads the checkpoint once.
-_MODELS: dict[str, tuple] = {}
+_MODELS: dict[str, Segmenter] = {}
 
 
 def evaluate_scene(shared: tuple[str, Params], job: tuple[int, str]) -> SegmentationCounts:
@@ -30,40 +30,39 @@ def evaluate_scene(shared: tuple[str, Params], job: tuple[int, str]) -> Segmenta
     key = f"{checkpoint}@{Path(checkpoint).stat().st_mtime_ns}"  # a retrained file is reloaded
     if key not in _MODELS:
         _MODELS.clear()
-        _MODELS[key] = load_checkpoint(Path(checkpoint), default_device())
-    model, state = _MODELS[key]
-    _, counts = segment_and_count(model, state["extra"], load_scene(Path(path)), params.segment, params.evaluate.iou_threshold, params.seed, index)
+        _MODELS[key] = load_segmenter(Path(checkpoint), params.segment)
+    _, counts = segment_and_count(_MODELS[key], load_scene(Path(path)), params.segment, params.evaluate.iou_threshold, params.seed, index)
     return counts
 
 
 def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
-    extra = read_checkpoint(checkpoint, "cpu")["extra"]
+    part = InferenceSettings.from_extra(read_checkpoint(checkpoint, "cpu")["extra"], checkpoint).part
     paths = list_scenes(scenes / "test")
     jobs = [(i, str(path)) for i, path in enumerate(paths)]
     # Locally one process: the network already uses every core; a Dask cluster spreads the scenes.
-    counts = fan_out(evaluate_scene, (str(checkpoint.resolve()), params), jobs, params.orchestration, f"evaluate {extra['part']}", progress, max_workers=1)
+    counts = fan_out(evaluate_scene, (str(checkpoint.resolve()), params), jobs, params.orchestration, f"evaluate {part}", progress, max_workers=1)
     total = SegmentationCounts()
     for c in counts:
         total = total.add(c)
     metrics = {**total.summary(), "n_scenes": float(len(paths))}
     ev = params.evaluate
     passed = metrics["precision"] >= ev.accept_precision and metrics["recall"] >= ev.accept_recall
-    with mlflow_run(f"part-{extra['part']}", f"evaluate-{extra['part']}", params.tracking.mlflow_uri, {"dvc_stage": f"evaluate@{extra['part']}"}):
+    with mlflow_run(f"part-{part}", f"evaluate-{part}", params.tracking.mlflow_uri, {"dvc_stage": f"evaluate@{part}"}):
         import mlflow
 
         mlflow.log_params({**flat_params("segment", params.segment), **flat_params("evaluate", params.evaluate)})
         mlflow.log_metrics(metrics)
-        version = accept_checkpoint(extra["part"], checkpoint, ev.accept_alias) if passed else None
+        version = accept_checkpoint(part, checkpoint, ev.accept_alias) if passed else None
         if passed and version is None:
-            log.warning("%s: %s is not in the model registry; no alias set", extra["part"], checkpoint)
+            log.warning("%s: %s is not in the model registry; no alias set", part, checkpoint)
         elif passed:
-            log.info("%s: %s version %s is now %r", extra["part"], registered_name(extra["part"]), version, ev.accept_alias)
+            log.info("%s: %s version %s is now %r", part, model_name(part), version, ev.accept_alias)
         else:
-            log.info("%s: below the acceptance thresholds; alias %r unchanged", extra["part"], ev.accept_alias)
+            log.info("%s: below the acceptance thresholds; alias %r unchanged", part, ev.accept_alias)
     metrics["accepted"] = float(version is not None)
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
-    log.info("%s: precision %.3f, recall %.3f on %d test scenes", extra["part"], metrics["precision"], metrics["recall"], len(paths))
+    log.info("%s: precision %.3f, recall %.3f on %d test scenes", part, metrics["precision"], metrics["recall"], len(paths))
     return metrics
 
 

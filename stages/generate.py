@@ -8,25 +8,19 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.fanout import fan_out
-from binpick.generation.scene import ViewParams, generate_scene
+from binpick.generation.scene import generate_scene
 from binpick.io.atomic import atomic_dir
 from binpick.io.part_model import PartModel, load_part_model
 from binpick.io.scene import save_scene
 from binpick.params import Params, load_params
 from binpick.seeding import derive_seed
+from binpick.view import ViewParams
 from stages.common import entry, parser, start, write_metrics
+from stages.common.fanout import fan_out
 
 log = logging.getLogger("binpick.stage.generate")
 
 SPLITS = ("train", "val", "test")
-
-def view_params(params: Params) -> ViewParams:
-    """The network's view is cleaned like an imported capture: same voxel grid and normal radius."""
-    return ViewParams(
-        voxel_size_m=params.scene_import.voxel_size_m,
-        normal_radius_m=params.scene_import.normal_radius_m,
-    )
 
 
 def make_scene(shared: tuple[PartModel, Params, str], job: tuple[str, int]) -> int:
@@ -36,7 +30,7 @@ def make_scene(shared: tuple[PartModel, Params, str], job: tuple[str, int]) -> i
     part, params, folder = shared
     split, index = job
     seed = derive_seed(params.seed, "generate", part.name, split, index)
-    scene = generate_scene(part, params.generate, params.camera, view_params(params), seed)
+    scene = generate_scene(part, params.generate, params.camera, ViewParams.of_import(params.import_capture), seed)
     save_scene(Path(folder) / split / f"scene_{index:06d}.npz", scene)
     return len(scene.T_cam_from_model)
 
@@ -44,7 +38,7 @@ def make_scene(shared: tuple[PartModel, Params, str], job: tuple[str, int]) -> i
 def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
     part = load_part_model(part_model_path)
     g = params.generate
-    jobs = [(split, i) for split, n in zip(SPLITS, (g.n_train, g.n_val, g.n_test)) for i in range(n)]
+    jobs = [(split, i) for split, n in zip(SPLITS, (g.n_train, g.n_val, g.n_test), strict=False) for i in range(n)]
     with atomic_dir(out) as tmp:
         for split in SPLITS:
             (tmp / split).mkdir()

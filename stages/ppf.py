@@ -11,8 +11,8 @@ from binpick.geometry.symmetry import symmetry_transforms
 from binpick.io.part_model import load_part_model
 from binpick.io.ppf_model import save_ppf_model
 from binpick.params import Params, load_params
-from binpick.registration.ppf import train_ppf
-from stages.common import entry, parser, start, write_metrics
+from binpick.registration.model import train_ppf
+from stages.common import entry, log_timings, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.ppf")
 
@@ -26,6 +26,7 @@ def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | N
     metrics = {"train_s": train_s, "model_points": float(len(model.points_m)), "pairs": float(len(model.keys))}
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
+        log_timings(f"part-{part.name}", f"ppf-{part.name}", params.tracking.mlflow_uri, f"ppf@{part.name}", metrics)
     log.info("%s: PPF model of %d points, %d pairs in %.2f s", part.name, len(model.points_m), len(model.keys), train_s)
     return metrics
 

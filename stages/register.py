@@ -12,15 +12,16 @@ from pathlib import Path
 import numpy as np
 
 from binpick.errors import InputError
-from binpick.io.cloud import PoseRecord, load_cloud, load_poses, load_segments, save_poses
+from binpick.io.cloud import load_cloud, load_segments
 from binpick.io.part_model import load_part_model
+from binpick.io.poses import load_poses, save_poses
 from binpick.io.ppf_model import load_ppf_model
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params, load_params
-from binpick.registration.ppf import PoseEstimate, match_scene, match_segment, suppress_duplicates
+from binpick.scene_path import register
 from binpick.seeding import derive_seed
 from stages.common import entry, mlflow_run, parser, start, write_metrics
-from stages.recording import write_scene_recording
+from stages.common.recording import write_scene_recording
 
 log = logging.getLogger("binpick.stage.register")
 
@@ -36,42 +37,19 @@ def run(
     truth_path: Path | None = None,
     metrics_path: Path | None = None,
     rrd_path: Path | None = None,
-    timing_files: Sequence[Path] = (),
 ) -> dict[str, float]:
-    """timing_files: metrics JSON of the earlier scene stages; their timings (keys ending in
-    `_s`) join this scene's MLflow run and recording."""
     cloud = load_cloud(cloud_path)
     labels = load_segments(segments_path)
     if len(labels) != len(cloud.points_m):
         raise InputError(segments_path, f"has {len(labels)} labels for {len(cloud.points_m)} cloud points")
     ppf = load_ppf_model(ppf_path)
     part = load_part_model(part_model_path)
-    rng = np.random.default_rng(derive_seed(params.seed, "register", name))
-    found: list[tuple[int, PoseEstimate]] = []
-    per_instance_ms: list[float] = []
     t0 = time.perf_counter()
-    mode = params.registration.mode
-    estimates: list[PoseRecord] = []
-    n_duplicates = 0
-    if mode in ("segments", "segments_then_scene"):
-        for seg in range(int(labels.max()) + 1 if len(labels) else 0):
-            mask = labels == seg
-            t = time.perf_counter()
-            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params.registration, rng)
-            per_instance_ms.append(1000.0 * (time.perf_counter() - t))
-            if est is not None and est.score >= params.registration.min_score:
-                found.append((seg, est))
-        kept = suppress_duplicates(ppf, [e for _, e in found], params.registration, cloud.points_m)
-        estimates = [PoseRecord(found[k][1].T_cam_from_model, found[k][1].score, found[k][0]) for k in kept]
-        n_duplicates = len(found) - len(kept)
-    if mode in ("whole_scene", "segments_then_scene"):
-        t = time.perf_counter()
-        more = match_scene(ppf, cloud.points_m, cloud.normals, params.registration, rng, params.registration.max_instances,
-                           known=[e.T_cam_from_model for e in estimates])
-        per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
-        estimates += [PoseRecord(e.T_cam_from_model, e.score, -1) for e in more]
-        log.info("%s: whole-scene matching added %d poses", name, len(more))
+    result = register(cloud, labels, ppf, params.registration, derive_seed(params.seed, "register", name))
     register_s = time.perf_counter() - t0
+    estimates = result.poses
+    per_instance_ms = result.per_instance_ms
+    n_duplicates = result.n_duplicates_suppressed
     save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
         "register_s": register_s,
@@ -91,7 +69,7 @@ def run(
             ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
         )
         metrics.update(summary)
-    timings = {**earlier_timings(timing_files), "register_s": register_s}
+    timings = {"register_s": register_s}
     with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part.name, "capture": name, "dvc_stage": f"register@{name}"}):
         import mlflow
 
@@ -103,19 +81,8 @@ def run(
         write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
-    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), mode, metrics["n_segments"], register_s)
+    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), params.registration.mode, metrics["n_segments"], register_s)
     return metrics
-
-
-def earlier_timings(paths: Sequence[Path]) -> dict[str, float]:
-    import json
-
-    timings: dict[str, float] = {}
-    for path in paths:
-        if not Path(path).is_file():
-            raise InputError(path, "metrics file of an earlier stage not found")
-        timings.update({k: float(v) for k, v in json.loads(Path(path).read_text()).items() if k.endswith("_s")})
-    return timings
 
 
 @entry
@@ -131,12 +98,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--truth", default="", help="ground-truth poses (.json), '' for none")
     p.add_argument("--metrics", type=Path)
     p.add_argument("--rrd", type=Path, help="rerun recording to write")
-    p.add_argument("--timings", type=Path, nargs="*", default=[], help="metrics files of the earlier stages, for their timings")
     args = p.parse_args(argv)
     start(args)
     run(
         load_params(args.params, args.part), args.name, args.cloud, args.segments, args.ppf, args.part_model, args.out,
-        Path(args.truth) if args.truth else None, args.metrics, args.rrd, args.timings,
+        Path(args.truth) if args.truth else None, args.metrics, args.rrd,
     )
     return 0
 

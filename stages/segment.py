@@ -11,31 +11,27 @@ from pathlib import Path
 import numpy as np
 
 from binpick.io.cloud import load_cloud, save_segments
-from binpick.network.checkpoint import load_checkpoint
-from binpick.network.infer import cluster_params, segment_scene
-from binpick.network.train import default_device
+from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
 from binpick.seeding import derive_seed
-from stages.common import entry, parser, start, write_metrics
+from stages.common import entry, log_timings, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.segment")
 
 
-def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_path: Path | None = None) -> dict[str, float]:
+def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_path: Path | None = None, name: str | None = None) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
-    model, state = load_checkpoint(checkpoint, default_device())
-    extra = state["extra"]
+    segmenter = load_segmenter(checkpoint, params.segment)
     t0 = time.perf_counter()
-    labels = segment_scene(
-        model, cloud.points_m, cloud.normals, extra["features"], extra["d_max_m"], params.segment.n_points,
-        cluster_params(params.segment, extra["part_diameter_m"], extra.get("clustering")), np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))),
-    )
+    labels = segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))))
     seconds = time.perf_counter() - t0
     save_segments(out, labels)
     n_inst = int(labels.max()) + 1 if len(labels) else 0
     metrics = {"segment_s": seconds, "n_instances": float(n_inst), "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0}
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
+        if name:
+            log_timings("scenes", f"segment-{name}", params.tracking.mlflow_uri, f"segment@{name}", metrics, {"capture": name})
     log.info("%s: %d instances in %.2f s", cloud_path, n_inst, seconds)
     return metrics
 
@@ -43,6 +39,7 @@ def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_p
 @entry
 def main(argv: Sequence[str] | None = None) -> int:
     p = parser(__doc__)
+    p.add_argument("--name", default="", help="capture name (for its MLflow run)")
     p.add_argument("--part", required=True)
     p.add_argument("--cloud", required=True, type=Path, help="clean cloud of the import stage (.npz)")
     p.add_argument("--checkpoint", required=True, type=Path, help="the part's FPCC checkpoint (.pt)")
@@ -50,7 +47,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--metrics", type=Path)
     args = p.parse_args(argv)
     start(args)
-    run(load_params(args.params, args.part), args.cloud, args.checkpoint, args.out, args.metrics)
+    run(load_params(args.params, args.part), args.cloud, args.checkpoint, args.out, args.metrics, args.name or None)
     return 0
 
 

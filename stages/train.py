@@ -9,14 +9,13 @@ from pathlib import Path
 import numpy as np
 
 from binpick.io.part_model import load_part_model
-from binpick.network.calibrate import CALIBRATED, calibrate_checkpoint
-from binpick.network.checkpoint import load_checkpoint, update_extra
-from binpick.network.infer import cluster_params, segment_scene
-from binpick.network.train import BEST, default_device, load_views, train_fpcc
+from binpick.network.calibrate import CALIBRATED, recalibrate
+from binpick.network.infer import cluster_params, default_device, segment_scene
+from binpick.network.train import BEST, load_views, train_fpcc
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int, derive_seed
-from stages.common import entry, flat_params, mlflow_run, parser, register_checkpoint, registered_name, start, write_metrics
-from stages.recording import TrainingRecording
+from stages.common import add_model_version, entry, flat_params, mlflow_run, model_name, parser, start, write_metrics
+from stages.common.recording import TrainingRecording
 
 log = logging.getLogger("binpick.stage.train")
 
@@ -35,7 +34,6 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
     part = load_part_model(part_model_path)
     train_views, val_views = load_views(scenes / "train"), load_views(scenes / "val")
     dm = d_max(params, part.diameter_m)
-    extra = {"part": part.name, "part_diameter_m": part.diameter_m, "features": params.train.features}
     device = default_device()
     log.info("%s: training on %d scenes (%d validation) on %s", part.name, len(train_views), len(val_views), device)
     with mlflow_run(f"part-{part.name}", f"train-{part.name}", params.tracking.mlflow_uri, {"dvc_stage": f"train@{part.name}"}) as run_:
@@ -58,27 +56,25 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
 
         try:
             _, metrics = train_fpcc(
-                train_views, val_views, params.train, dm, derive_int(params.seed, "train", part.name), work, extra,
+                train_views, val_views, params.train, dm, derive_int(params.seed, "train", part.name), work, part.name, part.diameter_m,
                 on_epoch=on_epoch, device=device, progress=progress,
             )
         finally:
             samples.close()
         mlflow.log_artifact(str(samples.path), artifact_path="samples")
-        best, state = load_checkpoint(work / BEST, device)
-        chosen = calibrate_checkpoint(
-            best, state["extra"], val_views, params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
+        out.parent.mkdir(parents=True, exist_ok=True)
+        chosen = recalibrate(
+            work / BEST, out, val_views, params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
         )
         log.info("%s: clustering calibrated on %d validation scenes: centre threshold %.2f, embedding threshold %.2f, "
                  "smallest instance %d points (P/R %.2f/%.2f)", part.name, len(val_views), chosen["centre_threshold"],
                  chosen["embedding_threshold"], chosen["min_instance_points"], chosen["precision"], chosen["recall"])
         metrics.update({f"calibrated_{k}" if k in CALIBRATED else f"val_{k}": v for k, v in chosen.items()})
         mlflow.log_metrics({k: metrics[k] for k in [f"calibrated_{k}" for k in CALIBRATED] + ["val_precision", "val_recall"]})
-        out.parent.mkdir(parents=True, exist_ok=True)
-        update_extra(work / BEST, out, clustering={k: chosen[k] for k in CALIBRATED})
         mlflow.log_artifact(str(out), artifact_path="model")
-        version = register_checkpoint(part.name, out, run_, f"train@{part.name}")
+        version = add_model_version(part.name, out, run_, f"train@{part.name}")
         # The run id and version stay in MLflow: the DVC metrics hold only what a rerun reproduces.
-        log.info("%s: MLflow run %s, registered as %s version %s", part.name, run_.info.run_id, registered_name(part.name), version)
+        log.info("%s: MLflow run %s, registered as %s version %s", part.name, run_.info.run_id, model_name(part.name), version)
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
     log.info("%s: best validation loss %.4f at epoch %d -> %s", part.name, metrics["best_val_loss"], metrics["best_epoch"], out)

@@ -6,7 +6,8 @@ import numpy as np
 from binpick.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
 from binpick.bench.ppf import bench_ppf
 from binpick.geometry.transforms import make_T
-from binpick.params import BinParams
+
+from settings import PARAMS
 
 
 def test_penetration_measure_knows_overlap_from_none(t_joint):
@@ -19,12 +20,12 @@ def test_penetration_measure_knows_overlap_from_none(t_joint):
 
 
 def test_rejection_baseline_places_every_object(t_joint):
-    poses = rejection_baseline(t_joint, 4, BinParams(), np.random.default_rng(0))
+    poses = rejection_baseline(t_joint, 4, PARAMS.generate.bin, np.random.default_rng(0))
     assert poses.shape == (4, 4, 4)
 
 
 def test_generate_bench_reports_both_methods(t_joint):
-    result = bench_generate(["t_joint"], scenes=1, baseline_scenes=1, counts=(3,))
+    result = bench_generate(PARAMS, ["t_joint"], scenes=1, baseline_scenes=1, counts=(3,))
     ours, base = result["binpick"]["3"], result["rejection_baseline"]["3"]
     assert ours["objects_placed_mean"] == 3 and ours["max_penetration_mm"] <= 1.0
     assert base["objects_placed_mean"] == 3 and "speedup_at_3" in result
@@ -33,7 +34,7 @@ def test_generate_bench_reports_both_methods(t_joint):
 
 
 def test_ppf_bench_recovers_poses():
-    result = bench_ppf(["t_joint"], trials=3, methods=["binpick_ppf"])
+    result = bench_ppf(PARAMS, ["t_joint"], trials=3, methods=["binpick_ppf"])
     ours = result["binpick_ppf"]
     assert ours["add_success_rate"] == 1.0 and ours["rot_err_deg_median"] < 1.0
     assert set(result["per_part"]) == {"t_joint"}

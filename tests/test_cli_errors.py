@@ -44,9 +44,9 @@ def test_ingest_wrong_unit_is_reported(tmp_path):
 def test_import_bad_capture(tmp_path):
     bad = tmp_path / "scan.ply"
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\x00\x00")
-    proc = _run("-m", "stages.import_scene", "--capture", str(bad), "--out", str(tmp_path / "c.npz"))
+    proc = _run("-m", "stages.import_capture", "--capture", str(bad), "--out", str(tmp_path / "c.npz"))
     _assert_one_line_error(proc, "scan.ply")
-    proc = _run("-m", "stages.import_scene", "--capture", str(tmp_path / "scan.xyz"), "--out", str(tmp_path / "c.npz"))
+    proc = _run("-m", "stages.import_capture", "--capture", str(tmp_path / "scan.xyz"), "--out", str(tmp_path / "c.npz"))
     _assert_one_line_error(proc, "scan.xyz")
     assert not (tmp_path / "c.npz").exists()
 
@@ -61,19 +61,19 @@ def test_broken_params_file(tmp_path):
 def test_binpick_review_without_results(tmp_path):
     (tmp_path / "params.yaml").write_text("profile: quick\n")
     (tmp_path / "dvc.yaml").write_text("stages: {}\n")
-    proc = _run("-m", "binpick.cli", "review", cwd=tmp_path)
+    proc = _run("-m", "flows.cli", "review", cwd=tmp_path)
     _assert_one_line_error(proc, "scene.rrd", "no recording yet")
 
 
 @pytest.mark.parametrize("args", [["demo"]])
 def test_binpick_outside_a_project(tmp_path, args):
-    proc = _run("-m", "binpick.cli", *args, cwd=tmp_path)
+    proc = _run("-m", "flows.cli", *args, cwd=tmp_path)
     _assert_one_line_error(proc, "not inside a binpick project")
 
 
 def test_calibrate_a_damaged_checkpoint(tmp_path):
     bad = tmp_path / "model.pt"
     bad.write_bytes(b"not a checkpoint")
-    proc = _run("-m", "binpick.cli", "calibrate", "--checkpoint", str(bad), "--scenes", str(tmp_path), "--out", str(tmp_path / "out.pt"))
+    proc = _run("-m", "flows.cli", "calibrate", "--checkpoint", str(bad), "--scenes", str(tmp_path), "--out", str(tmp_path / "out.pt"))
     _assert_one_line_error(proc, "model.pt", "not a readable checkpoint")
     assert not (tmp_path / "out.pt").exists()

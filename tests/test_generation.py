@@ -8,17 +8,19 @@ from binpick.bench.generation import max_penetration_mm
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import Intrinsics, apply_sensor_noise, render
 from binpick.generation.placement import place_objects
-from binpick.generation.scene import ViewParams, generate_scene
+from binpick.generation.scene import generate_scene
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.scene import load_scene, save_scene
-from binpick.params import BinParams, CameraParams, GenerateParams, NoiseParams, PlacementParams
+from binpick.view import ViewParams
+
+from settings import PARAMS, changed
 
 VIEW = ViewParams(voxel_size_m=0.002, normal_radius_m=0.006)
 
 
 def test_drop_placement_has_no_interpenetration_and_stays_in_the_bin(t_joint):
-    bin_params = BinParams()
-    placed = place_objects(t_joint.points_m, 15, bin_params, PlacementParams(), np.random.default_rng(5))
+    bin_params = PARAMS.generate.bin
+    placed = place_objects(t_joint.points_m, 15, bin_params, PARAMS.generate.placement, np.random.default_rng(5))
     poses = placed.T_bin_from_model
     assert len(poses) == 15
     assert max_penetration_mm(t_joint, poses, np.random.default_rng(0)) <= 1.0
@@ -30,17 +32,17 @@ def test_drop_placement_has_no_interpenetration_and_stays_in_the_bin(t_joint):
 
 
 def test_a_full_bin_keeps_the_objects_that_fit(t_joint):
-    small = BinParams(inner_x_m=0.1, inner_y_m=0.1)
-    placed = place_objects(t_joint.points_m, 200, small, PlacementParams(max_pile_height_m=0.06), np.random.default_rng(0))
+    small = changed(PARAMS.generate.bin, inner_x_m=0.1, inner_y_m=0.1)
+    placed = place_objects(t_joint.points_m, 200, small, changed(PARAMS.generate.placement, max_pile_height_m=0.06), np.random.default_rng(0))
     assert 0 < len(placed.T_bin_from_model) < 200
     assert placed.n_requested == 200
 
 
 def test_camera_sees_the_floor_at_its_distance():
-    cam = CameraParams(downscale=8)
+    cam = changed(PARAMS.camera, downscale=8)
     intr = Intrinsics.from_params(cam)
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
-    meshes = [(transform_points(T_cam_bin, m.vertices), m.faces) for m in bin_meshes(BinParams(wall_height_m=0.0))]
+    meshes = [(transform_points(T_cam_bin, m.vertices), m.faces) for m in bin_meshes(changed(PARAMS.generate.bin, wall_height_m=0.0))]
     r = render(meshes, [-1] * len(meshes), intr)
     assert (intr.height, intr.width) == r.labels.shape
     z = r.xyz_m[..., 2]
@@ -52,10 +54,10 @@ def test_camera_sees_the_floor_at_its_distance():
 def test_objects_over_a_cached_background_equal_one_cast_of_everything(t_joint):
     from binpick.generation.camera import render_background
 
-    cam = CameraParams(downscale=4)
+    cam = changed(PARAMS.camera, downscale=4)
     intr = Intrinsics.from_params(cam)
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
-    gen = GenerateParams()
+    gen = PARAMS.generate
     placed = place_objects(t_joint.points_m, 8, gen.bin, gen.placement, np.random.default_rng(2))
     objects = [(transform_points(T_cam_bin @ T, t_joint.mesh_vertices_m), t_joint.mesh_faces) for T in placed.T_bin_from_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(gen.bin)]
@@ -78,7 +80,7 @@ def test_noise_grows_with_range_and_grazing_returns_drop():
         normals = np.broadcast_to(np.array([0, 0, -1], np.float32), xyz.shape).copy()
         from binpick.generation.camera import Render
 
-        noisy = apply_sensor_noise(Render(xyz, normals, np.zeros((H, W), np.int32)), NoiseParams(max_incidence_deg=89.0), rng)
+        noisy = apply_sensor_noise(Render(xyz, normals, np.zeros((H, W), np.int32)), changed(PARAMS.generate.noise, max_incidence_deg=89.0), rng)
         out.append(np.nanstd((noisy.xyz_m - xyz)[..., 2]))
     expected = [0.0002 + 0.0004 * d**2 for d in (0.5, 1.5)]
     assert np.allclose(out, expected, rtol=0.1)
@@ -86,13 +88,13 @@ def test_noise_grows_with_range_and_grazing_returns_drop():
     side = np.broadcast_to(np.array([1, 0, 0], np.float32), xyz.shape).copy()  # seen edge-on
     from binpick.generation.camera import Render
 
-    noisy = apply_sensor_noise(Render(xyz, side, np.zeros((H, W), np.int32)), NoiseParams(), rng)
+    noisy = apply_sensor_noise(Render(xyz, side, np.zeros((H, W), np.int32)), PARAMS.generate.noise, rng)
     assert np.isnan(noisy.xyz_m[H // 2, W // 2]).all()
 
 
 def test_labelled_points_lie_on_their_object_at_the_true_pose(t_joint):
-    gen = GenerateParams()
-    scene = generate_scene(t_joint, gen, CameraParams(downscale=4), VIEW, seed=11, n_objects=10)
+    gen = PARAMS.generate
+    scene = generate_scene(t_joint, gen, changed(PARAMS.camera, downscale=4), VIEW, seed=11, n_objects=10)
     mesh = trimesh.Trimesh(t_joint.mesh_vertices_m, t_joint.mesh_faces)
     xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
     # Noise std at this range; 5 sigma along the ray is the bound.
@@ -115,11 +117,11 @@ def test_labelled_points_lie_on_their_object_at_the_true_pose(t_joint):
 def test_same_seed_gives_byte_identical_scene_files(tmp_path, t_joint):
     digests = []
     for k in range(2):
-        scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=8), VIEW, seed=3)
+        scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=8), VIEW, seed=3)
         save_scene(tmp_path / f"s{k}.npz", scene)
         digests.append(hashlib.sha256((tmp_path / f"s{k}.npz").read_bytes()).hexdigest())
     assert digests[0] == digests[1]
-    other = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=8), VIEW, seed=4)
+    other = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=8), VIEW, seed=4)
     assert not np.array_equal(other.labels, load_scene(tmp_path / "s0.npz").labels)
     assert (tmp_path / "s0.png").is_file()
 
@@ -139,9 +141,8 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
         t_joint = make_part_model("offset", mesh, T_JOINT_SYMMETRY, 20000, np.random.default_rng(0), "m")
     from binpick.generation.placement import place_objects
     from binpick.generation.scene import settle_in_bin
-    from binpick.params import PlacementParams
 
-    gen = GenerateParams(placement=PlacementParams(mode="physics", heights="u_shaped", n_objects_min=10, n_objects_max=10))
+    gen = changed(PARAMS.generate, placement=changed(PARAMS.generate.placement, mode="physics", heights="u_shaped", n_objects_min=10, n_objects_max=10))
     start = place_objects(t_joint.points_m, 10, gen.bin, gen.placement, np.random.default_rng(3)).T_bin_from_model
     runs = [settle_in_bin(t_joint, start, gen, np.random.default_rng(4)) for _ in range(2)]
     np.testing.assert_array_equal(runs[0], runs[1])
@@ -156,15 +157,14 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
 
 def test_start_heights_follow_the_chosen_law():
     from binpick.generation.placement import start_height
-    from binpick.params import BinParams, PlacementParams
 
     rng = np.random.default_rng(0)
-    b = BinParams(wall_height_m=0.1)
-    u = np.array([start_height(rng, PlacementParams(heights="u_shaped"), b) for _ in range(4000)])
+    b = changed(PARAMS.generate.bin, wall_height_m=0.1)
+    u = np.array([start_height(rng, changed(PARAMS.generate.placement, heights="u_shaped"), b) for _ in range(4000)])
     assert u.min() >= 0 and u.max() <= 0.1
     # U-shaped: the outer fifths hold far more than the middle fifth (Beta(0.5, 0.5): 0.59 vs 0.13)
     outer, middle = np.mean((u < 0.02) | (u > 0.08)), np.mean((u > 0.04) & (u < 0.06))
     assert outer > 0.5 and middle < 0.2
-    d = {start_height(rng, PlacementParams(heights="discrete", height_levels_m=[0.0, 0.05]), b) for _ in range(50)}
+    d = {start_height(rng, changed(PARAMS.generate.placement, heights="discrete", height_levels_m=[0.0, 0.05]), b) for _ in range(50)}
     assert d == {0.0, 0.05}
-    assert start_height(rng, PlacementParams(), b) == 0.0
+    assert start_height(rng, PARAMS.generate.placement, b) == 0.0

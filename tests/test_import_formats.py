@@ -15,7 +15,8 @@ from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.pcd import load_pcd, save_pcd
 from binpick.io.ply import PointCloudData
 from binpick.io.zdf import save_zdf_v1
-from binpick.params import CaptureSettings, SceneImportParams
+
+from settings import PARAMS, changed
 
 
 def _organized(H=12, W=16):
@@ -101,7 +102,7 @@ def test_real_zivid_export(shared_data):
     cap = load_capture(shared_data / "scans/zivid_one_fragment/zivid_one_fragment.csv", ImportOptions("mm", ("x", "y", "z", "r", "g", "b", "contrast")))
     assert len(cap.xyz_m) == 10970  # the 10,970 complete rows; the cut last row is skipped
     assert 1.0 < np.median(cap.xyz_m[:, 2]) < 1.3  # about a metre from the camera, in metres
-    cloud = clean_capture(cap.xyz_m, cap.rgb, None, SceneImportParams(), 0)
+    cloud = clean_capture(cap.xyz_m, cap.rgb, None, PARAMS.import_capture, 0)
     assert np.isnan(cloud.floor_plane).all() and cloud.removed_fraction.sum() == 0
     assert len(cloud.points_m) > 1000 and cloud.rgb.any()
 
@@ -112,7 +113,7 @@ def test_real_rgbd_bin_frame_table_removed_objects_kept(shared_data):
     scans = shared_data / "scans/icbin_scene1"
     cap = load_capture(scans / "depth/0000.png", ImportOptions("mm", intrinsics=scans / "camera.json"))
     assert cap.shape == (480, 640)
-    params = SceneImportParams(plane_threshold_m=0.008, keep_above_plane_m=0.012)
+    params = changed(PARAMS.import_capture, plane_threshold_m=0.008, keep_above_plane_m=0.012)
     cloud = clean_capture(cap.xyz_m, None, cap.shape, params, 0)
     a, b, c, d = cloud.floor_plane
     tilt = np.degrees(np.arccos(-c))  # angle between the plane normal and the optical axis
@@ -165,11 +166,11 @@ def _fake_zivid(H=6, W=8):
 
 
 def test_capture_through_a_fake_camera(tmp_path, params):
-    from stages.capture import run
+    from binpick.zivid_camera import grab_to_file
 
     fake, calls = _fake_zivid()
-    settings = params.model_copy(update={"capture": CaptureSettings(serial="ABC", exposure_time_us=5000, aperture=4.0)})
-    assert run(settings, tmp_path / "cap.ply", zivid=fake) == (6, 8)
+    settings = params.zivid_camera.model_copy(update={"serial": "ABC", "exposure_time_us": 5000, "aperture": 4.0})
+    assert grab_to_file(tmp_path / "cap.ply", settings, zivid=fake) == (6, 8)
     assert calls["serial"] == "ABC" and calls["disconnected"]
     assert calls["acquisition"][:2] == (4.0, datetime.timedelta(microseconds=5000))
     cap = load_capture(tmp_path / "cap.ply", ImportOptions("mm"))

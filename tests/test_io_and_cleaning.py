@@ -4,9 +4,11 @@ import pytest
 from binpick.cleaning import clean_capture
 from binpick.errors import BinpickError, InputError
 from binpick.io.capture import load_capture
-from binpick.io.cloud import PoseRecord, load_cloud, load_poses, save_cloud, save_poses
+from binpick.io.cloud import load_cloud, save_cloud
 from binpick.io.ply import PointCloudData, load_ply, save_ply
-from binpick.params import SceneImportParams
+from binpick.io.poses import PartPose, load_poses, save_poses
+
+from settings import PARAMS, changed
 
 
 def _bin_frame(H=240, W=320, f=300.0, floor_m=0.5, rng=None):
@@ -25,7 +27,7 @@ def _bin_frame(H=240, W=320, f=300.0, floor_m=0.5, rng=None):
 
 def test_cleaning_recovers_the_floor_and_keeps_the_object():
     xyz, on_box = _bin_frame()
-    cloud = clean_capture(xyz, None, (240, 320), SceneImportParams(remove_walls=False), seed=0)
+    cloud = clean_capture(xyz, None, (240, 320), changed(PARAMS.import_capture, remove_walls=False), seed=0)
     a, b, c, d = cloud.floor_plane
     assert np.allclose([a, b, c], [0, 0, -1], atol=0.01) and abs(d - 0.5) < 0.002
     assert d > 0  # oriented toward the camera
@@ -40,12 +42,12 @@ def test_cleaning_recovers_the_floor_and_keeps_the_object():
 def test_cleaning_errors_and_warnings():
     xyz, _ = _bin_frame()
     with pytest.raises(BinpickError, match="no valid point"):
-        clean_capture(np.full((100, 3), np.nan, np.float32), None, None, SceneImportParams(), 0)
+        clean_capture(np.full((100, 3), np.nan, np.float32), None, None, PARAMS.import_capture, 0)
     with pytest.raises(BinpickError, match="unit"):
-        clean_capture(xyz * 1000, None, None, SceneImportParams(), 0)  # millimetres read as metres
+        clean_capture(xyz * 1000, None, None, PARAMS.import_capture, 0)  # millimetres read as metres
     # A scene with no plane: a random blob; nothing is removed, NaN floor reported.
     blob = np.random.default_rng(1).normal([0, 0, 0.5], 0.03, (5000, 3)).astype(np.float32)
-    cloud = clean_capture(blob, None, None, SceneImportParams(), 0)
+    cloud = clean_capture(blob, None, None, PARAMS.import_capture, 0)
     assert np.isnan(cloud.floor_plane).all() and (cloud.pixel_index == -1).all()
 
 
@@ -77,13 +79,13 @@ def test_bad_capture_files(tmp_path):
 
 def test_cloud_and_pose_files_roundtrip(tmp_path):
     xyz, _ = _bin_frame()
-    cloud = clean_capture(xyz, None, (240, 320), SceneImportParams(), 0)
+    cloud = clean_capture(xyz, None, (240, 320), PARAMS.import_capture, 0)
     save_cloud(tmp_path / "cloud.npz", cloud)
     back = load_cloud(tmp_path / "cloud.npz")
     assert np.array_equal(back.points_m, cloud.points_m) and np.array_equal(back.pixel_index, cloud.pixel_index)
     T = np.eye(4)
     T[:3, 3] = [0.01, 0.02, 0.5]
-    save_poses(tmp_path / "p.json", "t_joint", [PoseRecord(T, 0.9, 3, {"visible_fraction": 0.5})])
+    save_poses(tmp_path / "p.json", "t_joint", [PartPose(T, 0.9, 3, {"visible_fraction": 0.5})])
     part, poses = load_poses(tmp_path / "p.json")
     assert part == "t_joint" and np.allclose(poses[0].T_cam_from_model, T) and poses[0].segment == 3
     (tmp_path / "bad.json").write_text('{"part": "x"}')
@@ -97,17 +99,17 @@ def test_region_of_interest_in_a_bin_frame():
 
     xyz, on_box = _bin_frame()
     T_cam_bin = invert_T(T_bin_from_cam(0.5))  # bin floor 0.5 m below the camera, z up
-    roi = SceneImportParams(roi_min_m=(-0.02, -0.05, -0.01), roi_max_m=(0.05, 0.05, 0.1), T_cam_from_roi=tuple(map(tuple, T_cam_bin)))
+    roi = changed(PARAMS.import_capture, roi_min_m=(-0.02, -0.05, -0.01), roi_max_m=(0.05, 0.05, 0.1), T_cam_from_roi=tuple(map(tuple, T_cam_bin)))
     cloud = clean_capture(xyz, None, (240, 320), roi, 0)
     # Only the box top (30 mm above the floor) between x = -20 and +30 mm of the bin frame is left.
     x_bin = cloud.points_m[:, 0]  # the camera's x is the bin's x
     assert on_box[cloud.pixel_index].all() and x_bin.min() > -0.0205 and x_bin.max() < 0.0305
     with pytest.raises(ValueError, match="rigid"):
-        SceneImportParams(T_cam_from_roi=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))
+        changed(PARAMS.import_capture, T_cam_from_roi=((2, 0, 0, 0), (0, 1, 0, 0), (0, 0, 1, 0), (0, 0, 0, 1)))
 
 
 def test_plane_quad_lies_on_the_plane_under_the_points():
-    from stages.recording import plane_quad
+    from stages.common.recording import plane_quad
 
     plane = np.array([0.1, -0.05, -1.0, 0.5])
     plane /= np.linalg.norm(plane[:3])

@@ -3,7 +3,7 @@ import pytest
 import torch
 
 from binpick.network.blocks import cover, crop
-from binpick.network.checkpoint import load_checkpoint, save_checkpoint
+from binpick.network.checkpoint import CalibratedClustering, load_checkpoint, save_checkpoint
 from binpick.network.infer import ClusterParams, cluster, segment_scene
 from binpick.network.loss import centre_score_targets, fpcc_loss
 from binpick.network.model import (
@@ -18,7 +18,8 @@ from binpick.network.model import (
     neighbour_max,
 )
 from binpick.network.train import Views, train_fpcc
-from binpick.params import TrainParams
+
+from settings import PARAMS, changed
 
 
 @pytest.mark.parametrize("knn", [knn_indices, knn_by_tree, knn_by_distance_blocks])
@@ -113,7 +114,7 @@ def _cluster_by_definition(points, embedding, centre, params):
     sizes = np.bincount(labels[labels >= 0], minlength=len(centres))
     labels[(labels >= 0) & (sizes[np.maximum(labels, 0)] < params.min_points)] = -1
     kept = np.flatnonzero(sizes >= params.min_points)
-    return np.array([-1 if l < 0 else int(np.searchsorted(kept, l)) for l in labels])
+    return np.array([-1 if lab < 0 else int(np.searchsorted(kept, lab)) for lab in labels])
 
 
 def test_cluster_matches_the_rule_read_literally():
@@ -152,7 +153,7 @@ def test_block_inference_labels_every_point_and_merges_across_blocks():
     assert len(cover(pts, 500, np.random.default_rng(1))) > 3  # really several blocks
     assert (labels >= 0).all()
     # Same partition as the truth, up to renumbering.
-    pairs = set(zip(labels.tolist(), truth.tolist()))
+    pairs = set(zip(labels.tolist(), truth.tolist(), strict=False))
     assert len(pairs) == 3 and len({a for a, _ in pairs}) == 3
 
 
@@ -179,16 +180,16 @@ def _toy_views(n_scenes, rng):
 def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path):
     rng = np.random.default_rng(0)
     train, val = _toy_views(6, rng), _toy_views(2, rng)
-    params = TrainParams(width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=3, loss_anchors=64, patience_epochs=10)
-    full, m_full = train_fpcc(train, val, params, 0.02, 5, tmp_path / "a", {"part": "toy"}, progress=False)
-    train_fpcc(train, val, params.model_copy(update={"epochs": 2}), 0.02, 5, tmp_path / "b", {"part": "toy"}, progress=False)
+    params = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=3, loss_anchors=64, patience_epochs=10)
+    full, m_full = train_fpcc(train, val, params, 0.02, 5, tmp_path / "a", "toy", 0.06, progress=False)
+    train_fpcc(train, val, params.model_copy(update={"epochs": 2}), 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False)
     # Stand-in for a run that crashed after two epochs: the two-epoch run's last.pt, relabelled
     # with the three-epoch params. Training on must then end exactly where the full run ended.
     state = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
     state["extra"]["train_params"] = params.model_dump()
     torch.save(state, tmp_path / "b" / "last.pt")
-    resumed, m_res = train_fpcc(train, val, params, 0.02, 5, tmp_path / "b", {"part": "toy"}, progress=False)
-    for a, b in zip(full.state_dict().values(), resumed.state_dict().values()):
+    resumed, m_res = train_fpcc(train, val, params, 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False)
+    for a, b in zip(full.state_dict().values(), resumed.state_dict().values(), strict=False):
         assert torch.equal(a, b)
     assert m_full["best_val_loss"] == m_res["best_val_loss"]
 
@@ -246,7 +247,6 @@ class _SliverNet(_OracleNet):
 def test_calibration_drops_slivers_by_instance_size():
     from binpick.network.calibrate import calibrate_clustering
     from binpick.network.infer import cluster_params
-    from binpick.params import SegmentParams
 
     rng = np.random.default_rng(0)
     views = []
@@ -259,16 +259,16 @@ def test_calibration_drops_slivers_by_instance_size():
     chosen = calibrate_clustering(_SliverNet(), views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1))
     assert chosen["precision"] == chosen["recall"] == 1.0
     assert sliver_points < chosen["min_instance_points"] < 300 - sliver_points
-    assert cluster_params(SegmentParams(min_points=10), 0.1, chosen).min_points == chosen["min_instance_points"]
+    calibrated = CalibratedClustering(chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"]))
+    assert cluster_params(changed(PARAMS.segment, min_points=10), 0.1, calibrated).min_points == chosen["min_instance_points"]
 
 
 def test_segment_params_override_calibrated_thresholds():
     from binpick.network.infer import cluster_params
-    from binpick.params import SegmentParams
 
-    calibrated = {"centre_threshold": 0.5, "embedding_threshold": 1.2}
-    assert cluster_params(SegmentParams(), 0.1, calibrated).embedding_threshold == 1.2
-    assert cluster_params(SegmentParams(embedding_threshold=1.7), 0.1, calibrated).embedding_threshold == 1.7
-    assert cluster_params(SegmentParams(), 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults
-    assert cluster_params(SegmentParams(min_points=25), 0.1, None).min_points == 25
-    assert cluster_params(SegmentParams(min_instance_points=80), 0.1, {"min_instance_points": 60}).min_points == 80
+    calibrated = CalibratedClustering(centre_threshold=0.5, embedding_threshold=1.2, min_instance_points=60)
+    assert cluster_params(PARAMS.segment, 0.1, calibrated).embedding_threshold == 1.2
+    assert cluster_params(changed(PARAMS.segment, embedding_threshold=1.7), 0.1, calibrated).embedding_threshold == 1.7
+    assert cluster_params(PARAMS.segment, 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults
+    assert cluster_params(changed(PARAMS.segment, min_points=25), 0.1, None).min_points == 25
+    assert cluster_params(changed(PARAMS.segment, min_instance_points=80), 0.1, calibrated).min_points == 80

@@ -52,10 +52,10 @@ def test_dask_fan_out_on_a_two_worker_cluster_matches_the_local_pool(tmp_path, p
     # Training twice from the same seed gives the same weights, bit for bit.
     views = [load_views(tmp_path / "local" / split) for split in ("train", "val")]
     nets = [
-        train_fpcc(*views, local.train, 0.03, seed=5, checkpoint_dir=tmp_path / f"work{k}", extra={"part": "t_joint", "part_diameter_m": 0.068, "features": "normals"}, progress=False)[0]
+        train_fpcc(*views, local.train, 0.03, seed=5, checkpoint_dir=tmp_path / f"work{k}", part="t_joint", part_diameter_m=0.068, progress=False)[0]
         for k in range(2)
     ]
-    for (name, a), b in zip(nets[0].state_dict().items(), nets[1].state_dict().values()):
+    for (name, a), b in zip(nets[0].state_dict().items(), nets[1].state_dict().values(), strict=False):
         assert torch.equal(a, b), name
     checkpoint = tmp_path / "work0" / "best.pt"
     assert checkpoint.read_bytes() == (tmp_path / "work1" / "best.pt").read_bytes()  # byte for byte
@@ -75,6 +75,6 @@ def test_dask_fan_out_on_a_two_worker_cluster_matches_the_local_pool(tmp_path, p
     # The segmentation benchmark scores with the evaluate stage's routine: the same numbers.
     from binpick.bench.segmentation import bench_segment
 
-    bench = bench_segment(checkpoint, tmp_path / "local", local.segment, local.scene_import.voxel_size_m, local.seed, local.evaluate.iou_threshold, repeats=1)
+    bench = bench_segment(checkpoint, tmp_path / "local", local.segment, local.import_capture.voxel_size_m, local.seed, local.evaluate.iou_threshold, repeats=1)
     assert (bench["precision"], bench["recall"]) == (metrics_local["precision"], metrics_local["recall"])
     assert set(bench["baseline_dbscan"]) >= {"precision", "recall"} and bench["infer_ms_per_scene_16384"] > 0

@@ -42,19 +42,19 @@ def test_a_large_part_overrides_camera_and_import_grid(tmp_path, monkeypatch):
     """A large part sets its own camera distance and voxel grid; its captures import on that grid,
     so the network sees at inference the density it was trained on."""
     raw = yaml.safe_load((ROOT / "params.yaml").read_text())
-    raw["parts"]["shaft"] = {"mesh": "shaft.stl", "unit": "m", "camera": {"distance_m": 1.4}, "scene_import": {"voxel_size_m": 0.008}}
+    raw["parts"]["shaft"] = {"mesh": "shaft.stl", "unit": "m", "camera": {"distance_m": 1.4}, "import_capture": {"voxel_size_m": 0.008}}
     raw["captures"]["monday"] = {"file": "monday.ply", "part": "shaft"}
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(raw))
     shaft = load_params(path, "shaft")
-    assert shaft.camera.distance_m == 1.4 and shaft.scene_import.voxel_size_m == 0.008
+    assert shaft.camera.distance_m == 1.4 and shaft.import_capture.voxel_size_m == 0.008
     assert shaft.camera.width_px == load_params(path).camera.width_px  # the rest as before
-    assert load_params(path, "t_joint").scene_import.voxel_size_m == 0.002
-    from stages import import_scene
+    assert load_params(path, "t_joint").import_capture.voxel_size_m == 0.002
+    from stages import import_capture
 
     seen = []
-    monkeypatch.setattr(import_scene, "run", lambda params, *args, **kwargs: seen.append(params.scene_import.voxel_size_m))
-    assert import_scene.main(["--params", str(path), "--name", "monday", "--capture", "monday.ply", "--out", str(tmp_path / "c.npz")]) == 0
+    monkeypatch.setattr(import_capture, "run", lambda params, *args, **kwargs: seen.append(params.import_capture.voxel_size_m))
+    assert import_capture.main(["--params", str(path), "--name", "monday", "--capture", "monday.ply", "--out", str(tmp_path / "c.npz")]) == 0
     assert seen == [0.008]
 
 
@@ -69,11 +69,21 @@ def _write(tmp_path, raw):
 
 
 def _minimal():
-    return {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}}}
+    """The project's sections (params.yaml is the one source of values), one part, one profile."""
+    raw = {k: v for k, v in load_raw(ROOT / "params.yaml").items() if k not in ("parts", "captures", "profiles")}
+    return raw | {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}}}
+
+
+def test_a_key_missing_from_the_file_fails_naming_it(tmp_path):
+    """No default hides a missing setting: the code declares no values of its own."""
+    raw = _minimal()
+    del raw["register"]["min_score"]
+    with pytest.raises(ParamsError, match=r"register\.min_score: Field required"):
+        load_params(_write(tmp_path, raw))
 
 
 def test_misspelt_key_fails_at_load_with_one_line(tmp_path):
-    raw = _minimal() | {"train": {"epoch": 3}}
+    raw = deep_merge(_minimal(), {"train": {"epoch": 3}})
     with pytest.raises(ParamsError) as err:
         load_params(_write(tmp_path, raw), "a")
     msg = str(err.value)
@@ -81,7 +91,7 @@ def test_misspelt_key_fails_at_load_with_one_line(tmp_path):
 
 
 def test_bad_value_and_missing_profile_section(tmp_path):
-    raw = _minimal() | {"train": {"eps1": 2.0, "eps2": 1.0}}
+    raw = deep_merge(_minimal(), {"train": {"eps1": 2.0, "eps2": 1.0}})
     with pytest.raises(ParamsError, match="eps1"):
         load_params(_write(tmp_path, raw), "a")
     raw = _minimal()
@@ -91,7 +101,7 @@ def test_bad_value_and_missing_profile_section(tmp_path):
 
 
 def test_register_section_is_the_registration_attribute(tmp_path):
-    raw = _minimal() | {"register": {"min_score": 0.7}}
+    raw = deep_merge(_minimal(), {"register": {"min_score": 0.7}})
     assert load_params(_write(tmp_path, raw)).registration.min_score == 0.7
 
 

@@ -4,9 +4,9 @@ restored by `dvc repro`."""
 
 import json
 import shutil
-from pathlib import Path
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +20,10 @@ TINY = {
     "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
     "train": {"n_points": 512, "width": 8, "embedding_dim": 8, "k_neighbours": 8, "epochs": 2, "batch_size": 2, "loss_anchors": 128},
     "evaluate": {"accept_precision": 0.0, "accept_recall": 0.0},  # every model is accepted
-    "scene_import": {},
+    "import_capture": {},
     "segment": {"n_points": 512},
     "register": {},
-    "demo_capture": {"n_objects": 4, "downscale": 4},
+    "render_demo": {"n_objects": 4, "downscale": 4},
 }
 
 
@@ -200,7 +200,7 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     env = {**os.environ, "PREFECT_HOME": str(project / "data" / "prefect"), "TQDM_DISABLE": "1"}
     env.pop("PREFECT_API_URL", None)
     proc = subprocess.Popen(
-        [sys.executable, "-m", "binpick.cli", "serve", "--interval-s", "5", "--port", str(port)],
+        [sys.executable, "-m", "flows.cli", "serve", "--interval-s", "5", "--port", str(port)],
         cwd=project, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     api_url = f"http://127.0.0.1:{port}/api"

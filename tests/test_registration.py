@@ -1,19 +1,24 @@
 import numpy as np
 import pytest
 
-from binpick.generation.scene import ViewParams, generate_scene
+from binpick.generation.scene import generate_scene
 from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
+from binpick.io.poses import PartPose
 from binpick.io.ppf_model import load_ppf_model, save_ppf_model
 from binpick.metrics.pose import pose_errors
-from binpick.params import CameraParams, GenerateParams, RegisterParams
-from binpick.registration.ppf import match_segment, score_pose, train_ppf
+from binpick.registration.matching import match_segment
+from binpick.registration.model import train_ppf
+from binpick.registration.verification import score_pose
+from binpick.view import ViewParams
+
+from settings import PARAMS, changed
 
 
 @pytest.fixture(scope="module")
 def ppf(t_joint):
-    return train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), RegisterParams())
+    return train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), PARAMS.registration)
 
 
 def test_ppf_model_roundtrip(tmp_path, ppf):
@@ -24,7 +29,7 @@ def test_ppf_model_roundtrip(tmp_path, ppf):
 
 
 def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):
-    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4)
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4)
     xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
     syms = symmetry_transforms(t_joint.symmetry)
     checked = 0
@@ -33,7 +38,7 @@ def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):
             continue
         pts = xyz[(labels == i) & np.isfinite(xyz[:, 2])]
         pts = pts[voxel_downsample_indices(pts, 0.002)]
-        est = match_segment(ppf, pts, estimate_normals(pts, 0.006), RegisterParams(), np.random.default_rng(0))
+        est = match_segment(ppf, pts, estimate_normals(pts, 0.006), PARAMS.registration, np.random.default_rng(0))
         e = pose_errors(est.T_cam_from_model, T_gt, t_joint.points_m, syms, t_joint.diameter_m)
         assert e["rot_err_deg"] < 2.0 and e["trans_err_mm"] < 2.0, e
         assert 0.5 < est.score <= 1.0
@@ -52,38 +57,38 @@ def test_score_drops_for_a_wrong_pose(t_joint, ppf):
 
 
 def test_duplicate_poses_are_suppressed_up_to_symmetry(ppf):
-    from binpick.registration.ppf import PoseEstimate, suppress_duplicates
+    from binpick.registration.matching import suppress_duplicates
 
     T = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
     twin = T @ ppf.symmetries[1]  # the same physical pose, written the other way round
     other = make_T(np.eye(3), np.array([0.1, 0.0, 0.5]))
-    ests = [PoseEstimate(twin, 0.6, 10), PoseEstimate(T, 0.7, 10), PoseEstimate(other, 0.5, 10)]
-    assert suppress_duplicates(ppf, ests, RegisterParams()) == [1, 2]
+    ests = [PartPose(twin, 0.6), PartPose(T, 0.7), PartPose(other, 0.5)]
+    assert suppress_duplicates(ppf, ests, PARAMS.registration) == [1, 2]
 
 
 def test_a_wrong_fit_on_a_fragment_of_a_part_found_whole_is_suppressed(t_joint, ppf):
     """One part split into two segments: the big one gives the right pose, the fragment a pose
     turned 30 degrees and shifted (no pose duplicate). The fragment's supporting points are all
     explained by the right pose, so it goes; a second part elsewhere stays."""
-    from binpick.registration.ppf import PoseEstimate, suppress_duplicates
+    from binpick.registration.matching import suppress_duplicates
 
-    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
     pts = scene.view_points_m.astype(np.float64)
     right, elsewhere = scene.T_cam_from_model[0], scene.T_cam_from_model[1]
     wrong = right @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(30)), np.array([0.004, 0.0, 0.0]))
-    ests = [PoseEstimate(right, 0.7, 10), PoseEstimate(wrong, 0.5, 10), PoseEstimate(elsewhere, 0.4, 10)]
-    assert suppress_duplicates(ppf, ests, RegisterParams()) == [0, 1, 2]  # pose duplicates only
-    assert suppress_duplicates(ppf, ests, RegisterParams(), pts) == [0, 2]
+    ests = [PartPose(right, 0.7), PartPose(wrong, 0.5), PartPose(elsewhere, 0.4)]
+    assert suppress_duplicates(ppf, ests, PARAMS.registration) == [0, 1, 2]  # pose duplicates only
+    assert suppress_duplicates(ppf, ests, PARAMS.registration, pts) == [0, 2]
 
 
 def test_whole_scene_matching_finds_every_part_without_segments(t_joint, ppf):
     """The network's view of a rendered bin, no labels: every pickable part is found once, at
     its ground-truth pose, and nothing else."""
     from binpick.metrics.pose import scene_pose_metrics
-    from binpick.registration.ppf import match_scene
+    from binpick.registration.matching import match_scene
 
-    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
-    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), RegisterParams(), np.random.default_rng(0), max_instances=10)
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), PARAMS.registration, np.random.default_rng(0), max_instances=10)
     summary, _ = scene_pose_metrics(
         np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), scene.T_cam_from_model, scene.visible_fraction,
         ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
@@ -99,11 +104,11 @@ def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
     """With the poses of some parts given as found (as the segments mode gives them), the
     whole-scene pass returns the other parts only."""
     from binpick.metrics.pose import scene_pose_metrics
-    from binpick.registration.ppf import match_scene
+    from binpick.registration.matching import match_scene
 
-    scene = generate_scene(t_joint, GenerateParams(), CameraParams(downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
     known, rest = scene.T_cam_from_model[:3], scene.T_cam_from_model[3:]
-    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), RegisterParams(), np.random.default_rng(0), known=list(known))
+    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), PARAMS.registration, np.random.default_rng(0), known=list(known))
     summary, _ = scene_pose_metrics(
         np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), rest, scene.visible_fraction[3:],
         ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
@@ -114,7 +119,8 @@ def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
 def test_scene_pairs_match_the_training_features():
     """The scene side (one compiled pass) must quantise exactly like the model table, built from
     _features, _keys and _alpha, or votes miss their model pairs."""
-    from binpick.registration.ppf import _align_to_x, _alpha, _features, _keys, _scene_pairs
+    from binpick.registration.model import _align_to_x, _alpha, _features, _keys
+    from binpick.registration.voting import _scene_pairs
 
     rng = np.random.default_rng(3)
     pts = rng.uniform(-0.05, 0.05, (300, 3))

@@ -13,10 +13,11 @@ from binpick.bench import machine
 from binpick.bench.parts import bench_parts
 from binpick.generation.overlap import penetration_depths_m
 from binpick.generation.placement import place_objects
-from binpick.generation.scene import ViewParams, render_scene, settle_in_bin
+from binpick.generation.scene import render_scene, settle_in_bin
 from binpick.geometry.transforms import invert_T, make_T, random_rotation, transform_points
 from binpick.io.part_model import PartModel
-from binpick.params import BinParams, CameraParams, GenerateParams, PlacementParams
+from binpick.params import BinParams, Params
+from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
 
@@ -33,10 +34,11 @@ def view_for(part: PartModel) -> ViewParams:
     return ViewParams(voxel_size_m=voxel, normal_radius_m=3.0 * voxel)
 
 
-def bin_for(part: PartModel) -> BinParams:
-    """A bin sized to the part: the default bin, or larger for parts that would not fit."""
+def bin_for(part: PartModel, bin_params: BinParams) -> BinParams:
+    """A bin sized to the part: the configured bin, or larger for parts that would not fit."""
     d = part.diameter_m
-    return BinParams(inner_x_m=max(0.30, 4.5 * d), inner_y_m=max(0.20, 3.0 * d), wall_height_m=max(0.08, d))
+    return bin_params.model_copy(update={"inner_x_m": max(bin_params.inner_x_m, 4.5 * d), "inner_y_m": max(bin_params.inner_y_m, 3.0 * d),
+                                          "wall_height_m": max(bin_params.wall_height_m, d)})
 
 
 def rejection_baseline(part: PartModel, n: int, bin_params: BinParams, rng: np.random.Generator) -> np.ndarray:
@@ -58,6 +60,7 @@ def rejection_baseline(part: PartModel, n: int, bin_params: BinParams, rng: np.r
                 best, best_inside = T, inside
             if inside == 0:
                 break
+        assert best is not None  # the first try always sets it
         poses.append(best)
     return np.stack(poses)
 
@@ -70,7 +73,7 @@ def max_penetration_mm(part: PartModel, poses: np.ndarray, rng: np.random.Genera
 
 
 def bench_generate(
-    parts: list[str] | None = None, scenes: int = 3, baseline_scenes: int = 2, seed: int = 0, counts: tuple[int, ...] = COUNTS
+    settings: Params, parts: list[str] | None = None, scenes: int = 3, baseline_scenes: int = 2, seed: int = 0, counts: tuple[int, ...] = COUNTS
 ) -> dict[str, object]:
     import torch
 
@@ -78,21 +81,23 @@ def bench_generate(
     models = bench_parts(parts)
     out: dict[str, object] = {"setup": {"parts": [p.name for p in models], "counts": list(counts), "scenes": scenes,
                                         "baseline_scenes": baseline_scenes, "baseline_retries": BASELINE_RETRIES,
-                                        "resolution": "1920x1200", "rendering": "ray casting, sensor noise, visibility, network view (voxel max(2 mm, diameter / 50))", "machine": machine()}}
+                                        "resolution": "1920x1200",
+                                        "rendering": "ray casting, sensor noise, visibility, network view (voxel max(2 mm, diameter / 50))", "machine": machine()}}
     ours: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
     base: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": []} for n in counts}
     physics: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
     for part in models:
-        bin_params = bin_for(part)
-        camera = CameraParams(distance_m=max(0.5, 1.6 * bin_params.inner_x_m))
+        bin_params = bin_for(part, settings.generate.bin)
+        camera = settings.camera.model_copy(update={"downscale": 1, "distance_m": max(settings.camera.distance_m, 1.6 * bin_params.inner_x_m)})
+        drop = settings.generate.placement.model_copy(update={"mode": "drop"})
         view = view_for(part)
         for n in counts:
             for k in range(scenes):
                 rng = np.random.default_rng([seed, n, k])
                 t0 = time.perf_counter()
-                placed = place_objects(part.points_m, n, bin_params, PlacementParams(), rng)
+                placed = place_objects(part.points_m, n, bin_params, drop, rng)
                 t1 = time.perf_counter()
-                render_scene(part, placed.T_bin_from_model, GenerateParams(bin=bin_params), camera, view, rng)
+                render_scene(part, placed.T_bin_from_model, settings.generate.model_copy(update={"bin": bin_params, "placement": drop}), camera, view, rng)
                 t2 = time.perf_counter()
                 r = ours[str(n)]
                 r["s"].append(t2 - t0)
@@ -100,7 +105,7 @@ def bench_generate(
                 r["placed"].append(len(placed.T_bin_from_model))
                 r["pen"].append(max_penetration_mm(part, placed.T_bin_from_model, rng))
                 # The physics mode on the same start: drop placement, then settling by simulation.
-                gen = GenerateParams(bin=bin_params, placement=PlacementParams(mode="physics"))
+                gen = settings.generate.model_copy(update={"bin": bin_params, "placement": drop.model_copy(update={"mode": "physics"})})
                 if k == 0 and n == counts[0]:
                     settle_in_bin(part, placed.T_bin_from_model[:1], gen, rng)  # the convex decomposition, once per part
                 t3 = time.perf_counter()
@@ -133,9 +138,10 @@ def bench_generate(
 
     out["binpick"] = {n: summarise(d, True) for n, d in ours.items()}
     out["binpick_physics"] = {n: summarise(d, True) for n, d in physics.items()}
-    out["rejection_baseline"] = {n: summarise(d, False) for n, d in base.items()}
+    baseline = {n: summarise(d, False) for n, d in base.items()}
+    out["rejection_baseline"] = baseline
     top = str(max(counts))
-    out[f"speedup_at_{top}"] = out["rejection_baseline"][top]["s_per_scene_median"] / out["binpick"][top]["s_per_scene_median"]
+    out[f"speedup_at_{top}"] = baseline[top]["s_per_scene_median"] / out["binpick"][top]["s_per_scene_median"]  # type: ignore[index]
     out["note"] = ("binpick times include rendering at 1920x1200 with noise; binpick_physics adds settling by rigid-body "
                    "simulation (its place_s_median is placement + settling); the baseline times are placement only, as in the original work")
     return out

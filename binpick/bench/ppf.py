@@ -17,8 +17,9 @@ from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import make_T, random_rotation, transform_points
 from binpick.io.part_model import PartModel
 from binpick.metrics.pose import pose_errors
-from binpick.params import CameraParams, RegisterParams
-from binpick.registration.ppf import match_segment, train_ppf
+from binpick.params import Params, RegisterParams
+from binpick.registration.matching import match_segment
+from binpick.registration.model import train_ppf
 
 log = logging.getLogger(__name__)
 
@@ -71,10 +72,11 @@ def _opencv(part: PartModel, params: RegisterParams):
     idx = voxel_downsample_indices(part.points_m, params.sample_step_rel * part.diameter_m)
     model_pc = np.hstack([part.points_m[idx], part.normals[idx]]).astype(np.float32)
     t0 = time.perf_counter()
-    detector = cv2.ppf_match_3d_PPF3DDetector(params.sample_step_rel, params.distance_step_rel)
+    detector = cv2.ppf_match_3d_PPF3DDetector(  # type: ignore[attr-defined]  # opencv-contrib, not in cv2's stubs
+        params.sample_step_rel, params.distance_step_rel)
     detector.trainModel(model_pc)
     train_s = time.perf_counter() - t0
-    icp = cv2.ppf_match_3d_ICP(100, 0.005, 2.5, 8)
+    icp = cv2.ppf_match_3d_ICP(100, 0.005, 2.5, 8)  # type: ignore[attr-defined]
 
     def match(pts, nrm):
         scene_pc = np.hstack([pts, nrm]).astype(np.float32)
@@ -95,7 +97,7 @@ def _open3d(part: PartModel, params: RegisterParams):
     src = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(part.points_m[idx].astype(np.float64)))
     src.normals = o3d.utility.Vector3dVector(part.normals[idx].astype(np.float64))
     feature = o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel, max_nn=100)
-    src_fpfh = reg.compute_fpfh_feature(src, feature)
+    src_fpfh = reg.compute_fpfh_feature(src, feature)  # type: ignore[call-arg]  # indices is optional at run time
     train_s = time.perf_counter() - t0
     dense = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(part.points_m.astype(np.float64)))
     dense.normals = o3d.utility.Vector3dVector(part.normals.astype(np.float64))
@@ -142,10 +144,13 @@ def _summarise(rows: list[dict[str, float]], train_s: list[float]) -> dict[str, 
     }
 
 
-def bench_ppf(parts: list[str] | None = None, trials: int = 20, methods: list[str] | None = None, seed: int = 0) -> dict[str, object]:
+def bench_ppf(
+    settings: Params, parts: list[str] | None = None, trials: int = 20, methods: list[str] | None = None, seed: int = 0
+) -> dict[str, object]:
+    """settings: the project's params (the register section and the camera are used)."""
     methods = methods or list(METHODS)
-    params = RegisterParams()
-    intr = Intrinsics.from_params(CameraParams(downscale=2))
+    params = settings.registration
+    intr = Intrinsics.from_params(settings.camera.model_copy(update={"downscale": 2}))
     models = bench_parts(parts)
     per_method: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     per_part: dict[str, dict[str, dict[str, float]]] = {}
@@ -176,5 +181,5 @@ def bench_ppf(parts: list[str] | None = None, trials: int = 20, methods: list[st
         "clutter_fraction": CLUTTER_FRACTION, "machine": machine(),
     }
     if "binpick_ppf" in methods and "opencv_ppf_icp" in methods:
-        result["speedup_vs_opencv"] = result["opencv_ppf_icp"]["ms_per_instance_median"] / result["binpick_ppf"]["ms_per_instance_median"]
+        result["speedup_vs_opencv"] = result["opencv_ppf_icp"]["ms_per_instance_median"] / result["binpick_ppf"]["ms_per_instance_median"]  # type: ignore[index]
     return result

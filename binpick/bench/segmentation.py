@@ -14,13 +14,11 @@ import torch
 from binpick.bench import machine
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-from binpick.network.checkpoint import load_checkpoint
 from binpick.network.evaluate import segment_and_count
-from binpick.network.infer import cluster_params, segment_scene
+from binpick.network.infer import default_device, load_segmenter
 from binpick.network.loss import fpcc_loss
 from binpick.network.model import input_features
-from binpick.network.train import default_device
-from binpick.params import SegmentParams, TrainParams
+from binpick.params import SegmentParams
 
 SCENE_SIZES = (16384, 65536)
 DBSCAN_EPS_PER_VOXEL = 2.0  # neighbours within two grid cells are one cluster
@@ -49,16 +47,15 @@ def bench_segment(
     """seed and iou_threshold as in params.yaml: the network's precision and recall are then
     those of the evaluate stage on the same checkpoint and scenes (the same routine scores both)."""
     device = default_device()
-    model, state = load_checkpoint(checkpoint, device)
-    extra = state["extra"]
-    cp = cluster_params(segment, extra["part_diameter_m"], extra.get("clustering"))
+    segmenter = load_segmenter(checkpoint, segment, device)
+    model, settings = segmenter.network, segmenter.settings
     paths = list_scenes(scenes / "test")
     if not paths:
         raise ValueError(f"{scenes / 'test'} holds no scenes")
     ours, base = SegmentationCounts(), SegmentationCounts()
     for i, path in enumerate(paths):
         s = load_scene(path)
-        ours = ours.add(segment_and_count(model, extra, s, segment, iou_threshold, seed, i)[1])
+        ours = ours.add(segment_and_count(segmenter, s, segment, iou_threshold, seed, i)[1])
         db = dbscan_labels(s.view_points_m, DBSCAN_EPS_PER_VOXEL * voxel_size_m, 10)
         base = base.add(scene_counts(db, s.view_labels, iou_threshold, segment.min_points))
     out: dict[str, object] = {**{k: v for k, v in ours.summary().items()}, "n_scenes": len(paths), "device": str(device)}
@@ -68,16 +65,16 @@ def bench_segment(
     rng = np.random.default_rng(0)
     for n in SCENE_SIZES:
         P, N = _sized(s.view_points_m, s.view_normals, n, rng)
-        segment_scene(model, P, N, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)  # warm-up
+        segmenter.segment(P, N, rng)  # warm-up
         t = []
         for _ in range(repeats):
             t0 = time.perf_counter()
-            segment_scene(model, P, N, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)
+            segmenter.segment(P, N, rng)
             t.append(time.perf_counter() - t0)
         out[f"infer_ms_per_scene_{n}"] = 1000.0 * float(np.median(t))
 
     # Training throughput: forward + loss + backward + step on batches of 4 crops of 4,096 points.
-    tp = TrainParams(**state["extra"]["train_params"])
+    tp = settings.train
     train_model = type(model)(model.config).to(device).train()
     opt = torch.optim.Adam(train_model.parameters(), lr=1e-4)
     P, N = _sized(s.view_points_m, s.view_normals, 4 * 4096, rng)
@@ -89,8 +86,8 @@ def bench_segment(
     steps = []
     for k in range(repeats + 1):
         t0 = time.perf_counter()
-        emb, ctr = train_model(input_features(pts, nrm, tp.features, extra["d_max_m"]), pts)
-        loss, _ = fpcc_loss(emb, ctr, pts, lab, extra["d_max_m"], tp.eps1, tp.eps2, tp.centre_loss_weight, tp.centre_score_form, tp.loss_anchors)
+        emb, ctr = train_model(input_features(pts, nrm, tp.features, settings.d_max_m), pts)
+        loss, _ = fpcc_loss(emb, ctr, pts, lab, settings.d_max_m, tp.eps1, tp.eps2, tp.centre_loss_weight, tp.centre_score_form, tp.loss_anchors)
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -79,8 +79,8 @@ def _scene(meshes: list[tuple[np.ndarray, np.ndarray]]) -> o3d.t.geometry.Raycas
     scene = o3d.t.geometry.RaycastingScene()
     for vertices, faces in meshes:
         scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),
+            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),  # type: ignore[call-overload]  # Open3D's stub lacks the array form
+            o3d.core.Tensor(np.ascontiguousarray(faces, dtype=np.uint32)),  # type: ignore[call-overload]
         )
     return scene
 
@@ -129,7 +129,7 @@ def render(
         sel = np.flatnonzero(mask)
     if len(sel) and meshes_cam:
         rays = _rays(intr).reshape(-1, 6)
-        hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))
+        hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))  # type: ignore[call-overload]
         label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
         _composite(sel, hit["t_hit"].numpy(), hit["geometry_ids"].numpy(), hit["primitive_normals"].numpy(), rays[:, 3:], label_of,
                    xyz, normals, labels)
@@ -226,7 +226,7 @@ def visible_fractions(
         v0, v1, u0, u1 = box
         s = max(1, int(np.sqrt((v1 - v0) * (u1 - u0) / VISIBILITY_SAMPLES)))
         rays = np.ascontiguousarray(rays_all[v0:v1:s, u0:u1:s])
-        alone = np.isfinite(_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()
+        alone = np.isfinite(_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()  # type: ignore[call-overload]
         if alone:
             out[i] = min(1.0, np.count_nonzero(labels[v0:v1:s, u0:u1:s] == i) / alone)
     return out

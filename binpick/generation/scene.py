@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -12,70 +11,16 @@ from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, re
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
-from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.part_model import PartModel
+from binpick.io.scene import SyntheticScene
 from binpick.params import CameraParams, GenerateParams
-
+from binpick.view import ViewParams, labelled_view
 
 log = logging.getLogger(__name__)
 
 # Surface points per object in the physics mode's penetration check.
 PENETRATION_SAMPLE = 400
-
-
-@dataclass(frozen=True)
-class ViewParams:
-    """How the network's view of a scene is made; the same settings as the scene import, so that
-    training sees the point density that inference sees."""
-
-    voxel_size_m: float
-    normal_radius_m: float
-
-
-@dataclass(frozen=True)
-class SyntheticScene:
-    """A rendered scene with ground truth (spec: data/README.md#scene).
-
-    xyz_m            : (H, W, 3) float32, camera frame, metres, NaN = no return
-    labels           : (H, W) int16, instance index, -1 = bin, floor or nothing
-    K                : (3, 3) float64 intrinsics of the organized frame
-    T_cam_from_model : (k, 4, 4) float64, ground-truth pose of instance i at index i
-    visible_fraction : (k,) float64, share of each instance's unoccluded image area that is visible
-    T_cam_from_bin   : (4, 4) float64
-    view_points_m    : (N, 3) float32, the network's view: every part point on the voxel grid, camera frame
-    view_normals     : (N, 3) float32, normals estimated like at import, facing the camera
-    view_labels      : (N,) int16, instance index of each view point
-    """
-
-    xyz_m: np.ndarray
-    labels: np.ndarray
-    K: np.ndarray
-    T_cam_from_model: np.ndarray
-    visible_fraction: np.ndarray
-    T_cam_from_bin: np.ndarray
-    view_points_m: np.ndarray
-    view_normals: np.ndarray
-    view_labels: np.ndarray
-
-
-def make_view(xyz_m: np.ndarray, labels: np.ndarray, view: ViewParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The network's view of an organized frame: the labelled points on the voxel grid, with
-    normals estimated as at import.
-
-    xyz_m (H, W, 3) camera frame; labels (H, W). Returns points (N, 3) float32, normals (N, 3)
-    float32, labels (N,) int16.
-    """
-    flat_xyz = xyz_m.reshape(-1, 3)
-    flat_lab = labels.reshape(-1)
-    keep = np.isfinite(flat_xyz[:, 2]) & (flat_lab >= 0)
-    pts, lab = flat_xyz[keep], flat_lab[keep]
-    idx = voxel_downsample_indices(pts, view.voxel_size_m)
-    pts, lab = pts[idx], lab[idx]
-    if len(pts) == 0:
-        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int16)
-    normals = estimate_normals(pts, view.normal_radius_m)
-    return pts.astype(np.float32), normals, lab.astype(np.int16)
 
 
 def render_scene(
@@ -96,7 +41,7 @@ def render_scene(
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
     noisy = apply_sensor_noise(clean, generate.noise, rng)
-    vp, vn, vl = make_view(noisy.xyz_m, noisy.labels, view)
+    vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
         xyz_m=noisy.xyz_m,
         labels=noisy.labels.astype(np.int16),

@@ -1,16 +1,15 @@
-"""Cleaned scene clouds (`cloud.npz`), their segmentations (`segments.npz`) and pose lists
-(`poses.json`, also used for ground truth). Spec: data/README.md#capture-results."""
+"""Cleaned scene clouds (`cloud.npz`) and their segmentations (`segments.npz`).
+Spec: data/README.md#capture-results."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from binpick.errors import InputError
-from binpick.io.atomic import atomic_path, write_text
+from binpick.io.atomic import atomic_path
 from binpick.io.npz import load_fields, save_fields
 
 
@@ -59,47 +58,3 @@ def load_segments(path: str | Path) -> np.ndarray:
             return z["labels"]
     except (KeyError, ValueError, OSError) as exc:
         raise InputError(path, f"not a binpick segments file ({exc})") from None
-
-
-@dataclass(frozen=True)
-class PoseRecord:
-    """One part in a scene: T_cam_from_model (4, 4) metres; score in [0, 1] (1 for ground truth);
-    segment: the instance label it came from (-1 if none); extra numbers (visible fraction, ...)."""
-
-    T_cam_from_model: np.ndarray
-    score: float = 1.0
-    segment: int = -1
-    extra: dict | None = None
-
-
-def save_poses(path: str | Path, part: str, poses: list[PoseRecord]) -> None:
-    doc = {
-        "part": part,
-        "unit": "m",
-        "frame": "camera",
-        "poses": [
-            {
-                "T_cam_from_model": np.asarray(p.T_cam_from_model, dtype=float).round(9).tolist(),
-                "score": round(float(p.score), 6),
-                "segment": int(p.segment),
-                **({"extra": p.extra} if p.extra else {}),
-            }
-            for p in poses
-        ],
-    }
-    write_text(path, json.dumps(doc, indent=1) + "\n")
-
-
-def load_poses(path: str | Path) -> tuple[str, list[PoseRecord]]:
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "pose file not found")
-    try:
-        doc = json.loads(path.read_text())
-        poses = [
-            PoseRecord(np.asarray(p["T_cam_from_model"], dtype=np.float64).reshape(4, 4), float(p["score"]), int(p.get("segment", -1)), p.get("extra"))
-            for p in doc["poses"]
-        ]
-        return str(doc["part"]), poses
-    except (KeyError, ValueError, TypeError) as exc:
-        raise InputError(path, f"not a binpick pose file ({type(exc).__name__}: {exc})") from None

@@ -19,7 +19,10 @@ def save_fields(path: str | Path, obj: Any, compressed: bool = True) -> None:
     """Write every field of a dataclass as an array, atomically. Same content, same bytes."""
     arrays = {f.name: np.asarray(getattr(obj, f.name)) for f in fields(obj)}
     with atomic_path(path) as tmp:
-        (np.savez_compressed if compressed else np.savez)(tmp, **arrays)
+        if compressed:
+            np.savez_compressed(tmp, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as bool
+        else:
+            np.savez(tmp, **arrays)  # type: ignore[arg-type]
 
 
 def load_fields(path: str | Path, cls: type[T], what: str, missing: str) -> dict[str, np.ndarray]:
@@ -30,6 +33,6 @@ def load_fields(path: str | Path, cls: type[T], what: str, missing: str) -> dict
         raise InputError(path, missing)
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {f.name: z[f.name] for f in fields(cls)}
+            return {f.name: z[f.name] for f in fields(cls)}  # type: ignore[arg-type]  # cls is a dataclass
     except (KeyError, ValueError, OSError) as exc:
         raise InputError(path, f"not a binpick {what} ({exc})") from None

@@ -78,7 +78,7 @@ def load_pcd(path: str | Path) -> PointCloudData:
         kind = header["DATA"][0].lower()
     except (KeyError, ValueError, IndexError) as exc:
         raise InputError(path, f"malformed PCD header ({exc})") from None
-    dtype = np.dtype([(f"{f}{j}" if c > 1 else f, "<" + _TYPES[(t, s)]) for f, s, t, c in zip(fields, sizes, types, counts) for j in range(c)])
+    dtype = np.dtype([(f"{f}{j}" if c > 1 else f, "<" + _TYPES[(t, s)]) for f, s, t, c in zip(fields, sizes, types, counts, strict=False) for j in range(c)])
     body = raw[start:]
     try:
         if kind == "ascii":
@@ -86,7 +86,7 @@ def load_pcd(path: str | Path) -> PointCloudData:
             if len(table) != n:
                 raise ValueError(f"{len(table)} rows for {n} points")
             data = np.empty(n, dtype)
-            for k, name in enumerate(dtype.names):
+            for k, name in enumerate(dtype.names or ()):
                 data[name] = table[:, k]
         elif kind == "binary":
             if len(body) < n * dtype.itemsize:
@@ -98,7 +98,7 @@ def load_pcd(path: str | Path) -> PointCloudData:
             # Compressed PCDs store each field as a contiguous column.
             data = np.empty(n, dtype)
             off = 0
-            for name in dtype.names:
+            for name in dtype.names or ():
                 col = np.dtype(dtype[name])
                 data[name] = columns[off : off + n * col.itemsize].view(col)
                 off += n * col.itemsize
@@ -106,7 +106,7 @@ def load_pcd(path: str | Path) -> PointCloudData:
             raise ValueError(f"unknown DATA kind {kind!r}")
     except (ValueError, KeyError, IndexError) as exc:
         raise InputError(path, f"PCD data unreadable or truncated ({exc})") from None
-    names = set(dtype.names)
+    names = set(dtype.names or ())
     if not {"x", "y", "z"} <= names:
         raise InputError(path, "PCD has no x, y, z fields")
     xyz = np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32)

@@ -1,11 +1,47 @@
-"""Trained PPF models (`ppf.npz`). Spec: data/README.md#ppf-model."""
+"""Trained PPF models (`ppf.npz`) and their type. Spec: data/README.md#ppf-model."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
 
 from binpick.io.npz import load_fields, save_fields
-from binpick.registration.ppf import PPFModel
+
+
+@dataclass(frozen=True)
+class PPFModel:
+    """A trained PPF model.
+
+    points_m (M, 3), normals (M, 3): subsampled model surface, model frame.
+    keys (P,) int64 sorted; ref_index (P,) int32 model reference point of each pair; alpha (P,)
+    float32 angle alpha_m of each pair, radians in (-pi, pi]; key_starts (K + 1,) int64: the pairs
+    of key k are keys[key_starts[k]:key_starts[k + 1]] (an O(1) lookup).
+    dense_points_m, dense_normals: the full surface sample, for scoring and ICP.
+    symmetries (m, 4, 4): transforms of the model frame onto itself, identity first.
+    """
+
+    points_m: np.ndarray
+    normals: np.ndarray
+    keys: np.ndarray
+    ref_index: np.ndarray
+    alpha: np.ndarray
+    key_starts: np.ndarray
+    dense_points_m: np.ndarray
+    dense_normals: np.ndarray
+    symmetries: np.ndarray
+    diameter_m: float
+    distance_step_m: float
+    angle_bins: int
+
+    @cached_property
+    def dense_tree(self) -> cKDTree:
+        """A k-d tree of dense_points_m (model frame), built on first use and kept with the model."""
+        return cKDTree(self.dense_points_m)
 
 
 def save_ppf_model(path: str | Path, model: PPFModel) -> None:
@@ -13,7 +49,7 @@ def save_ppf_model(path: str | Path, model: PPFModel) -> None:
 
 
 def load_ppf_model(path: str | Path) -> PPFModel:
-    values = load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)")
+    values: dict[str, Any] = dict(load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)"))
     for name in ("diameter_m", "distance_step_m"):
         values[name] = float(values[name])
     values["angle_bins"] = int(values["angle_bins"])

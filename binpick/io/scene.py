@@ -5,14 +5,41 @@ Spec: data/README.md#scene.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
 
-from binpick.generation.scene import SyntheticScene
 from binpick.io.atomic import atomic_path
 from binpick.io.npz import load_fields, save_fields
+
+
+@dataclass(frozen=True)
+class SyntheticScene:
+    """A rendered scene with ground truth (spec: data/README.md#scene).
+
+    xyz_m            : (H, W, 3) float32, camera frame, metres, NaN = no return
+    labels           : (H, W) int16, instance index, -1 = bin, floor or nothing
+    K                : (3, 3) float64 intrinsics of the organized frame
+    T_cam_from_model : (k, 4, 4) float64, ground-truth pose of instance i at index i
+    visible_fraction : (k,) float64, share of each instance's unoccluded image area that is visible
+    T_cam_from_bin   : (4, 4) float64
+    view_points_m    : (N, 3) float32, the network's view: every part point on the voxel grid, camera frame
+    view_normals     : (N, 3) float32, normals estimated like at import, facing the camera
+    view_labels      : (N,) int16, instance index of each view point
+    """
+
+    xyz_m: np.ndarray
+    labels: np.ndarray
+    K: np.ndarray
+    T_cam_from_model: np.ndarray
+    visible_fraction: np.ndarray
+    T_cam_from_bin: np.ndarray
+    view_points_m: np.ndarray
+    view_normals: np.ndarray
+    view_labels: np.ndarray
+
 
 # Fixed colours so that instance i has the same colour in every image and recording.
 _PALETTE_SEED = 12345

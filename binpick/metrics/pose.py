@@ -96,7 +96,7 @@ def scene_pose_metrics(
         c_est = np.stack([T[:3, :3] @ centre + T[:3, 3] for T in T_est])
         c_gt = np.stack([T[:3, :3] @ centre + T[:3, 3] for T in T_gt])
         cost = np.linalg.norm(c_est[:, None] - c_gt[None], axis=2)
-        for e, g in zip(*linear_sum_assignment(cost)):
+        for e, g in zip(*linear_sum_assignment(cost), strict=False):
             if cost[e, g] < 0.5 * diameter_m:
                 per_est[e] = {**pose_errors(T_est[e], T_gt[g], model_points, symmetries, diameter_m), "gt_index": float(g)}
     matched = [m for m in per_est if m]

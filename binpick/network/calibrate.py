@@ -8,10 +8,13 @@ outputs are computed once per validation scene; only the clustering is repeated 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-from binpick.network.infer import Block, ClusterParams, cluster_params, label_blocks, predict_blocks
+from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network, write_with_clustering
+from binpick.network.infer import Block, ClusterParams, cluster_params, default_device, label_blocks, predict_blocks
 from binpick.network.model import FPCC
 from binpick.network.train import Views
 from binpick.params import SegmentParams
@@ -22,7 +25,7 @@ EMBEDDING_GRID_PER_EPS2 = (0.8, 0.9, 1.0, 1.07, 1.17)  # around the margin the l
 # false instances are slivers of a part cut off at a block edge or an occlusion (on the ring
 # screw's test scenes 24 of 31 were fragments of one part, median 77 points of about 760).
 INSTANCE_SIZE_GRID_PER_MEDIAN = (0.0, 0.05, 0.1, 0.15, 0.2)
-# The chosen values a checkpoint keeps (extra["clustering"]), read by infer.cluster_params.
+# The chosen values a checkpoint keeps (its CalibratedClustering).
 CALIBRATED = ("centre_threshold", "embedding_threshold", "min_instance_points")
 
 
@@ -53,7 +56,7 @@ def calibrate_clustering(
             for min_size in size_grid:
                 cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size)
                 counts = SegmentationCounts()
-                for (points, _, labels), blocks in zip(views, predicted):
+                for (points, _, labels), blocks in zip(views, predicted, strict=False):
                     counts = counts.add(scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points))
                 s = counts.summary()
                 rank = (min(s["precision"], s["recall"]), s["precision"] + s["recall"])
@@ -64,19 +67,31 @@ def calibrate_clustering(
     return best[1]
 
 
-def calibrate_checkpoint(
+def calibrate_network(
     model: FPCC,
-    extra: dict,
+    settings: InferenceSettings,
     views: Views,
     segment: SegmentParams,
     iou_threshold: float,
     rng: np.random.Generator,
 ) -> dict[str, float]:
-    """calibrate_clustering for a trained checkpoint: its inference settings from extra
-    (part_diameter_m, features, d_max_m, train_params), the suppression radius, block size and
-    scored instance size from segment."""
+    """calibrate_clustering for a trained network with its inference settings; the suppression
+    radius, block size and scored instance size from segment."""
     return calibrate_clustering(
-        model, views.scenes(), extra["features"], extra["d_max_m"], segment.n_points,
-        cluster_params(segment, extra["part_diameter_m"]).nms_radius_m, segment.min_points,
-        extra["train_params"]["eps2"], iou_threshold, rng,
+        model, views.scenes(), settings.features, settings.d_max_m, segment.n_points,
+        cluster_params(segment, settings.part_diameter_m).nms_radius_m, segment.min_points,
+        settings.train.eps2, iou_threshold, rng,
     )
+
+
+def recalibrate(
+    source: str | Path, out: str | Path, views: Views, segment: SegmentParams, iou_threshold: float, rng: np.random.Generator
+) -> dict[str, float]:
+    """Choose the clustering of the checkpoint at source on the views and write the checkpoint,
+    holding it, to out (the train stage after training, `binpick calibrate` for a network trained
+    elsewhere). Returns the chosen values with their validation precision and recall."""
+    model, settings = load_network(source, default_device())
+    chosen = calibrate_network(model, settings, views, segment, iou_threshold, rng)
+    write_with_clustering(source, out, CalibratedClustering(
+        chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"])))
+    return chosen

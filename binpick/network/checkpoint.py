@@ -1,12 +1,15 @@
-"""FPCC checkpoints (`.pt`): config, weights, optimiser, epoch, metrics, and what inference needs.
+"""FPCC checkpoints (`.pt`): config, weights, optimiser, epoch, metrics, and what inference needs
+(`InferenceSettings`, stored as the checkpoint's `extra` mapping and rebuilt from it here, the one
+place that reads its keys).
 
-A checkpoint rebuilds its network on its own: `load_checkpoint(path)` needs nothing else.
+A checkpoint rebuilds its network on its own: `load_network(path)` needs nothing else.
 Spec: data/README.md#checkpoint.
 """
 
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -15,8 +18,62 @@ import torch
 from binpick.errors import InputError
 from binpick.io.atomic import atomic_path
 from binpick.network.model import FPCC, FPCCConfig
+from binpick.params import TrainParams
 
 CHECKPOINT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class CalibratedClustering:
+    """Clustering settings chosen on the validation scenes after training (network/calibrate.py):
+    centre score threshold, embedding distance threshold, smallest instance kept (points)."""
+
+    centre_threshold: float
+    embedding_threshold: float
+    min_instance_points: int
+
+    def to_dict(self) -> dict[str, float]:
+        return {"centre_threshold": self.centre_threshold, "embedding_threshold": self.embedding_threshold,
+                "min_instance_points": self.min_instance_points}
+
+
+@dataclass(frozen=True)
+class InferenceSettings:
+    """What a trained network needs besides its weights: the part it segments and that part's
+    diameter (metres), the input features and d_max (metres) it was trained with, its training
+    settings (eps2 of the loss bounds the calibration grid), and the calibrated clustering (None
+    until calibration ran)."""
+
+    part: str
+    part_diameter_m: float
+    features: str
+    d_max_m: float
+    train: TrainParams
+    clustering: CalibratedClustering | None = None
+
+    def to_extra(self) -> dict[str, Any]:
+        """The stored form. Key order is part of the file's bytes: keep it."""
+        extra: dict[str, Any] = {"part": self.part, "part_diameter_m": self.part_diameter_m, "features": self.features,
+                                 "train_params": self.train.model_dump(), "d_max_m": self.d_max_m}
+        if self.clustering is not None:
+            extra["clustering"] = self.clustering.to_dict()
+        return extra
+
+    @classmethod
+    def from_extra(cls, extra: dict[str, Any], path: str | Path = "checkpoint") -> InferenceSettings:
+        try:
+            clustering = extra.get("clustering")
+            return cls(
+                part=str(extra["part"]),
+                part_diameter_m=float(extra["part_diameter_m"]),
+                features=str(extra["features"]),
+                d_max_m=float(extra["d_max_m"]),
+                train=TrainParams.model_validate(extra["train_params"]),
+                clustering=None if clustering is None else CalibratedClustering(
+                    float(clustering["centre_threshold"]), float(clustering["embedding_threshold"]), int(clustering["min_instance_points"])),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(path, f"holds no complete inference settings ({type(exc).__name__}: {exc})") from None
 
 
 def save_checkpoint(
@@ -27,7 +84,7 @@ def save_checkpoint(
     metrics: dict[str, float],
     extra: dict[str, Any],
 ) -> None:
-    """extra holds inference settings tied to training: d_max_m, features, part_diameter_m, ..."""
+    """extra: InferenceSettings.to_extra() and what training adds (seed, data fingerprint)."""
     state = {
         "version": CHECKPOINT_VERSION,
         "config": model.config.to_dict(),
@@ -40,11 +97,10 @@ def save_checkpoint(
     _write(path, state)
 
 
-def update_extra(source: str | Path, out: str | Path, **entries: Any) -> None:
-    """Write the checkpoint at source to out with entries added to its extra (e.g. settings
-    chosen after training)."""
+def write_with_clustering(source: str | Path, out: str | Path, clustering: CalibratedClustering) -> None:
+    """Write the checkpoint at source to out with its calibrated clustering replaced."""
     state = read_checkpoint(source)
-    state["extra"] = {**state["extra"], **entries}
+    state["extra"] = {**state["extra"], "clustering": clustering.to_dict()}
     _write(out, state)
 
 
@@ -77,3 +133,9 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> tup
     model.load_state_dict(state["model"])
     model.to(device).eval()
     return model, state
+
+
+def load_network(path: str | Path, device: str | torch.device = "cpu") -> tuple[FPCC, InferenceSettings]:
+    """The network in eval mode on `device`, and its inference settings."""
+    model, state = load_checkpoint(path, device)
+    return model, InferenceSettings.from_extra(state["extra"], path)

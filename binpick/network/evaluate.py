@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from binpick.generation.scene import SyntheticScene
+from binpick.io.scene import SyntheticScene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-from binpick.network.infer import cluster_params, segment_scene
-from binpick.network.model import FPCC
+from binpick.network.infer import Segmenter
 from binpick.params import SegmentParams
 from binpick.seeding import derive_seed
 
@@ -20,12 +19,11 @@ def scene_seed(seed: int, part: str, index: int) -> np.random.SeedSequence:
 
 
 def segment_and_count(
-    model: FPCC, extra: dict, scene: SyntheticScene, segment: SegmentParams, iou_threshold: float, seed: int, index: int
+    segmenter: Segmenter, scene: SyntheticScene, segment: SegmentParams, iou_threshold: float, seed: int, index: int
 ) -> tuple[np.ndarray, SegmentationCounts]:
     """Segment the network's view of a generated scene and match the instances against its
-    labels. extra: the checkpoint's inference settings (part, part_diameter_m, features, d_max_m).
-    Returns the labels (N,) and the counts."""
-    cp = cluster_params(segment, extra["part_diameter_m"], extra.get("clustering"))
-    rng = np.random.default_rng(scene_seed(seed, extra["part"], index))
-    labels = segment_scene(model, scene.view_points_m, scene.view_normals, extra["features"], extra["d_max_m"], segment.n_points, cp, rng)
+    labels (ground-truth instances under segment.min_points are not scored). Returns the labels
+    (N,) and the counts."""
+    rng = np.random.default_rng(scene_seed(seed, segmenter.settings.part, index))
+    labels = segmenter.segment(scene.view_points_m, scene.view_normals, rng)
     return labels, scene_counts(labels, scene.view_labels, iou_threshold, segment.min_points)

@@ -4,14 +4,15 @@ and labels for every point of a scene of any size."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
 
 from binpick.network.blocks import cover
+from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network
 from binpick.network.model import FPCC, input_features
 from binpick.params import SegmentParams
-
 
 # Share of a block instance's points that must already belong to one instance for the two to merge.
 MERGE_OVERLAP = 0.3
@@ -161,19 +162,52 @@ DEFAULT_CENTRE_THRESHOLD = 0.3
 DEFAULT_EMBEDDING_THRESHOLD = 1.5
 
 
-def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: dict | None = None) -> ClusterParams:
+def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: CalibratedClustering | None = None) -> ClusterParams:
     """Clustering settings: the segment params where set, else the values calibrated on the
-    validation scenes at training (the checkpoint's extra["clustering"]), else the defaults
-    (smallest instance: segment.min_points); the suppression radius defaults to a share of the
-    part's diameter."""
-    calibrated = calibrated or {}
+    validation scenes at training (the checkpoint's), else the defaults (smallest instance:
+    segment.min_points); the suppression radius defaults to a share of the part's diameter."""
 
-    def pick(value: float | None, key: str, default: float) -> float:
-        return float(value) if value is not None else float(calibrated.get(key, default))
+    def pick(value: float | None, calibrated_value: float | None, default: float) -> float:
+        return float(value) if value is not None else float(calibrated_value if calibrated_value is not None else default)
 
+    c = calibrated
     return ClusterParams(
-        centre_threshold=pick(segment.centre_threshold, "centre_threshold", DEFAULT_CENTRE_THRESHOLD),
+        centre_threshold=pick(segment.centre_threshold, c.centre_threshold if c else None, DEFAULT_CENTRE_THRESHOLD),
         nms_radius_m=segment.nms_radius_m if segment.nms_radius_m is not None else NMS_RADIUS_PER_DIAMETER * diameter_m,
-        embedding_threshold=pick(segment.embedding_threshold, "embedding_threshold", DEFAULT_EMBEDDING_THRESHOLD),
-        min_points=max(segment.min_points, int(pick(segment.min_instance_points, "min_instance_points", segment.min_points))),
+        embedding_threshold=pick(segment.embedding_threshold, c.embedding_threshold if c else None, DEFAULT_EMBEDDING_THRESHOLD),
+        min_points=max(segment.min_points, int(pick(segment.min_instance_points, c.min_instance_points if c else None, segment.min_points))),
     )
+
+
+@dataclass(frozen=True)
+class Segmenter:
+    """A trained network ready to segment scenes of its part: the network (eval mode), its
+    inference settings, the points per network pass and the clustering settings in force."""
+
+    network: FPCC
+    settings: InferenceSettings
+    n_points: int
+    clustering: ClusterParams
+
+    def predict_blocks(self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator) -> list[Block]:
+        return predict_blocks(self.network, points, normals, self.settings.features, self.settings.d_max_m, self.n_points, rng)
+
+    def segment(self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Labels (M,) int32 of the M scene points (camera frame, metres, on the voxel grid the
+        network was trained at; normals facing the camera), -1 = not a part."""
+        return label_blocks(points, self.predict_blocks(points, normals, rng), self.clustering)
+
+
+def make_segmenter(network: FPCC, settings: InferenceSettings, segment: SegmentParams) -> Segmenter:
+    return Segmenter(network, settings, segment.n_points, cluster_params(segment, settings.part_diameter_m, settings.clustering))
+
+
+def load_segmenter(path: str | Path, segment: SegmentParams, device: str | torch.device | None = None) -> Segmenter:
+    """The checkpoint at `path` as a ready segmenter (on the GPU when there is one), with the
+    segment params applied over its calibrated clustering."""
+    network, settings = load_network(path, device if device is not None else default_device())
+    return make_segmenter(network, settings, segment)
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")

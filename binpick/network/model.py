@@ -95,6 +95,7 @@ class EdgeConv(nn.Module):
 
     def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         conv, bn, act = self.mlp
+        assert isinstance(conv, nn.Conv2d) and isinstance(bn, nn.BatchNorm2d)
         C = x.shape[1]
         W = conv.weight[:, :, 0, 0]  # (C_out, 2C): [neighbour offset | centre]
         u = torch.einsum("oc,bcn->bon", W[:, :C], x)  # (B, C_out, N) neighbour term
@@ -102,6 +103,7 @@ class EdgeConv(nn.Module):
         if self.training or not bn.track_running_stats:
             edges = gather_neighbours(u, idx) + v.unsqueeze(-1)  # (B, C_out, N, k)
             return act(bn(edges)).max(dim=-1).values  # (B, c_out, N)
+        assert bn.running_var is not None and bn.running_mean is not None  # tracked: checked above
         scale = bn.weight / torch.sqrt(bn.running_var + bn.eps)  # (C_out,)
         shift = bn.bias - bn.running_mean * scale
         sign = torch.where(scale < 0, -1.0, 1.0).to(u.dtype)[None, :, None]

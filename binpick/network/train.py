@@ -10,7 +10,6 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -19,7 +18,8 @@ from tqdm import tqdm
 from binpick.errors import InputError
 from binpick.io.scene import list_scenes, load_scene
 from binpick.network.blocks import crop
-from binpick.network.checkpoint import read_checkpoint, save_checkpoint
+from binpick.network.checkpoint import InferenceSettings, read_checkpoint, save_checkpoint
+from binpick.network.infer import default_device
 from binpick.network.loss import fpcc_loss
 from binpick.network.model import FPCC, FPCCConfig, input_features
 from binpick.params import TrainParams
@@ -44,7 +44,7 @@ class Views:
 
     def scenes(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """(points, normals, labels) of each scene."""
-        return list(zip(self.points, self.normals, self.labels))
+        return list(zip(self.points, self.normals, self.labels, strict=False))
 
     def fingerprint(self) -> str:
         """A hash of the content: a checkpoint resumes only on the data it was trained on."""
@@ -67,11 +67,7 @@ def load_views(folder: Path) -> Views:
     )
 
 
-def default_device() -> torch.device:
-    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-
-
-def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device):
+def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A crop of n_points from each view, rotated about the camera axis at random (augment), as tensors."""
     P, Nn, L = [], [], []
     for s in idx:
@@ -104,14 +100,17 @@ def train_fpcc(
     d_max_m: float,
     seed: int,
     checkpoint_dir: str | Path,
-    extra: dict[str, Any],
+    part: str,
+    part_diameter_m: float,
     on_epoch: Callable[[int, dict[str, float], FPCC], None] | None = None,
     device: torch.device | None = None,
     progress: bool = True,
 ) -> tuple[FPCC, dict[str, float]]:
     """Train, keeping `last.pt` (resume point) and `best.pt` (lowest validation loss) in checkpoint_dir.
 
-    Returns the best network and its metrics. A `last.pt` written with the same config resumes.
+    Returns the best network and its metrics. A `last.pt` written with the same config, settings,
+    seed and data resumes. The checkpoints hold the inference settings of the part (no calibrated
+    clustering yet).
     """
     device = device or default_device()
     checkpoint_dir = Path(checkpoint_dir)
@@ -122,10 +121,8 @@ def train_fpcc(
     )
     model = FPCC(config).to(device)
     optimiser = torch.optim.Adam(model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
-    extra = {
-        **extra, "train_params": params.model_dump(), "d_max_m": d_max_m, "seed": seed,
-        "data_fingerprint": train.fingerprint() + val.fingerprint(),
-    }
+    settings = InferenceSettings(part=part, part_diameter_m=part_diameter_m, features=params.features, d_max_m=d_max_m, train=params)
+    extra = {**settings.to_extra(), "seed": seed, "data_fingerprint": train.fingerprint() + val.fingerprint()}
 
     start_epoch, best_val, best_epoch = 0, math.inf, -1
     last = checkpoint_dir / LAST

@@ -1,1 +1,2 @@
-"""6D pose of a part on scene points: PPF matching and ICP refinement."""
+"""PPF registration: the model (model.py), voting, clustering, verification and matching, each
+its own module; the settings that are not params in constants.py."""

@@ -1,0 +1,96 @@
+"""Clustering of pose candidates in SE(3), with rotation AND translation thresholds and the
+part's symmetries; pose closeness tests."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from binpick.io.ppf_model import PPFModel
+from binpick.params import RegisterParams
+
+
+def cluster_poses(
+    candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams, max_candidates: int | None = None
+) -> list[tuple[np.ndarray, float]]:
+    """Greedy SE(3) clustering: a pose joins the first (strongest) cluster whose best pose, or a
+    symmetric twin of it, is within the rotation AND the translation threshold. Returns
+    (best pose, summed votes), strongest first. max_candidates: only the strongest poses are
+    clustered (weak peaks, from references on clutter or ambiguous patches, decide nothing)."""
+    order = sorted(range(len(candidates)), key=lambda k: -candidates[k][1])[:max_candidates]
+    if not order:
+        return []
+    poses = np.ascontiguousarray(np.stack([candidates[k][0] for k in order]), dtype=np.float64)
+    weights = np.array([candidates[k][1] for k in order], dtype=np.float64)
+    reps, votes = _greedy_clusters(
+        poses, weights, np.ascontiguousarray(model.symmetries, dtype=np.float64),
+        np.cos(np.radians(params.cluster_rotation_deg)), params.cluster_translation_rel * model.diameter_m,
+    )
+    ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
+    return [(poses[reps[c]], float(votes[c])) for c in ranked]
+
+
+@numba.njit(cache=True)
+def _greedy_clusters(poses, weights, symmetries, min_cos, max_dist):  # pragma: no cover - compiled
+    """Indices of the cluster representatives (in order of creation) and each cluster's votes.
+
+    The twins (pose @ symmetry) of each representative are made once; a pose is tested against
+    a twin's translation first (three numbers) and only then its rotation: cos of the relative
+    angle = (trace(R_twin^T R) - 1) / 2."""
+    n, m = len(poses), len(symmetries)
+    twins = np.empty((n * m, 3, 4))
+    reps = np.empty(n, np.int64)
+    votes = np.zeros(n)
+    n_reps = 0
+    d2 = max_dist * max_dist
+    for k in range(n):
+        T = poses[k]
+        found = -1
+        for c in range(n_reps):
+            for s in range(m):
+                W = twins[c * m + s]
+                dx, dy, dz = W[0, 3] - T[0, 3], W[1, 3] - T[1, 3], W[2, 3] - T[2, 3]
+                if dx * dx + dy * dy + dz * dz >= d2:
+                    continue
+                tr = 0.0
+                for a in range(3):
+                    for b in range(3):
+                        tr += W[a, b] * T[a, b]
+                if (tr - 1.0) / 2.0 > min_cos:
+                    found = c
+                    break
+            if found >= 0:
+                break
+        if found >= 0:
+            votes[found] += weights[k]
+            continue
+        for s in range(m):
+            S = symmetries[s]
+            for a in range(3):
+                for b in range(4):
+                    v = 0.0
+                    for e in range(4):
+                        v += T[a, e] * S[e, b]
+                    twins[n_reps * m + s, a, b] = v
+        reps[n_reps] = k
+        votes[n_reps] = weights[k]
+        n_reps += 1
+    return reps[:n_reps], votes[:n_reps]
+
+
+def _close(A: np.ndarray, B: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
+    """(a, b) mask: pose A[i] within translation_m AND rotation_deg of pose B[j]; A (a, 4, 4), B (b, 4, 4)."""
+    close_t = np.linalg.norm(A[:, None, :3, 3] - B[None, :, :3, 3], axis=2) < translation_m
+    # cos of the relative angle: (trace(R_a^T R_b) - 1) / 2
+    cos = (np.einsum("aij,bij->ab", A[:, :3, :3], B[:, :3, :3]) - 1.0) / 2.0
+    return close_t & (cos > np.cos(np.radians(rotation_deg)))
+
+
+def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
+    """(n,) mask of the poses (n, 4, 4) within translation_m AND rotation_deg of T."""
+    return _close(poses, T[None], rotation_deg, translation_m)[:, 0]
+
+
+def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
+    """Whether two poses of the part agree within the thresholds, up to the part's symmetries."""
+    return bool(_near(T_a[None] @ model.symmetries, T_b, rotation_deg, translation_m).any())

@@ -1,0 +1,69 @@
+"""The PPF matcher's settings that are not params: each changes results, so each is named and
+explained here, in one place; and the lengths of the matcher, all derived from one scale (the
+part's diameter) and the shares in the `register` params."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from binpick.params import RegisterParams
+
+# Per segment: the strongest accumulator peaks that are clustered (weak peaks, from references on
+# clutter or ambiguous patches, decide nothing) ...
+MAX_CLUSTER_CANDIDATES = 160
+# ... the clusters refined by coarse ICP and scored (comparing clusters only after ICP keeps a
+# pose slid along a long part from winning) ...
+TOP_CLUSTERS = 4
+# ... and, of those, the best refined again by fine ICP and scored on every model point.
+FINE_CLUSTERS = 2
+# Model points used: coarse ICP every 4th dense point, fine ICP every 2nd, scoring every 2nd.
+COARSE_STRIDE = 4
+FINE_STRIDE = 2
+SCORE_STRIDE = 2
+# Accumulator peaks kept per scene reference point.
+PEAKS_PER_REFERENCE = 2
+# Whole-scene voting: references per accumulator (it holds references x model points x angles).
+SCENE_REFS_PER_CHUNK = 64
+# Whole-scene matching: clusters refined per instance sought.
+SCENE_CLUSTERS_PER_INSTANCE = 3
+# Non-maximum suppression by support: a pose is dropped when more than this share of its
+# supporting scene points is explained by a better pose already.
+MAX_SHARED_SUPPORT = 0.3
+# ICP stops when fitness and RMSE change by less than this, relative.
+ICP_RELATIVE_CHANGE = 1e-4
+
+
+@dataclass(frozen=True)
+class Scales:
+    """Every length of the matcher, metres: shares (params) of one scale, the part diameter.
+
+    sample_step_m: voxel grid of model and scene for voting; refine_step_m: grid of the scene
+    points that ICP and scoring use; inlier_m: a scene point this close to the model surface
+    agrees with it; coarse_icp_m / fine_icp_m: ICP correspondence distances; reach_m: radius
+    around a pose's model centre within which scene points can belong to it;
+    cluster_translation_m: poses closer than this (and cluster_rotation_deg) are one cluster.
+    """
+
+    diameter_m: float
+    sample_step_m: float
+    refine_step_m: float
+    inlier_m: float
+    coarse_icp_m: float
+    fine_icp_m: float
+    reach_m: float
+    cluster_translation_m: float
+
+    @classmethod
+    def of(cls, diameter_m: float, params: RegisterParams) -> Scales:
+        # Each product is written as it always was: the same floating-point results.
+        inlier = params.score_inlier_rel * diameter_m
+        return cls(
+            diameter_m=diameter_m,
+            sample_step_m=params.sample_step_rel * diameter_m,
+            refine_step_m=params.refine_step_rel * diameter_m,
+            inlier_m=inlier,
+            coarse_icp_m=2.0 * params.sample_step_rel * diameter_m,
+            fine_icp_m=2.0 * inlier,
+            reach_m=0.5 * diameter_m + 2.0 * params.sample_step_rel * diameter_m,
+            cluster_translation_m=params.cluster_translation_rel * diameter_m,
+        )

@@ -1,0 +1,144 @@
+"""Matching a part onto a segment or a whole scene: voting, clustering, refinement and
+verification in turn, then duplicate suppression. Scene points and normals in the camera frame,
+metres, normals facing the camera; poses T_cam_from_model."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.io.poses import PartPose
+from binpick.io.ppf_model import PPFModel
+from binpick.params import RegisterParams
+from binpick.registration.clustering import cluster_poses, same_pose
+from binpick.registration.constants import (
+    COARSE_STRIDE,
+    FINE_CLUSTERS,
+    FINE_STRIDE,
+    MAX_CLUSTER_CANDIDATES,
+    SCENE_CLUSTERS_PER_INSTANCE,
+    SCENE_REFS_PER_CHUNK,
+    TOP_CLUSTERS,
+    Scales,
+)
+from binpick.registration.verification import explained_points, refine_icp, score_pose, suppress_by_support
+from binpick.registration.voting import vote
+
+
+def match_segment(
+    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator
+) -> PartPose | None:
+    """The best pose of the part on one segment (camera frame points and normals), or None."""
+    if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
+        raise ValueError("expected scene points and normals (n, 3)")
+    scales = Scales.of(model.diameter_m, params)
+    idx = voxel_downsample_indices(scene_points, scales.sample_step_m)
+    if len(idx) < 3:
+        return None
+    pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
+    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
+    refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
+    candidates = vote(model, pts, nrm, refs)
+    if not candidates:
+        return None
+    # Refinement and scoring work on a grid finer than the voting one but bounded, so that their
+    # cost does not grow with the density of the capture.
+    scene_points = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
+    inlier = scales.inlier_m
+    scene_tree = cKDTree(scene_points)
+    # Each strong cluster is refined by coarse ICP (on a subsample of the model) and scored;
+    # comparing clusters only after ICP keeps a pose slid along a long part from winning. The
+    # FINE_CLUSTERS best get the fine ICP and are scored again.
+    coarse: list[tuple[float, np.ndarray]] = []
+    for T, _ in cluster_poses(candidates, model, params, MAX_CLUSTER_CANDIDATES)[:TOP_CLUSTERS]:
+        T = refine_icp(model, T, scene_points, scales.coarse_icp_m, params.icp_iterations, COARSE_STRIDE)
+        coarse.append((score_pose(model, T, scene_points, inlier, scene_tree, stride=COARSE_STRIDE), T))
+    best: PartPose | None = None
+    for _, T in sorted(coarse, key=lambda c: -c[0])[:FINE_CLUSTERS]:
+        T = refine_icp(model, T, scene_points, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
+        score = score_pose(model, T, scene_points, inlier, scene_tree)
+        if best is None or score > best.score:
+            best = PartPose(T_cam_from_model=T, score=score)
+    return best
+
+
+def match_scene(
+    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
+    max_instances: int = 30, known: Sequence[np.ndarray] = (),
+) -> list[PartPose]:
+    """Every instance of the part in a whole scene, without segments: votes from reference
+    points all over the scene, the strongest pose clusters refined and scored, poses scoring
+    below params.min_score dropped, then non-maximum suppression by explained points. Best first.
+
+    scene_points, scene_normals : (n, 3) camera frame, metres; normals facing the camera.
+    known : poses T_cam_from_model found already (e.g. on segments); the scene points they
+            explain are taken, and only other instances are returned.
+    """
+    if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
+        raise ValueError("expected scene points and normals (n, 3)")
+    scales = Scales.of(model.diameter_m, params)
+    idx = voxel_downsample_indices(scene_points, scales.sample_step_m)
+    if len(idx) < 3:
+        return []
+    pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
+    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
+    refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
+    candidates: list[tuple[np.ndarray, float]] = []
+    # In chunks: the accumulator holds (references x model points x angle bins) counts.
+    for chunk in np.array_split(refs, int(np.ceil(len(refs) / SCENE_REFS_PER_CHUNK))):
+        candidates += vote(model, pts, nrm, chunk)
+    fine = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
+    inlier = scales.inlier_m
+    tree = cKDTree(fine)
+    estimates: list[PartPose] = []
+    support: list[np.ndarray] = []
+    centre = model.dense_points_m.mean(axis=0)
+    reach = scales.reach_m
+
+    def explained(T: np.ndarray) -> np.ndarray:
+        return explained_points(model, T, fine, tree, inlier, reach)
+
+    for T, _ in cluster_poses(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
+        # ICP and support only see the scene around the pose: the rest cannot match this part.
+        near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
+        if len(near) < 6:
+            continue
+        local = fine[near]
+        T = refine_icp(model, T, local, scales.coarse_icp_m, params.icp_iterations, COARSE_STRIDE)
+        T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
+        score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
+        if score >= params.min_score:
+            estimates.append(PartPose(T_cam_from_model=T, score=score))
+            support.append(explained(T))
+    claimed = np.zeros(len(fine), bool)
+    for T in known:
+        claimed[explained(np.asarray(T))] = True
+    return [estimates[k] for k in suppress_by_support([e.score for e in estimates], support, claimed)][:max_instances]
+
+
+def suppress_duplicates(
+    model: PPFModel, estimates: Sequence[PartPose], params: RegisterParams, scene_points: np.ndarray | None = None
+) -> list[int]:
+    """Indices of the estimates kept by non-maximum suppression, best score first: an estimate
+    that repeats the pose of a better one (one part split into two segments) is dropped; with
+    the whole scene's points (n, 3), so is one whose supporting points a better one explains
+    (a wrong fit on the fragment of a part that another segment gave whole)."""
+    order = sorted(range(len(estimates)), key=lambda k: -estimates[k].score)
+    kept: list[int] = []
+    scales = Scales.of(model.diameter_m, params)
+    trans_thr = scales.cluster_translation_m
+    for k in order:
+        T = estimates[k].T_cam_from_model
+        if not any(same_pose(model, estimates[j].T_cam_from_model, T, params.cluster_rotation_deg, trans_thr) for j in kept):
+            kept.append(k)
+    if scene_points is None or len(kept) < 2:
+        return kept
+    fine = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
+    tree = cKDTree(fine)
+    inlier, reach = scales.inlier_m, scales.reach_m
+    support = [explained_points(model, estimates[k].T_cam_from_model, fine, tree, inlier, reach) for k in kept]
+    by_support = suppress_by_support([estimates[k].score for k in kept], support, np.zeros(len(fine), bool))
+    return [kept[i] for i in by_support]

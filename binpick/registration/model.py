@@ -1,0 +1,97 @@
+"""The PPF model of a part (Drost, Ulrich, Navab, Ilic, CVPR 2010): every ordered pair of
+subsampled model points gives the feature F = (||d||, angle(n1, d), angle(n2, d), angle(n1, n2)),
+quantised into a key; pairs are stored sorted by key with the reference point and the angle
+alpha_m that turns the partner into a canonical half-plane.
+
+Frames: model points in the part's model frame, metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.io.ppf_model import PPFModel
+from binpick.params import RegisterParams
+
+
+def _align_to_x(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) transforms that move each point to the origin and turn its normal onto +x."""
+    n = normals / np.linalg.norm(normals, axis=1, keepdims=True)
+    x = np.array([1.0, 0.0, 0.0])
+    axis = np.cross(n, x)  # (n, 3)
+    s = np.linalg.norm(axis, axis=1)
+    c = n @ x
+    k = axis / np.where(s > 1e-12, s, 1.0)[:, None]
+    # Normals along -x need any perpendicular axis; +x needs none.
+    anti = (s <= 1e-12) & (c < 0)
+    k[anti] = np.array([0.0, 0.0, 1.0])
+    K = np.zeros((len(n), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    sin = np.where(anti, 0.0, s)[:, None, None]
+    cos = np.where(anti, -1.0, c)[:, None, None]
+    R = np.eye(3)[None] + sin * K + (1 - cos) * (K @ K)
+    T = np.zeros((len(n), 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = -np.einsum("nij,nj->ni", R, points)
+    T[:, 3, 3] = 1.0
+    return T
+
+
+def _features(p1: np.ndarray, n1: np.ndarray, p2: np.ndarray, n2: np.ndarray) -> np.ndarray:
+    """(n, 4) point pair features: distance (m) and three angles (rad) in [0, pi]."""
+    d = p2 - p1
+    dist = np.linalg.norm(d, axis=1)
+    du = d / np.maximum(dist, 1e-12)[:, None]
+
+    def angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.arccos(np.clip(np.sum(a * b, axis=1), -1.0, 1.0))
+
+    return np.stack([dist, angle(n1, du), angle(n2, du), angle(n1, n2)], axis=1)
+
+
+def _keys(F: np.ndarray, distance_step_m: float, angle_bins: int) -> np.ndarray:
+    q_d = np.floor(F[:, 0] / distance_step_m).astype(np.int64)
+    q_a = np.minimum((F[:, 1:] / np.pi * angle_bins).astype(np.int64), angle_bins - 1)
+    return ((q_d * angle_bins + q_a[:, 0]) * angle_bins + q_a[:, 1]) * angle_bins + q_a[:, 2]
+
+
+def _alpha(T_align: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Angle about +x that brings each aligned partner point into the half-plane y > 0, z = 0."""
+    p = np.einsum("nij,nj->ni", T_align[:, :3, :3], points) + T_align[:, :3, 3]
+    return np.arctan2(-p[:, 2], p[:, 1])
+
+
+def train_ppf(
+    dense_points_m: np.ndarray, dense_normals: np.ndarray, diameter_m: float, symmetries: np.ndarray, params: RegisterParams
+) -> PPFModel:
+    """Build the PPF table of a part from its dense surface sample (model frame, metres)."""
+    if dense_points_m.ndim != 2 or dense_points_m.shape[1] != 3 or dense_normals.shape != dense_points_m.shape:
+        raise ValueError("expected dense points and normals (n, 3)")
+    idx = voxel_downsample_indices(dense_points_m, params.sample_step_rel * diameter_m)
+    pts = dense_points_m[idx].astype(np.float64)
+    nrm = dense_normals[idx].astype(np.float64)
+    M = len(pts)
+    i, j = np.meshgrid(np.arange(M), np.arange(M), indexing="ij")
+    i, j = i[i != j], j[i != j]
+    step = params.distance_step_rel * diameter_m
+    keys = _keys(_features(pts[i], nrm[i], pts[j], nrm[j]), step, params.angle_bins)
+    T_align = _align_to_x(pts, nrm)
+    alpha = _alpha(T_align[i], pts[j])
+    order = np.argsort(keys, kind="stable")
+    keys = keys[order]
+    return PPFModel(
+        points_m=pts,
+        normals=nrm,
+        keys=keys,
+        key_starts=np.searchsorted(keys, np.arange(int(keys[-1]) + 2)),
+        ref_index=i[order].astype(np.int32),
+        alpha=alpha[order].astype(np.float32),
+        dense_points_m=np.asarray(dense_points_m, dtype=np.float64),
+        dense_normals=np.asarray(dense_normals, dtype=np.float64),
+        symmetries=symmetries,
+        diameter_m=float(diameter_m),
+        distance_step_m=step,
+        angle_bins=params.angle_bins,
+    )

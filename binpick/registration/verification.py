@@ -1,0 +1,96 @@
+"""Verification of a pose against the scene: point-to-plane ICP on the exact CAD normals,
+the score, the scene points a pose explains, and non-maximum suppression by those points.
+Model points in the model frame, scene points in the camera frame, metres."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import open3d as o3d
+from scipy.spatial import cKDTree
+
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.io.ppf_model import PPFModel
+from binpick.registration.constants import ICP_RELATIVE_CHANGE, MAX_SHARED_SUPPORT, SCORE_STRIDE
+
+
+def score_pose(
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: cKDTree | None = None,
+    whole_scene: bool = False, stride: int = SCORE_STRIDE,
+) -> float:
+    """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
+    point within inlier_m, and the share of scene points within inlier_m of the model. On a
+    whole scene (other parts around) only the first share counts."""
+    if len(scene_points) == 0:
+        return 0.0
+    facing = _facing(model, T_cam_from_model, stride)
+    if not facing.any():
+        return 0.0
+    scene_tree = scene_tree or cKDTree(scene_points)
+    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[::stride][facing]), distance_upper_bound=inlier_m)
+    if whole_scene:
+        return float(np.mean(np.isfinite(d_model)))
+    # Scene points against the model's own tree, in the model frame: built once per model.
+    d_scene, _ = model.dense_tree.query(transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m)
+    return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:
+    """Mask of the dense model points (every stride-th) whose normal faces the camera (at the
+    origin) at this pose."""
+    pts, nrm = model.dense_points_m[::stride], model.dense_normals[::stride]
+    p = pts @ T_cam_from_model[:3, :3].T + T_cam_from_model[:3, 3]
+    n = nrm @ T_cam_from_model[:3, :3].T
+    return np.sum(n * p, axis=1) < 0
+
+
+def refine_icp(
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int, stride: int = 1
+) -> np.ndarray:
+    """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals).
+
+    Only model points facing the camera at the starting pose are targets: a thin wall's inner
+    surface lies within a few millimetres of its outer one, and matching the camera's view of the
+    outside to the inside holds ICP in a wrong minimum.
+    """
+    if iterations == 0 or len(scene_points) < 6:
+        return T_cam_from_model
+    facing = _facing(model, T_cam_from_model, stride)
+    if facing.sum() < 6:
+        return T_cam_from_model
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, dtype=np.float64)))
+    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m[::stride][facing]))
+    target.normals = o3d.utility.Vector3dVector(model.dense_normals[::stride][facing])
+    result = o3d.pipelines.registration.registration_icp(
+        source,
+        target,
+        max_distance_m,
+        invert_T(T_cam_from_model),
+        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
+        o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=ICP_RELATIVE_CHANGE, relative_rmse=ICP_RELATIVE_CHANGE, max_iteration=iterations),
+    )
+    return invert_T(np.asarray(result.transformation))
+
+
+def explained_points(model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float) -> np.ndarray:
+    """Indices of the scene points (n, 3), in `tree`, within inlier_m of the model surface at pose T."""
+    near = np.asarray(tree.query_ball_point(T[:3, :3] @ model.dense_points_m.mean(axis=0) + T[:3, 3], reach_m), dtype=np.int64)
+    if len(near) == 0:
+        return near
+    d, _ = model.dense_tree.query(transform_points(invert_T(T), points[near]), distance_upper_bound=inlier_m)
+    return near[np.isfinite(d)]
+
+
+def suppress_by_support(scores: Sequence[float], support: Sequence[np.ndarray], claimed: np.ndarray) -> list[int]:
+    """Non-maximum suppression by explained points, best score first: a pose whose supporting
+    scene points are mostly claimed by a better pose already (a repeat, a wrong fit on a fragment
+    of a part found whole, or a fit bridging two neighbouring parts) is dropped, whatever its
+    pose. claimed (n,) bool, updated in place. Returns the kept indices, best first."""
+    kept: list[int] = []
+    for k in sorted(range(len(scores)), key=lambda k: -scores[k]):
+        if len(support[k]) == 0 or claimed[support[k]].mean() > MAX_SHARED_SUPPORT:
+            continue
+        claimed[support[k]] = True
+        kept.append(k)
+    return kept

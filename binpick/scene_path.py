@@ -1,0 +1,159 @@
+"""The scene path, in process: a capture's arrays in, the cleaned cloud, its segments and a pose
+per part out. The part's models are loaded once (`PartModels.load`) and serve any number of
+captures; the DVC stages, the benchmarks and a resident service all call these functions, so
+they cannot drift apart.
+
+Steps: `clean` (range, region, floor and walls, the network's voxel grid and normals),
+`segment` (FPCC instance labels), `register` (PPF matching per segment and/or over the whole
+scene, score filter, duplicate suppression); `process` runs the three. Camera frame, metres;
+poses are T_cam_from_model.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from binpick.cleaning import clean_capture
+from binpick.io.cloud import CleanCloud
+from binpick.io.part_model import PartModel, load_part_model
+from binpick.io.poses import PartPose
+from binpick.io.ppf_model import PPFModel, load_ppf_model
+from binpick.network.infer import Segmenter, load_segmenter
+from binpick.params import ImportCaptureParams, Params, RegisterParams
+from binpick.registration.matching import match_scene, match_segment, suppress_duplicates
+from binpick.seeding import derive_int, derive_seed
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PartModels:
+    """Everything the scene path needs for one part, loaded once: the part model, its PPF model,
+    its segmenter (None: registration over the whole scene only, no network) and the settings of
+    the import and registration steps (the part's own overrides applied)."""
+
+    part: PartModel
+    ppf: PPFModel
+    segmenter: Segmenter | None
+    import_params: ImportCaptureParams
+    register_params: RegisterParams
+
+    @classmethod
+    def load(cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None) -> PartModels:
+        """params: resolved for the part (load_params(path, part)); checkpoint None: no network."""
+        return cls(
+            part=load_part_model(part_model),
+            ppf=load_ppf_model(ppf_model),
+            segmenter=load_segmenter(checkpoint, params.segment) if checkpoint is not None else None,
+            import_params=params.import_capture,
+            register_params=params.registration,
+        )
+
+
+@dataclass(frozen=True)
+class SceneSeeds:
+    """The seed of each random step. `of(seed, name)` derives them from the project seed and a
+    capture name; the DVC stages pass the seeds they always used."""
+
+    clean: int
+    segment: np.random.SeedSequence
+    register: np.random.SeedSequence
+
+    @classmethod
+    def of(cls, seed: int, name: str) -> SceneSeeds:
+        return cls(derive_int(seed, "import", name), derive_seed(seed, "segment", name), derive_seed(seed, "register", name))
+
+
+@dataclass(frozen=True)
+class Registration:
+    """poses: best first within each source (segments, then whole scene); n_segments: segments
+    matched; n_duplicates_suppressed: segment poses dropped as repeats; per_instance_ms: matching
+    time per segment (whole-scene time shared among its poses)."""
+
+    poses: list[PartPose]
+    n_segments: int
+    n_duplicates_suppressed: int
+    per_instance_ms: list[float]
+
+
+@dataclass(frozen=True)
+class SceneResult:
+    """The scene path's answer for one capture; timings_s per step (clean_s, segment_s, register_s)."""
+
+    cloud: CleanCloud
+    labels: np.ndarray
+    registration: Registration
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def poses(self) -> list[PartPose]:
+        return self.registration.poses
+
+
+def clean(xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: ImportCaptureParams, seed: int) -> CleanCloud:
+    """The cleaned cloud of a capture: xyz_m (n, 3) camera frame, metres, NaN = no return
+    (n = H * W, row-major, for an organized frame of shape frame_shape); rgb (n, 3) uint8 or None."""
+    return clean_capture(xyz_m, rgb, frame_shape, params, seed)
+
+
+def segment(cloud: CleanCloud, segmenter: Segmenter, seed: np.random.SeedSequence | int) -> np.ndarray:
+    """Instance labels (n,) int32 of the cloud's points, -1 = not a part."""
+    return segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(seed))
+
+
+def register(
+    cloud: CleanCloud, labels: np.ndarray | None, ppf: PPFModel, params: RegisterParams, seed: np.random.SeedSequence | int
+) -> Registration:
+    """Poses of the part in the cloud, as params.mode says: `segments` fits the part onto every
+    segment, keeps poses scoring at least min_score and drops repeats (the same pose, or support
+    a better pose explains); `whole_scene` matches the whole cloud; `segments_then_scene` does
+    both, the whole scene only for points no segment pose explains. labels (n,) int: needed
+    unless the mode is whole_scene."""
+    rng = np.random.default_rng(seed)
+    mode = params.mode
+    poses: list[PartPose] = []
+    per_instance_ms: list[float] = []
+    n_segments = int(labels.max()) + 1 if labels is not None and len(labels) else 0
+    n_duplicates = 0
+    if mode in ("segments", "segments_then_scene"):
+        if labels is None:
+            raise ValueError(f"registration mode {mode!r} needs segment labels")
+        found: list[PartPose] = []
+        for seg in range(n_segments):
+            mask = labels == seg
+            t = time.perf_counter()
+            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params, rng)
+            per_instance_ms.append(1000.0 * (time.perf_counter() - t))
+            if est is not None and est.score >= params.min_score:
+                found.append(replace(est, segment=seg))
+        kept = suppress_duplicates(ppf, found, params, cloud.points_m)
+        poses = [found[k] for k in kept]
+        n_duplicates = len(found) - len(kept)
+    if mode in ("whole_scene", "segments_then_scene"):
+        t = time.perf_counter()
+        more = match_scene(ppf, cloud.points_m, cloud.normals, params, rng, params.max_instances, known=[p.T_cam_from_model for p in poses])
+        per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
+        poses += more
+        log.info("whole-scene matching added %d poses", len(more))
+    return Registration(poses, n_segments, n_duplicates, per_instance_ms)
+
+
+def process(
+    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, models: PartModels, seeds: SceneSeeds
+) -> SceneResult:
+    """clean, segment (unless the models have no segmenter) and register one capture."""
+    t0 = time.perf_counter()
+    cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
+    t1 = time.perf_counter()
+    labels = segment(cloud, models.segmenter, seeds.segment) if models.segmenter is not None else None
+    t2 = time.perf_counter()
+    registration = register(cloud, labels, models.ppf, models.register_params, seeds.register)
+    t3 = time.perf_counter()
+    if labels is None:
+        labels = np.full(len(cloud.points_m), -1, np.int32)
+    return SceneResult(cloud, labels, registration, {"clean_s": t1 - t0, "segment_s": t2 - t1, "register_s": t3 - t2})

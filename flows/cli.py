@@ -1,0 +1,337 @@
+"""The `binpick` command."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from pathlib import Path
+
+import typer
+
+from binpick.env import configure_environment, project_root
+from binpick.errors import BinpickError
+from binpick.log import setup_logging
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=__doc__)
+bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each writes its measurements as JSON.")
+app.add_typer(bench_app, name="bench")
+log = logging.getLogger("binpick")
+
+
+def _fail(message: str) -> None:
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+@app.callback()
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging")) -> None:
+    configure_environment()
+    setup_logging(verbose)
+
+
+@app.command("default-part")
+def default_part(out: Path = typer.Option(Path("data/parts/t_joint.stl"), help="STL to write (millimetres)")) -> None:
+    """Write the built-in T-joint pipe part as an STL file (millimetres)."""
+    from binpick.io.mesh import save_mesh
+    from binpick.parts import build_t_joint_mesh
+
+    mesh = build_t_joint_mesh()
+    save_mesh(out, mesh.vertices, mesh.faces)
+    typer.echo(f"wrote {out} ({len(mesh.faces)} faces, {mesh.extents.round(1).tolist()} mm)")
+
+
+def review_commands(root: Path, capture: str = "demo") -> list[str]:
+    """The commands that open the latest results (loopback only)."""
+    bin_dir = Path(sys.executable).parent
+    return [
+        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{root / 'data' / 'mlflow' / 'mlflow.db'} --host 127.0.0.1 --port 5000",
+        f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
+        # rerun binds to every interface unless told otherwise
+        f"{bin_dir / 'rerun'} --web-viewer --bind 127.0.0.1 {root / 'data' / 'results' / capture / 'scene.rrd'}",
+    ]
+
+
+def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
+    ev, reg = results.get("evaluate", {}), results.get("register", {})
+
+    def f(d: dict[str, float], key: str, fmt: str = "{:.3f}") -> str:
+        return fmt.format(d[key]) if key in d else "n/a"
+
+    rows = [
+        ("segmentation precision (IoU >= 0.5, test scenes)", f(ev, "precision")),
+        ("segmentation recall (IoU >= 0.5, test scenes)", f(ev, "recall")),
+        ("parts found in the demo capture", f"{f(reg, 'n_found', '{:.0f}')} of {f(reg, 'n_ground_truth', '{:.0f}')} ({f(reg, 'n_pickable', '{:.0f}')} at least half visible)"),
+        ("pose recall (ADD < 0.1 d, half-visible parts)", f(reg, "pose_recall")),
+        ("pose precision (ADD < 0.1 d)", f(reg, "pose_precision")),
+        ("rotation error, median", f(reg, "rot_err_deg_median", "{:.2f} deg")),
+        ("translation error, median", f(reg, "trans_err_mm_median", "{:.2f} mm")),
+        ("wall time", f"{minutes:.1f} min"),
+    ]
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"  {name:<{width}}  {value}" for name, value in rows)
+
+
+@app.command()
+def demo() -> None:
+    """Run the main job on the built-in part through the Prefect flow and print a summary."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from flows.dvc_tasks import StageFailed
+    from flows.pipeline import demo as demo_flow
+
+    t0 = time.perf_counter()
+    try:
+        results = demo_flow(root)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    typer.echo("\nbinpick demo: the built-in part, trained and found in a rendered bin\n")
+    typer.echo(summary_table(results, (time.perf_counter() - t0) / 60.0))
+    typer.echo("\nReview the run:")
+    for cmd in review_commands(root):
+        typer.echo(f"  {cmd}")
+
+
+@app.command()
+def watch() -> None:
+    """Once: add new meshes in data/parts/ to params.yaml and train every part not up to date."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from flows.dvc_tasks import StageFailed
+    from flows.watcher import watch_parts
+
+    try:
+        result = watch_parts(root)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    typer.echo(f"added: {', '.join(result['added']) or 'none'}; trained: {', '.join(result['trained']) or 'none'}")
+
+
+@app.command()
+def scenes(
+    folder: Path = typer.Argument(..., help="folder of captures inside the project, e.g. data/captures/monday"),
+    part: str = typer.Option(..., help="the part in these bins (listed in params.yaml)"),
+    unit: str = typer.Option("mm", help="unit of the capture files: mm, m or in"),
+) -> None:
+    """Import, segment and register every capture in a folder (new files are added to params.yaml)."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    if unit not in ("mm", "m", "in"):
+        _fail(f"unit {unit!r} is not one of mm, m, in")
+    from flows.dvc_tasks import StageFailed
+    from flows.pipeline import process_folder
+
+    try:
+        results = process_folder(root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit)
+    except (StageFailed, BinpickError) as exc:
+        _fail(str(exc))
+    for name, metrics in results.items():
+        typer.echo(f"{name}: {metrics.get('n_found', 0):.0f} parts, mean score {metrics.get('score_mean', 0.0):.2f}")
+
+
+@app.command()
+def serve(
+    interval_s: float = typer.Option(None, "--interval-s", min=1, help="run every N seconds instead of the cron schedule in params"),
+    port: int = typer.Option(4200, help="port of the local Prefect server (when PREFECT_API_URL is not set)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Run the watcher on the schedule in params (default nightly) until stopped; starts a local
+    Prefect server on 127.0.0.1 unless PREFECT_API_URL names a shared one."""
+    root = project_root()
+    if not (root / "dvc.yaml").is_file():
+        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    from binpick.params import load_params
+    from flows.serve import serve_watcher
+
+    try:
+        serve_watcher(root, load_params(root / params if not params.is_absolute() else params).orchestration, interval_s, port)
+    except BinpickError as exc:
+        _fail(str(exc))
+    except KeyboardInterrupt:
+        typer.echo("stopped")
+
+
+@app.command()
+def grab(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = typer.Option(Path("params.yaml"))) -> None:
+    """Grab one frame from a connected Zivid camera and save it as a capture (needs the zivid package)."""
+    from binpick.params import load_params
+    from binpick.zivid_camera import grab_to_file
+
+    try:
+        H, W = grab_to_file(out, load_params(params).zivid_camera)
+    except BinpickError as exc:
+        _fail(str(exc))
+    typer.echo(f"wrote {out} ({W} x {H})")
+
+
+@app.command()
+def review(capture: str = typer.Option("demo", help="capture whose recording to show")) -> None:
+    """Print the commands that open the latest run in the MLflow UI and the rerun viewer (native or
+    in the browser), all bound to 127.0.0.1."""
+    root = project_root()
+    rrd = root / "data" / "results" / capture / "scene.rrd"
+    if not rrd.is_file():
+        _fail(f"{rrd}: no recording yet (run `make demo` or `dvc repro register@{capture}` first)")
+    for cmd in review_commands(root, capture):
+        typer.echo(cmd)
+
+
+def _write_json(out: Path, result: dict) -> None:
+    import json
+
+    from binpick.io.atomic import write_text
+
+    write_text(out, json.dumps(result, indent=1, sort_keys=True) + "\n")
+    typer.echo(json.dumps({k: v for k, v in result.items() if not isinstance(v, dict)}, indent=1, sort_keys=True))
+    typer.echo(f"wrote {out}")
+
+
+@bench_app.command("import")
+def bench_import_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"), repeats: int = typer.Option(7, min=1), params: Path = typer.Option(Path("params.yaml"))
+) -> None:
+    """Import + clean + downsample of a full 1920 x 1200 organized frame (PLY, PCD, ZDF)."""
+    from binpick.bench.importing import bench_import
+    from binpick.params import load_params
+
+    try:
+        settings = load_params(params)
+    except BinpickError as exc:
+        _fail(str(exc))
+    _write_json(out, bench_import(settings, repeats))
+
+
+@bench_app.command("generate")
+def bench_generate_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    scenes: int = typer.Option(3, min=1, help="scenes per part and object count"),
+    baseline_scenes: int = typer.Option(2, min=1, help="baseline scenes per part and object count"),
+    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Placement + 1920 x 1200 rendering against the original rejection sampling, at 5, 10, 20 objects."""
+    from binpick.bench.generation import bench_generate
+    from binpick.params import load_params
+
+    try:
+        result = bench_generate(load_params(params), part or None, scenes, baseline_scenes)
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+def _trained_part_paths(part: str, checkpoint: Path | None, scenes: Path | None) -> tuple[Path, Path]:
+    """The part's checkpoint and generated data set, where the train and generate stages put them
+    unless given."""
+    root = project_root()
+    return checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part
+
+
+@bench_app.command("segment")
+def bench_segment_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    part: str = typer.Option("t_joint", help="a trained part (its checkpoint and generated scenes)"),
+    checkpoint: Path = typer.Option(None, help="default: data/fpcc/<part>/model.pt"),
+    scenes: Path = typer.Option(None, help="default: data/scenes/<part>"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """FPCC precision/recall against DBSCAN on held-out scenes, inference time, training throughput."""
+    from binpick.bench.segmentation import bench_segment
+    from binpick.params import load_params
+
+    checkpoint, scenes = _trained_part_paths(part, checkpoint, scenes)
+    try:
+        p = load_params(params, part)
+        result = bench_segment(checkpoint, scenes, p.segment, p.import_capture.voxel_size_m, p.seed, p.evaluate.iou_threshold)
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, {"part": part, **result})
+
+
+@app.command()
+def calibrate(
+    out: Path = typer.Option(..., help="checkpoint to write (.pt)"),
+    part: str = typer.Option("t_joint", help="the part (its params entry, checkpoint and scenes)"),
+    checkpoint: Path = typer.Option(None, help="trained checkpoint; default: data/fpcc/<part>/model.pt"),
+    scenes: Path = typer.Option(None, help="data set folder with a val/ split; default: data/scenes/<part>"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Choose a trained network's clustering settings again on the validation scenes, as the train
+    stage does (for a network trained elsewhere, or after a change of segment settings); writes a
+    copy of the checkpoint that holds them."""
+    import numpy as np
+
+    from binpick.network.calibrate import recalibrate
+    from binpick.network.checkpoint import read_checkpoint
+    from binpick.network.train import load_views
+    from binpick.params import load_params
+    from binpick.seeding import derive_seed
+
+    checkpoint, scenes = _trained_part_paths(part, checkpoint, scenes)
+    try:
+        p = load_params(params, part)
+        read_checkpoint(checkpoint)  # a damaged checkpoint is named before the scenes are read
+        views = load_views(scenes / "val")
+        chosen = recalibrate(checkpoint, out, views, p.segment, p.evaluate.iou_threshold, np.random.default_rng(derive_seed(p.seed, "calibrate", part)))
+    except (BinpickError, ValueError, OSError) as exc:
+        _fail(str(exc))
+    log.info("%s: %s on %d validation scenes -> %s", part, ", ".join(f"{k} {v:.3g}" for k, v in chosen.items()), len(views), out)
+
+
+@app.command("eval-labels")
+def eval_labels(
+    pred: Path = typer.Option(..., help="labelled scene to evaluate (text)"),
+    gt: Path = typer.Option(..., help="ground-truth labelled scene (text)"),
+    pred_columns: str = typer.Option("x,y,z,label", help="e.g. x,y,z,label or x,y,z,score,label"),
+    gt_columns: str = typer.Option("x,y,z,label"),
+    unit: str = typer.Option("m", help="unit of both files' coordinates"),
+    match_distance_m: float = typer.Option(0.001, help="a predicted point labels the ground-truth point this close"),
+    iou: float = typer.Option(0.5, help="IoU threshold of a match"),
+) -> None:
+    """Evaluate a foreign tool's labelled scene against ground truth with this project's metrics."""
+    import json
+
+    from binpick.io.labelled import load_labelled, transfer_labels
+    from binpick.metrics.segmentation import scene_counts
+
+    try:
+        p = load_labelled(pred, tuple(c.strip() for c in pred_columns.split(",")), unit)
+        g = load_labelled(gt, tuple(c.strip() for c in gt_columns.split(",")), unit)
+    except BinpickError as exc:
+        _fail(str(exc))
+    labels = transfer_labels(p.points_m, p.labels, g.points_m, match_distance_m)
+    typer.echo(json.dumps(scene_counts(labels, g.labels, iou).summary(), indent=1, sort_keys=True))
+
+
+@bench_app.command("ppf")
+def bench_ppf_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    trials: int = typer.Option(20, min=1, help="views per part"),
+    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+    method: list[str] = typer.Option(None, help="methods to run (default: all)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """PPF registration against OpenCV PPF + ICP and Open3D FPFH + RANSAC + ICP on the same views."""
+    from binpick.bench.ppf import METHODS, bench_ppf
+    from binpick.params import load_params
+
+    for m in method or []:
+        if m not in METHODS:
+            _fail(f"unknown method {m!r} (have: {', '.join(METHODS)})")
+    if "opencv_ppf_icp" in (method or METHODS):
+        try:
+            import cv2  # noqa: F401
+        except ImportError:
+            _fail("the OpenCV peer needs opencv-contrib-python-headless: pip install -e .[bench]")
+    try:
+        result = bench_ppf(load_params(params), part or None, trials, method or None)
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+if __name__ == "__main__":
+    app()

@@ -1,0 +1,181 @@
+"""What every stage shares: the CLI wrapper (one error line, non-zero exit), params, MLflow
+runs, metrics files. Stages import this; kernels never do."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import logging
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
+from typing import Any
+
+from binpick.env import configure_environment, project_root
+from binpick.errors import BinpickError
+from binpick.io.atomic import write_text
+from binpick.log import setup_logging
+
+log = logging.getLogger("binpick.stage")
+
+
+def parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--params", default="params.yaml", help="settings file (default: params.yaml)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    return p
+
+
+def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:
+    """Wrap a stage's main: a BinpickError becomes one line on stderr and exit code 2."""
+
+    def wrapped(argv: Sequence[str] | None = None) -> int:
+        configure_environment()
+        try:
+            return main(argv)
+        except BinpickError as exc:
+            sys.stderr.write(f"error: {exc}\n")
+            return 2
+        except KeyboardInterrupt:
+            sys.stderr.write("error: interrupted\n")
+            return 130
+
+    wrapped.__doc__ = main.__doc__
+    return wrapped
+
+
+def start(args: argparse.Namespace) -> None:
+    setup_logging(args.verbose)
+
+
+def is_timing(key: str) -> bool:
+    """Timings (`*_s`, `ms_per_*`) differ between runs: MLflow keeps them, the DVC metrics do not."""
+    return key.endswith("_s") or key.startswith("ms_per_")
+
+
+def write_metrics(path: str | Path, metrics: dict[str, Any]) -> None:
+    """A metrics JSON for DVC (`dvc metrics show`), written atomically, keys sorted, without the
+    timings: a re-run then leaves the git-tracked file as it was."""
+    kept = {k: v for k, v in metrics.items() if not is_timing(k)}
+    write_text(path, json.dumps(kept, indent=1, sort_keys=True) + "\n")
+
+
+def log_timings(experiment: str, run_name: str, configured_uri: str | None, dvc_stage: str, metrics: dict[str, Any], tags: dict[str, str] | None = None) -> None:
+    """The timings among metrics as an MLflow run of their own (stages that log no other run)."""
+    timings = {k: float(v) for k, v in metrics.items() if is_timing(k)}
+    if not timings:
+        return
+    with mlflow_run(experiment, run_name, configured_uri, {"dvc_stage": dvc_stage, **(tags or {})}):
+        import mlflow
+
+        mlflow.log_metrics(timings)
+
+
+def tracking_uri(configured: str | None) -> str:
+    """The MLflow store: the configured URI, else a sqlite file in the project (absolute path,
+    as MLflow requires)."""
+    if configured:
+        return configured
+    return f"sqlite:///{project_root() / 'data' / 'mlflow' / 'mlflow.db'}"
+
+
+def artifact_location(configured_uri: str | None) -> str | None:
+    """Where a new experiment keeps its artifacts: beside the sqlite store (the project's, or a
+    configured sqlite file); None for a server, which decides. Never MLflow's default, ./mlruns
+    in whatever folder the process happens to run in."""
+    uri = tracking_uri(configured_uri)
+    if uri.startswith("sqlite:///"):
+        return (Path(uri.removeprefix("sqlite:///")).parent / "artifacts").as_uri()
+    return None
+
+
+@contextlib.contextmanager
+def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags: dict[str, str] | None = None) -> Iterator[Any]:
+    """An MLflow run in `experiment`, artifacts under <project>/data/mlflow/artifacts for the local store."""
+    import mlflow
+
+    if not configured_uri:
+        (project_root() / "data" / "mlflow").mkdir(parents=True, exist_ok=True)
+    logging.getLogger("alembic").setLevel(logging.WARNING)
+    mlflow.set_tracking_uri(tracking_uri(configured_uri))
+    if mlflow.get_experiment_by_name(experiment) is None:
+        mlflow.create_experiment(experiment, artifact_location=artifact_location(configured_uri))
+    mlflow.set_experiment(experiment)
+    with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **(tags or {})}) as run:
+        yield run
+
+
+# Set by flows/dvc_tasks.py for the stage commands it runs, so that a stage's MLflow run names
+# the Prefect flow run (and task run) that started it.
+PREFECT_ENV = {
+    "prefect.flow_run_id": "BINPICK_PREFECT_FLOW_RUN_ID",
+    "prefect.flow_run_name": "BINPICK_PREFECT_FLOW_RUN_NAME",
+    "prefect.flow_name": "BINPICK_PREFECT_FLOW_NAME",
+    "prefect.task_run_id": "BINPICK_PREFECT_TASK_RUN_ID",
+}
+
+
+def prefect_tags() -> dict[str, str]:
+    import os
+
+    return {tag: os.environ[var] for tag, var in PREFECT_ENV.items() if os.environ.get(var)}
+
+
+def flat_params(prefix: str, model: Any) -> dict[str, Any]:
+    """Flatten a params model into MLflow's 'section.key' form."""
+    out: dict[str, Any] = {}
+
+    def walk(p: str, v: Any) -> None:
+        if isinstance(v, dict):
+            for k, x in v.items():
+                walk(f"{p}.{k}", x)
+        else:
+            out[p] = v
+
+    walk(prefix, model.model_dump(by_alias=True) if hasattr(model, "model_dump") else model)
+    return out
+
+
+def file_sha256(path: str | Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def model_name(part: str) -> str:
+    return f"fpcc-{part}"
+
+
+def add_model_version(part: str, checkpoint: Path, run: Any, dvc_stage: str) -> str:
+    """A new version of the registered model fpcc-<part> pointing at the run's logged checkpoint,
+    tagged with the checkpoint's SHA-256 so that evaluation can find it. Returns the version."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    name = model_name(part)
+    if not client.search_registered_models(filter_string=f"name='{name}'"):
+        client.create_registered_model(name, description=f"FPCC instance segmentation of part {part}")
+    version = client.create_model_version(
+        name, source=f"{run.info.artifact_uri}/model", run_id=run.info.run_id,
+        tags={"checkpoint_sha256": file_sha256(checkpoint), "dvc_stage": dvc_stage},
+    )
+    return str(version.version)
+
+
+def accept_checkpoint(part: str, checkpoint: Path, alias: str) -> str | None:
+    """Point `alias` of fpcc-<part> at the version registered for this checkpoint file; the
+    version, or None when no version holds this checkpoint."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    sha = file_sha256(checkpoint)
+    for version in client.search_model_versions(f"name='{model_name(part)}'"):
+        if version.tags.get("checkpoint_sha256") == sha:
+            client.set_registered_model_alias(model_name(part), alias, version.version)
+            return str(version.version)
+    return None
