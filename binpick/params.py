@@ -314,7 +314,7 @@ class OrchestrationParams(_Strict):
     schedule_cron: str
     schedule_timezone: str
     # Fan-out of scene generation and evaluation: `processes` (a local process pool) or `dask`
-    # (a Prefect DaskTaskRunner, on the cluster at dask_address or a local one of `workers`).
+    # (a Dask cluster: the one at dask_address, or a local one of `workers` processes).
     task_runner: Literal["processes", "dask"]
     dask_address: str | None
     workers: int = Field(ge=0, description="processes or local Dask workers; 0 = one per CPU core")

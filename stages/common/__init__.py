@@ -73,10 +73,14 @@ def log_timings(experiment: str, run_name: str, configured_uri: str | None, dvc_
 
 
 def tracking_uri(configured: str | None) -> str:
-    """The MLflow store: the configured URI, else a sqlite file in the project (absolute path,
-    as MLflow requires)."""
+    """The MLflow store: tracking.mlflow_uri from params, else the MLFLOW_TRACKING_URI variable,
+    else a sqlite file in the project (absolute path, as MLflow requires)."""
+    import os
+
     if configured:
         return configured
+    if os.environ.get("MLFLOW_TRACKING_URI"):
+        return os.environ["MLFLOW_TRACKING_URI"]
     return f"sqlite:///{project_root() / 'data' / 'mlflow' / 'mlflow.db'}"
 
 
@@ -98,12 +102,25 @@ def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags:
     if not configured_uri:
         (project_root() / "data" / "mlflow").mkdir(parents=True, exist_ok=True)
     logging.getLogger("alembic").setLevel(logging.WARNING)
-    mlflow.set_tracking_uri(tracking_uri(configured_uri))
-    if mlflow.get_experiment_by_name(experiment) is None:
-        mlflow.create_experiment(experiment, artifact_location=artifact_location(configured_uri))
-    mlflow.set_experiment(experiment)
-    with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **(tags or {})}) as run:
-        yield run
+    import os
+
+    # MLflow exports the URI it is given as MLFLOW_TRACKING_URI for child processes; a caller's
+    # own variable (or its absence) is put back afterwards, so that the stages a flow starts later
+    # do not inherit this run's store.
+    before = os.environ.get("MLFLOW_TRACKING_URI")
+    uri = tracking_uri(configured_uri)
+    try:
+        mlflow.set_tracking_uri(uri)
+        if mlflow.get_experiment_by_name(experiment) is None:
+            mlflow.create_experiment(experiment, artifact_location=artifact_location(configured_uri))
+        mlflow.set_experiment(experiment)
+        with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **(tags or {})}) as run:
+            yield run
+    finally:
+        if before is None:
+            os.environ.pop("MLFLOW_TRACKING_URI", None)
+        else:
+            os.environ["MLFLOW_TRACKING_URI"] = before
 
 
 # Set by flows/dvc_tasks.py for the stage commands it runs, so that a stage's MLflow run names

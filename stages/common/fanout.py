@@ -1,5 +1,4 @@
-"""Fan-out of independent jobs (one scene each) over a local process pool or, through a Prefect
-DaskTaskRunner, over a Dask cluster.
+"""Fan-out of independent jobs (one scene each) over a local process pool or a Dask cluster.
 
 Jobs must not depend on which worker runs them or in which order (each derives its own seed from
 its job), so that every engine writes the same files. `fn(shared, job)` must be a module-level
@@ -73,33 +72,33 @@ def fan_out(
 
 
 def _dask(fn: Callable[[Any, Job], Result], shared: Any, jobs: Sequence[Job], orchestration: OrchestrationParams, desc: str, progress: bool) -> list[Result]:
-    """The jobs as Prefect tasks of one flow whose task runner is a DaskTaskRunner: on the cluster
-    at `dask_address`, else on a local cluster of `workers` single-threaded processes."""
-    from prefect import flow, task, unmapped
-    from prefect.cache_policies import NO_CACHE
-    from prefect.futures import as_completed as prefect_as_completed
-    from prefect_dask import DaskTaskRunner
+    """The jobs on a Dask cluster: the one at `dask_address`, else a local cluster of `workers`
+    single-threaded processes. Dask's own client, not a Prefect flow: a DVC stage that a Prefect
+    flow started must not start flows of its own."""
+    from distributed import Client, LocalCluster
+    from distributed import as_completed as dask_as_completed
 
+    cluster = None
     if orchestration.dask_address:
-        runner = DaskTaskRunner(address=orchestration.dask_address)
+        client = Client(orchestration.dask_address)
         where = orchestration.dask_address
     else:
         n = worker_count(orchestration)
-        runner = DaskTaskRunner(cluster_kwargs={"n_workers": n, "threads_per_worker": 1, "processes": True, "dashboard_address": None, "silence_logs": logging.WARNING})
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.WARNING)
+        client = Client(cluster)
         where = f"a local Dask cluster of {n} workers"
     log.info("%s: %d jobs on %s", desc, len(jobs), where)
-    # No caching: the inputs (meshes, scenes) are large and every job is cheap to hash wrongly.
-    job_task = task(fn, name=desc, cache_policy=NO_CACHE, persist_result=False)
-
-    @flow(name=f"fan-out {desc}", task_runner=runner, persist_result=False)
-    def fan_out_flow() -> list[Result]:
-        futures = job_task.map(unmapped(shared), list(jobs))
-        index = {f.task_run_id: i for i, f in enumerate(futures)}
+    try:
+        shared_future = client.scatter(shared, broadcast=True)  # sent to each worker once
+        futures = [client.submit(fn, shared_future, job, pure=False) for job in jobs]
+        index = {f.key: i for i, f in enumerate(futures)}
         results: list[Any] = [None] * len(futures)
         with tqdm(total=len(futures), desc=desc, unit="job", disable=not progress) as bar:
-            for future in prefect_as_completed(futures):
-                results[index[future.task_run_id]] = future.result()
+            for future in dask_as_completed(futures):
+                results[index[future.key]] = future.result()
                 bar.update()
         return results
-
-    return fan_out_flow()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
