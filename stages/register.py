@@ -48,14 +48,12 @@ def run(
     result = register(cloud, labels, ppf, params.registration, derive_seed(params.seed, "register", name))
     register_s = time.perf_counter() - t0
     estimates = result.poses
-    per_instance_ms = result.per_instance_ms
-    n_duplicates = result.n_duplicates_suppressed
     save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
         "register_s": register_s,
-        "ms_per_instance_median": float(np.median(per_instance_ms)) if per_instance_ms else 0.0,
-        "n_segments": float(int(labels.max()) + 1 if len(labels) else 0),
-        "n_duplicates_suppressed": float(n_duplicates),
+        "ms_per_instance_median": float(np.median(result.per_instance_ms)) if result.per_instance_ms else 0.0,
+        "n_segments": float(result.n_segments),
+        "n_duplicates_suppressed": float(result.n_duplicates_suppressed),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }
