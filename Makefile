@@ -40,7 +40,7 @@ lock: setup
 	  $(BIN)/python -m pip freeze --exclude-editable | grep -v '^binpick' | sed 's/^torch==\(.*\)+cpu$$/torch==\1/'; } > $(LOCK)
 
 repro: setup
-	$(BIN)/dvc repro
+	$(BIN)/binpick repro
 
 clean-runs:
 	rm -rf runs mlflow.db mlartifacts .prefect

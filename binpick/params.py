@@ -14,7 +14,9 @@ Only the entries of a part or a capture have defaults, for their optional keys.
 from __future__ import annotations
 
 import copy
-from pathlib import Path
+import difflib
+import re
+from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
 import numpy as np
@@ -37,6 +39,33 @@ SECTIONS = (
     "render_demo",
 )
 PER_PART_SECTIONS = ("ingest", "camera", "generate", "import_capture", "train", "evaluate", "segment", "register")
+
+
+# Names and paths from this file reach DVC's command lines (dvc.yaml interpolates them into shell
+# commands), so they are held to a character set the shell gives no meaning to.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9_-]{0,63}")
+# Spaces are allowed inside a path (CAD exports have them; DVC's commands single-quote paths),
+# not at its ends.
+PATH_PATTERN = re.compile(r"[A-Za-z0-9_](?:[A-Za-z0-9_ ./-]{0,253}[A-Za-z0-9_./-])?")
+NAME_RULE = "1-64 letters, digits, '_' or '-', starting with a letter or digit"
+PATH_RULE = "a relative path inside the project of letters, digits, spaces, '_', '-', '.' and '/'"
+
+
+def check_name(name: str, what: str) -> str:
+    """`name` if it is a valid part, capture or profile name; ValueError naming `what` otherwise."""
+    if not isinstance(name, str) or not NAME_PATTERN.fullmatch(name):
+        raise ValueError(f"{what} name {name!r} is not {NAME_RULE}")
+    return name
+
+
+def check_project_path(path: str, what: str) -> str:
+    """`path` if it is a safe relative path inside the project; ValueError naming `what` otherwise.
+
+    Only the text is checked here; `binpick.project` also resolves links against the project root.
+    """
+    if not isinstance(path, str) or not PATH_PATTERN.fullmatch(path) or ".." in PurePosixPath(path).parts:
+        raise ValueError(f"{what} {path!r} is not {PATH_RULE} (no '..')")
+    return path
 
 
 class _Strict(BaseModel):
@@ -89,6 +118,11 @@ class PartParams(_Strict):
     segment: dict[str, Any] = {}
     registration: dict[str, Any] = Field({}, alias="register")
 
+    @field_validator("mesh")
+    @classmethod
+    def _safe_mesh(cls, mesh: str) -> str:
+        return check_project_path(mesh, "mesh path")
+
 
 class CaptureParams(_Strict):
     """One capture file to process, and the part that is in it; `truth` optionally names a pose
@@ -105,6 +139,16 @@ class CaptureParams(_Strict):
     # Overrides of the import_capture section for this capture's sensor (noisier sensors need wider
     # plane thresholds).
     import_capture: dict[str, Any] = {}
+
+    @field_validator("file", "truth", "intrinsics")
+    @classmethod
+    def _safe_paths(cls, path: str, info: Any) -> str:
+        return path if path == "" and info.field_name != "file" else check_project_path(path, f"{info.field_name} path")
+
+    @field_validator("part")
+    @classmethod
+    def _safe_part(cls, part: str) -> str:
+        return check_name(part, "part")
 
 
 class IngestParams(_Strict):
@@ -291,6 +335,11 @@ class RenderDemoParams(_Strict):
     n_objects: int = Field(ge=1)
     downscale: int = Field(ge=1, description="replaces camera.downscale for the demo capture")
 
+    @field_validator("part")
+    @classmethod
+    def _safe_part(cls, part: str) -> str:
+        return check_name(part, "part")
+
 
 class ZividCameraParams(_Strict):
     """Zivid capture settings (one acquisition)."""
@@ -328,7 +377,7 @@ class OrchestrationParams(_Strict):
 
 
 class Params(_Strict):
-    seed: int
+    seed: int = Field(ge=0, lt=2**63, description="root of every random generator (derive_seed)")
     profile: str
     parts: dict[str, PartParams]
     captures: dict[str, CaptureParams] = {}
@@ -349,9 +398,20 @@ class Params(_Strict):
     @classmethod
     def _part_names(cls, parts: dict[str, PartParams]) -> dict[str, PartParams]:
         for name in parts:
-            if not name.replace("_", "").replace("-", "").isalnum():
-                raise ValueError(f"part name {name!r} may hold only letters, digits, '_' and '-'")
+            check_name(name, "part")
         return parts
+
+    @field_validator("captures")
+    @classmethod
+    def _capture_names(cls, captures: dict[str, CaptureParams]) -> dict[str, CaptureParams]:
+        for name in captures:
+            check_name(name, "capture")
+        return captures
+
+    @field_validator("profile")
+    @classmethod
+    def _profile_name(cls, profile: str) -> str:
+        return check_name(profile, "profile")
 
     def import_capture_for(self, capture: str | None) -> ImportCaptureParams:
         """The import_capture section with a listed capture's own overrides applied."""
@@ -367,6 +427,8 @@ class Params(_Strict):
         for name, capture in self.captures.items():
             if capture.part not in self.parts:
                 raise ValueError(f"capture {name!r} names part {capture.part!r}, which is not in parts")
+        if self.render_demo.part not in self.parts:
+            raise ValueError(f"render_demo.part {self.render_demo.part!r} is not in parts")
         return self
 
 
@@ -407,7 +469,8 @@ def _one_line(err: ValidationError) -> str:
     first = err.errors()[0]
     where = ".".join(str(p) for p in first["loc"])
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
-    return f"{where}: {first['msg']}{more}"
+    message = str(first["msg"]).removeprefix("Value error, ")
+    return f"{where}: {message}{more}" if where else f"{message}{more}"
 
 
 def load_raw(path: str | Path) -> dict[str, Any]:
@@ -424,15 +487,59 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     return raw
 
 
+def _validate(data: dict[str, Any], where: str) -> Params:
+    try:
+        return Params.model_validate(data)
+    except ValidationError as exc:
+        raise ParamsError(f"{where}{_one_line(exc)}") from None
+
+
+def check_whole(raw: dict[str, Any]) -> None:
+    """Validate the whole settings file, not only what one stage reads: every top-level key,
+    the base sections on their own (a bad value that the active profile happens to override is
+    still a bad value), every profile, every part's overrides (errors name the part's entry) and
+    every capture's import overrides. Raises ParamsError with one line."""
+    known = {f.alias or name for name, f in Params.model_fields.items()} | {"profiles"}
+    for key in raw:
+        if key not in known:
+            close = difflib.get_close_matches(str(key), sorted(known), n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else f" (sections: {', '.join(sorted(known))})"
+            raise ParamsError(f"unknown top-level key {key!r}{hint}")
+    profiles = raw.get("profiles")
+    if not isinstance(profiles, dict) or not profiles:
+        raise ParamsError("'profiles' must map profile names to their section overrides")
+    for name, overrides in profiles.items():
+        try:
+            check_name(name, "profile")
+        except ValueError as exc:
+            raise ParamsError(f"profiles: {exc}") from None
+        if not isinstance(overrides, dict):
+            raise ParamsError(f"profiles.{name}: expected a mapping of sections")
+        for section, value in overrides.items():
+            if section not in SECTIONS:
+                close = difflib.get_close_matches(str(section), SECTIONS, n=1)
+                raise ParamsError(f"profiles.{name}: {section!r} is not a section a profile overrides" + (f" (did you mean {close[0]!r}?)" if close else ""))
+            if value is not None and not isinstance(value, dict):
+                raise ParamsError(f"profiles.{name}.{section}: expected a mapping ({{}} for no change)")
+    _validate({k: v for k, v in raw.items() if k != "profiles"}, "")
+    for name in profiles:
+        _validate(resolve({**raw, "profile": name}), f"profiles.{name}: ")
+    active = _validate(resolve(raw), "")
+    for part in active.parts:
+        _validate(resolve(raw, part), f"parts.{part}: ")
+    for capture in active.captures:
+        active.import_capture_for(capture)
+
+
 def load_params(path: str | Path = "params.yaml", part: str | None = None) -> Params:
-    """Load, resolve and validate params; a bad key or value fails here with one line."""
+    """Load, validate the whole file (check_whole), and resolve for `part`; a bad key or value
+    anywhere in the file fails here with one line."""
     raw = load_raw(path)
     try:
-        return Params.model_validate(resolve(raw, part))
+        check_whole(raw)
+        return _validate(resolve(raw, part), "")
     except ParamsError as exc:
         raise ParamsError(f"{path}: {exc}") from None
-    except ValidationError as exc:
-        raise ParamsError(f"{path}: {_one_line(exc)}") from None
 
 
 def part_name_for(mesh_path: str | Path) -> str:
@@ -453,9 +560,9 @@ def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> N
 
 def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str = "mm") -> None:
     """Add captures (name -> file path) of `part` to params.yaml under `captures`, keeping
-    comments; validated before it replaces the file. `truth: ""` (none) is written out because
-    dvc.yaml reads it."""
-    _add_entries(path, "captures", {name: {"file": file, "part": part, "unit": unit, "truth": ""} for name, file in files.items()})
+    comments; validated before it replaces the file. Optional keys (truth, intrinsics) are left
+    out, as a user would write the entry."""
+    _add_entries(path, "captures", {name: {"file": file, "part": part, "unit": unit} for name, file in files.items()})
 
 
 def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, Any]]) -> None:
@@ -479,7 +586,7 @@ def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, An
     yaml_rt.dump(doc, buffer)
     text = buffer.getvalue()
     try:
-        Params.model_validate(resolve(yaml.safe_load(text)))
-    except ValidationError as exc:
-        raise ParamsError(f"{path}: {_one_line(exc)}") from None
+        check_whole(yaml.safe_load(text))
+    except ParamsError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
     write_text(path, text)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import typer
@@ -19,13 +21,36 @@ app.add_typer(bench_app, name="bench")
 log = logging.getLogger("binpick")
 
 
+_VERBOSE = False
+
+
 def _fail(message: str) -> None:
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(2)
 
 
+@contextlib.contextmanager
+def quiet_prefect() -> Iterator[None]:
+    """A failing flow ends in our one `error:` line; Prefect's own report of it (the exception
+    with its traceback, for the task, the sub-flow and the flow) is shown only with --verbose."""
+    if _VERBOSE:
+        yield
+        return
+    loggers = [logging.getLogger(name) for name in ("prefect.flow_runs", "prefect.task_runs", "prefect.engine", "prefect")]
+    before = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.CRITICAL)
+    try:
+        yield
+    finally:
+        for lg, level in zip(loggers, before, strict=True):
+            lg.setLevel(level)
+
+
 @app.callback()
-def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging")) -> None:
+def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging, and Prefect's reports of failures")) -> None:
+    global _VERBOSE
+    _VERBOSE = verbose
     configure_environment()
     setup_logging(verbose)
 
@@ -75,15 +100,14 @@ def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
 @app.command()
 def demo() -> None:
     """Run the main job on the built-in part through the Prefect flow and print a summary."""
-    root = project_root()
-    if not (root / "dvc.yaml").is_file():
-        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    root = _project()
     from flows.dvc_tasks import StageFailed
     from flows.pipeline import demo as demo_flow
 
     t0 = time.perf_counter()
     try:
-        results = demo_flow(root)
+        with quiet_prefect():
+            results = demo_flow(root)
     except (StageFailed, BinpickError) as exc:
         _fail(str(exc))
     typer.echo("\nbinpick demo: the built-in part, trained and found in a rendered bin\n")
@@ -93,20 +117,66 @@ def demo() -> None:
         typer.echo(f"  {cmd}")
 
 
-@app.command()
-def watch() -> None:
-    """Once: add new meshes in data/parts/ to params.yaml and train every part not up to date."""
+def _project() -> Path:
     root = project_root()
     if not (root / "dvc.yaml").is_file():
         _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    return root
+
+
+@app.command()
+def check() -> None:
+    """Validate params.yaml as a whole and write data/pipeline.yaml, the names and paths dvc.yaml
+    runs on (every project command does this first; run it before a bare `dvc repro`)."""
+    from binpick.project import check_project
+
+    root = _project()
+    try:
+        result = check_project(root)
+    except BinpickError as exc:
+        _fail(str(exc))
+    aside = [f"{k}.{n}" for k, entries in result.set_aside.items() for n in entries]
+    typer.echo(
+        f"params.yaml is valid: {len(result.pipeline.parts)} parts, {len(result.pipeline.captures)} captures in the pipeline"
+        + (f"; set aside: {', '.join(aside)}" if aside else "")
+        + ("; data/pipeline.yaml updated" if result.vars_changed else "")
+    )
+
+
+@app.command()
+def repro() -> None:
+    """Check the project, then `dvc repro --keep-going`: a part or capture whose stage fails is set
+    aside (data/set_aside.yaml) and the rest of the pipeline still runs."""
+    from binpick.project import check_project
+    from flows.repro import repro_all
+
+    root = _project()
+    try:
+        check_project(root)
+        outcome = repro_all(root)
+    except BinpickError as exc:
+        _fail(str(exc))
+    typer.echo(outcome.summary("ran"))
+    if outcome.failed:
+        raise typer.Exit(1)
+
+
+@app.command()
+def watch() -> None:
+    """Once: add new meshes in data/parts/ to params.yaml and train every part not up to date; a
+    part that fails is set aside until its mesh or entry changes."""
+    root = _project()
     from flows.dvc_tasks import StageFailed
     from flows.watcher import watch_parts
 
     try:
-        result = watch_parts(root)
+        with quiet_prefect():
+            outcome = watch_parts(root)
     except (StageFailed, BinpickError) as exc:
         _fail(str(exc))
-    typer.echo(f"added: {', '.join(result['added']) or 'none'}; trained: {', '.join(result['trained']) or 'none'}")
+    typer.echo(outcome.summary("trained"))
+    if outcome.failed:
+        raise typer.Exit(1)
 
 
 @app.command()
@@ -115,21 +185,24 @@ def scenes(
     part: str = typer.Option(..., help="the part in these bins (listed in params.yaml)"),
     unit: str = typer.Option("mm", help="unit of the capture files: mm, m or in"),
 ) -> None:
-    """Import, segment and register every capture in a folder (new files are added to params.yaml)."""
-    root = project_root()
-    if not (root / "dvc.yaml").is_file():
-        _fail(f"{Path.cwd()}: not inside a binpick project (no params.yaml and dvc.yaml found)")
+    """Import, segment and register every capture in a folder (new files are added to params.yaml);
+    a capture that fails is set aside and the others go on."""
+    root = _project()
     if unit not in ("mm", "m", "in"):
         _fail(f"unit {unit!r} is not one of mm, m, in")
     from flows.dvc_tasks import StageFailed
     from flows.pipeline import process_folder
 
     try:
-        results = process_folder(root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit)
+        with quiet_prefect():
+            outcome, results = process_folder(root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit)
     except (StageFailed, BinpickError) as exc:
         _fail(str(exc))
     for name, metrics in results.items():
         typer.echo(f"{name}: {metrics.get('n_found', 0):.0f} parts, mean score {metrics.get('score_mean', 0.0):.2f}")
+    typer.echo(outcome.summary("processed"))
+    if outcome.failed:
+        raise typer.Exit(1)
 
 
 @app.command()

@@ -11,7 +11,12 @@ from prefect.logging import get_run_logger
 
 
 class StageFailed(RuntimeError):
-    """A DVC stage failed; the message is the stage's own error line."""
+    """A DVC stage failed; `reason` is the stage's own error line (or DVC's)."""
+
+    def __init__(self, target: str, reason: str):
+        self.target = target
+        self.reason = reason
+        super().__init__(f"{target}: {reason}")
 
 
 def dvc_env() -> dict[str, str]:
@@ -42,10 +47,45 @@ def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> s
         stdout=subprocess.PIPE, stderr=subprocess.PIPE,
     )
     if proc.returncode != 0:
-        lines = [line for line in (proc.stderr + proc.stdout).splitlines() if line.startswith("error:")]
-        reason = lines[-1] if lines else (proc.stderr.strip().splitlines() or ["unknown error"])[-1]
-        raise StageFailed(f"dvc repro {target} failed: {reason}")
+        raise StageFailed(target, failure_reason(root, proc.stdout, proc.stderr))
     return proc.stdout
+
+
+def failure_reason(root: Path, stdout: str, stderr: str) -> str:
+    """The one line that says why `dvc repro` failed: the stage's own `error:` line when a stage
+    failed; who holds the lock when another run does; else DVC's last error line."""
+    lines = (stderr + "\n" + stdout).splitlines()
+    own = [line.removeprefix("error: ") for line in lines if line.startswith("error: ")]
+    if own:
+        return own[-1]
+    if any("Unable to acquire lock" in line for line in lines):
+        return lock_holder(root)
+    errors = [line.removeprefix("ERROR: ") for line in lines if line.startswith("ERROR: ")]
+    return (errors or [line for line in lines if line.strip()] or ["unknown error"])[-1].strip()
+
+
+def lock_holder(root: Path) -> str:
+    """'another run holds the repository lock (pid N: command)' from DVC's lock files; the lock
+    is live, so it is never suggested to delete it."""
+    import json
+
+    holder = ""
+    try:
+        info = json.loads((root / ".dvc" / "tmp" / "rwlock").read_text() or "{}")
+        for kind in ("write", "read"):
+            for entry in (info.get(kind) or {}).values():
+                entries = entry if isinstance(entry, list) else [entry]
+                for e in entries:
+                    holder = f"pid {e.get('pid')}: {e.get('cmd')}"
+                    break
+    except (OSError, ValueError, AttributeError):
+        pass
+    if not holder:
+        try:
+            holder = f"pid {(root / '.dvc' / 'tmp' / 'lock').read_text().strip()}"
+        except OSError:
+            holder = "another DVC process"
+    return f"another run holds the repository lock ({holder}); wait for it to finish, or stop that process"
 
 
 @task(name="dvc-repro", task_run_name="{target}", retries=1, retry_delay_seconds=2,

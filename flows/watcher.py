@@ -1,9 +1,11 @@
 """The watcher: every part in data/parts/ gets an up-to-date, evaluated model without anyone
-touching anything. New mesh files are added to params.yaml; each part whose DVC stages are not
-up to date runs the training flow; up-to-date parts are skipped."""
+touching anything. New mesh files are added to params.yaml (files whose names cannot be used are
+refused, named in the summary); each part whose DVC stages are not up to date runs the training
+flow; a part that fails is set aside until its mesh or entry changes, and the others go on."""
 
 
 import json
+import logging
 import subprocess
 import sys
 from pathlib import Path
@@ -13,22 +15,30 @@ from prefect.logging import get_run_logger
 
 from binpick.io.mesh import MESH_SUFFIXES
 from binpick.params import add_parts, load_raw, part_name_for
+from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, dvc_env
-from flows.pipeline import PART_STAGES, train_part
+from flows.pipeline import PART_STAGES, Outcome, safe_file_name, train_part
 
+log = logging.getLogger("binpick.watch")
 PARTS_FOLDER = Path("data") / "parts"
 
 
 @task(name="add-new-parts")
-def add_new_parts(root: Path) -> list[str]:
-    """Mesh files in data/parts/ that no part lists are added to params.yaml (unit: auto)."""
+def add_new_parts(root: Path) -> tuple[list[str], dict[str, str]]:
+    """Mesh files in data/parts/ that no part lists are added to params.yaml (unit: auto).
+    Returns (names added, refused file -> reason)."""
     raw = load_raw(root / "params.yaml")
     listed = {Path(p["mesh"]).as_posix() for p in (raw.get("parts") or {}).values()}
     names = set(raw.get("parts") or {})
     new: dict[str, str] = {}
+    refused: dict[str, str] = {}
     for mesh in sorted((root / PARTS_FOLDER).iterdir()):
         rel = mesh.relative_to(root).as_posix()
         if mesh.suffix.lower() not in MESH_SUFFIXES or rel in listed:
+            continue
+        why = safe_file_name(root, mesh)
+        if why:
+            refused[rel] = why
             continue
         name = part_name_for(mesh)
         while name in names or name in new:
@@ -36,14 +46,13 @@ def add_new_parts(root: Path) -> list[str]:
         new[name] = rel
     if new:
         add_parts(root / "params.yaml", new)
-        get_run_logger().info("new parts: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))
-    return sorted(new)
+        log.info("new parts: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))
+    return sorted(new), refused
 
 
 @task(name="stale-parts")
-def stale_parts(root: Path) -> list[str]:
+def stale_parts(root: Path, parts: list[str]) -> list[str]:
     """Parts whose stages (or anything they depend on) are not up to date in DVC."""
-    parts = sorted(load_raw(root / "params.yaml").get("parts") or {})
     stale = []
     for part in parts:
         targets = [f"{stage}@{part}" for stage in PART_STAGES]
@@ -52,20 +61,39 @@ def stale_parts(root: Path) -> list[str]:
             cwd=root, env=dvc_env(), capture_output=True, text=True,
         )
         if proc.returncode != 0:
-            raise StageFailed(f"dvc status for {part} failed: {proc.stderr.strip().splitlines()[-1:]}")
+            raise StageFailed(f"dvc status {part}", (proc.stderr.strip().splitlines() or ["no output"])[-1])
         if json.loads(proc.stdout or "{}"):
             stale.append(part)
     return stale
 
 
+def unit_note(root: Path, part: str) -> str | None:
+    """'unit guessed: mm' for a part whose unit is `auto`, from its ingest metrics."""
+    entry = (load_raw(root / "params.yaml").get("parts") or {}).get(part) or {}
+    path = root / "data" / "metrics" / part / "ingest.json"
+    if entry.get("unit", "auto") != "auto" or not path.is_file():
+        return None
+    unit = json.loads(path.read_text()).get("unit")
+    return f"unit guessed: {unit}" if unit else None
+
+
 @flow(name="watch-parts", flow_run_name="watch-parts")
-def watch_parts(root: Path) -> dict[str, list[str]]:
+def watch_parts(root: Path) -> Outcome:
     """Register new parts, then train and evaluate each part that is not up to date."""
     root = Path(root)
-    added = add_new_parts(root)
-    stale = stale_parts(root)
-    logger = get_run_logger()
-    for part in stale:
-        train_part(part, root)
-    logger.info("trained: %s; up to date: %s", stale or "none", sorted(set(load_raw(root / "params.yaml")["parts"]) - set(stale)) or "none")
-    return {"added": added, "trained": stale}
+    added, refused = add_new_parts(root)
+    plan = check_project(root)
+    outcome = Outcome(added=added, refused=refused, set_aside={n: e.reason for n, e in plan.set_aside["parts"].items()})
+    for part in stale_parts(root, sorted(plan.pipeline.parts)):
+        try:
+            train_part(part, root)
+            outcome.ran.append(part)
+        except StageFailed as exc:
+            outcome.failed[part] = exc.reason
+            set_aside(root, "parts", part, exc.reason)
+    for part in outcome.added + outcome.ran:
+        note = unit_note(root, part)
+        if note:
+            outcome.notes[part] = note
+    get_run_logger().info("%s", outcome.summary("trained"))
+    return outcome

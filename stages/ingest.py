@@ -34,6 +34,7 @@ def run(params: Params, part: str, mesh_path: Path, out: Path, metrics_path: Pat
     metrics = {
         "diameter_mm": 1000.0 * model.diameter_m,
         "n_faces": float(len(model.mesh_faces)),
+        "unit": unit,
         "watertight": float(model.watertight),
         "extent_x_mm": 1000.0 * float(np.ptp(model.mesh_vertices_m[:, 0])),
         "extent_y_mm": 1000.0 * float(np.ptp(model.mesh_vertices_m[:, 1])),

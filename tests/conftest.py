@@ -40,3 +40,20 @@ def params():
     from binpick.params import load_params
 
     return load_params(ROOT / "params.yaml", "t_joint")
+
+
+def copy_project(root: Path, params_text: str | None = None) -> Path:
+    """A copy of the project's code, pipeline and built-in part in `root` (a git repository), with
+    params.yaml's text (default: the project's own), for tests that run the real entry points."""
+    import shutil
+    import subprocess
+
+    for name in ("binpick", "stages", "flows", ".dvc"):
+        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache", "config.local"))
+    for name in ("dvc.yaml", "pyproject.toml", ".gitignore", ".dvcignore"):
+        shutil.copy(ROOT / name, root / name)
+    (root / "data" / "parts").mkdir(parents=True, exist_ok=True)
+    shutil.copy(ROOT / "data" / "parts" / "t_joint.stl", root / "data" / "parts")
+    (root / "params.yaml").write_text(params_text if params_text is not None else (ROOT / "params.yaml").read_text())
+    subprocess.run(["git", "init", "-q"], cwd=root, check=True)
+    return root

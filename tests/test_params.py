@@ -71,7 +71,8 @@ def _write(tmp_path, raw):
 def _minimal():
     """The project's sections (params.yaml is the one source of values), one part, one profile."""
     raw = {k: v for k, v in load_raw(ROOT / "params.yaml").items() if k not in ("parts", "captures", "profiles")}
-    return raw | {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}}}
+    return raw | {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}},
+                  "render_demo": raw["render_demo"] | {"part": "a"}}
 
 
 def test_a_key_missing_from_the_file_fails_naming_it(tmp_path):

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import yaml
 
-from tests.conftest import ROOT
+from tests.conftest import ROOT, copy_project
 
 TINY = {
     "ingest": {"n_surface_points": 8000},
@@ -29,21 +29,12 @@ TINY = {
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory):
-    root = tmp_path_factory.mktemp("project")
-    for name in ("binpick", "stages", "flows", ".dvc"):
-        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache"))
-    for name in ("dvc.yaml", "pyproject.toml", ".gitignore", ".dvcignore"):
-        shutil.copy(ROOT / name, root / name)
-    (root / "data" / "parts").mkdir(parents=True)
-    shutil.copy(ROOT / "data" / "parts" / "t_joint.stl", root / "data" / "parts")
     # Edit the text, so that the copy keeps params.yaml's comments.
     text = (ROOT / "params.yaml").read_text().replace("\nprofile: quick\n", "\nprofile: tiny\n", 1)
     tiny = "".join(f"  {line}\n" for line in yaml.safe_dump({"tiny": TINY}, sort_keys=False).splitlines())
     text = text.replace("\nprofiles:\n", f"\nprofiles:\n{tiny}", 1)
     assert yaml.safe_load(text)["profile"] == "tiny"
-    (root / "params.yaml").write_text(text)
-    subprocess.run(["git", "init", "-q"], cwd=root, check=True)
-    return root
+    return copy_project(tmp_path_factory.mktemp("project"), text)
 
 
 def _dvc(root, *args):
@@ -101,8 +92,9 @@ def test_watcher_trains_a_new_part_and_skips_unchanged_ones(project):
     with prefect_test_harness(server_startup_timeout=120):
         first = watch_parts(project)
         second = watch_parts(project)
-    assert first == {"added": ["bracket_block"], "trained": ["bracket_block"]}
-    assert second == {"added": [], "trained": []}
+    assert (first.added, first.ran, first.failed) == (["bracket_block"], ["bracket_block"], {})
+    assert (second.added, second.ran, second.failed) == ([], [], {})
+    assert first.notes == {"bracket_block": "unit guessed: mm"}
     params = yaml.safe_load((project / "params.yaml").read_text())
     assert params["parts"]["bracket_block"]["mesh"] == "data/parts/Bracket Block.stl"
     assert "# binpick settings" in (project / "params.yaml").read_text()  # comments kept
@@ -142,16 +134,17 @@ def test_scene_flow_processes_a_folder_of_captures(project):
         shutil.copy(project / "data/captures/demo/capture.ply", folder / name)
     (folder / "notes.md").write_text("not a capture")
     with prefect_test_harness(server_startup_timeout=120):
-        first = process_folder(project, folder, "t_joint")
-        second = process_folder(project, folder, "t_joint")
-    assert sorted(first) == ["bin_a", "bin_b"]
+        outcome, first = process_folder(project, folder, "t_joint")
+        _, second = process_folder(project, folder, "t_joint")
+    assert sorted(first) == ["bin_a", "bin_b"] and outcome.added == ["bin_a", "bin_b"] and not outcome.failed
     demo = json.loads((project / "data/metrics/scenes/demo/register.json").read_text())
     for name in first:  # the demo capture's frame: about the demo's parts are found
         assert demo["n_found"] / 2 <= first[name]["n_found"] <= demo["n_found"] + 2
         assert (project / f"data/results/{name}/poses.json").is_file()
     assert second == first
     captures = yaml.safe_load((project / "params.yaml").read_text())["captures"]
-    assert captures["bin_a"] == {"file": "data/captures/monday/bin A.ply", "part": "t_joint", "unit": "mm", "truth": ""}
+    # Written as the README says, without the optional keys (truth, intrinsics), and DVC ran it.
+    assert captures["bin_a"] == {"file": "data/captures/monday/bin A.ply", "part": "t_joint", "unit": "mm"}
 
 
 def _free_port() -> int:

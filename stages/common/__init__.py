@@ -46,7 +46,15 @@ def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str
 
 
 def start(args: argparse.Namespace) -> None:
+    """Logging, then, when DVC runs the stage, the check that data/pipeline.yaml (which DVC read
+    the stage's names and paths from) still matches the whole, valid params.yaml."""
+    import os
+
     setup_logging(args.verbose)
+    if os.environ.get("DVC_STAGE"):
+        from binpick.project import verify_pipeline_vars
+
+        verify_pipeline_vars(project_root())
 
 
 def is_timing(key: str) -> bool:

@@ -1,0 +1,114 @@
+"""The pipeline's variables file (`data/pipeline.yaml`) and its set-aside list (`data/set_aside.yaml`).
+
+dvc.yaml iterates over `data/pipeline.yaml`, not over params.yaml: `binpick check` writes it from
+params.yaml after validating every name and path, so that DVC, which interpolates names and paths
+into shell commands, only ever sees checked text, and so that optional keys of an entry (a
+capture's `truth`, `intrinsics`) always exist for DVC. Parts and captures that failed and were set
+aside (`data/set_aside.yaml`) are left out of it until their files or entries change.
+
+Spec: data/README.md#pipeline-variables.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from binpick.errors import InputError
+from binpick.io.atomic import write_text
+
+PIPELINE_VARS = Path("data") / "pipeline.yaml"
+SET_ASIDE = Path("data") / "set_aside.yaml"
+KINDS = ("parts", "captures")
+
+_HEADER = (
+    "# Written by `binpick check` from params.yaml; do not edit (edit params.yaml, then run\n"
+    "# `binpick check`, or `make repro`, which runs it). dvc.yaml iterates over these entries.\n"
+)
+
+
+@dataclass(frozen=True)
+class StageCapture:
+    """A capture as the scene stages see it. `truth`/`intrinsics` are '' when absent; the `*_dep`
+    fields are files DVC can always track: the truth or intrinsics file, else the capture itself."""
+
+    file: str
+    part: str
+    truth: str
+    intrinsics: str
+
+    def as_vars(self) -> dict[str, str]:
+        return {
+            "file": self.file, "part": self.part, "truth": self.truth, "intrinsics": self.intrinsics,
+            "truth_dep": self.truth or self.file, "intrinsics_dep": self.intrinsics or self.file,
+        }
+
+
+@dataclass(frozen=True)
+class PipelineVars:
+    parts: dict[str, str]  # part name -> mesh path
+    captures: dict[str, StageCapture]
+    demo_part: str
+    demo_file: str
+    demo_truth: str
+
+    def as_yaml(self) -> str:
+        doc = {
+            "stage_parts": {name: {"mesh": mesh} for name, mesh in sorted(self.parts.items())},
+            "stage_captures": {name: c.as_vars() for name, c in sorted(self.captures.items())},
+            "stage_demo": {"part": self.demo_part, "file": self.demo_file, "truth": self.demo_truth},
+        }
+        return _HEADER + yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)
+
+
+def read_pipeline_vars_text(root: Path) -> str:
+    path = root / PIPELINE_VARS
+    return path.read_text() if path.is_file() else ""
+
+
+def write_pipeline_vars(root: Path, plan: PipelineVars) -> bool:
+    """Write data/pipeline.yaml when its content changes; True when it did."""
+    text = plan.as_yaml()
+    if read_pipeline_vars_text(root) == text:
+        return False
+    write_text(root / PIPELINE_VARS, text)
+    return True
+
+
+@dataclass(frozen=True)
+class SetAside:
+    """A part or capture that failed: kept out of the pipeline while `fingerprint` (its files and
+    its params entry) is unchanged."""
+
+    fingerprint: str
+    reason: str
+    when: str
+
+
+def load_set_aside(root: Path) -> dict[str, dict[str, SetAside]]:
+    """{'parts': {name: SetAside}, 'captures': {...}}; empty when the file is absent."""
+    path = root / SET_ASIDE
+    out: dict[str, dict[str, SetAside]] = {kind: {} for kind in KINDS}
+    if not path.is_file():
+        return out
+    try:
+        doc: Any = yaml.safe_load(path.read_text()) or {}
+        for kind in KINDS:
+            for name, entry in (doc.get(kind) or {}).items():
+                out[kind][str(name)] = SetAside(str(entry["fingerprint"]), str(entry["reason"]), str(entry["when"]))
+    except (yaml.YAMLError, AttributeError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a set-aside list ({type(exc).__name__}: {exc}); delete it to retry everything") from None
+    return out
+
+
+def save_set_aside(root: Path, entries: dict[str, dict[str, SetAside]]) -> None:
+    doc = {kind: {name: vars(e) for name, e in sorted(entries.get(kind, {}).items())} for kind in KINDS}
+    write_text(
+        root / SET_ASIDE,
+        "# Parts and captures that failed, kept out of the pipeline until their files or params\n"
+        "# entries change (written by binpick watch / scenes / repro; delete an entry to retry it).\n"
+        + yaml.safe_dump(doc, sort_keys=False),
+    )
