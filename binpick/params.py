@@ -153,6 +153,8 @@ class CaptureParams(_Strict):
 
 class IngestParams(_Strict):
     n_surface_points: int = Field(ge=100, description="dense surface sample of the part model")
+    # Larger CAD meshes are decimated to this many faces (the diameter is taken before).
+    max_faces: int = Field(ge=100)
     # Sizes outside these bounds are almost certainly a wrong unit.
     min_extent_m: float = Field(gt=0)
     max_extent_m: float = Field(gt=0)

@@ -84,17 +84,112 @@ def sample_surface(
     return points.astype(np.float32), normals.astype(np.float32)
 
 
+# Point sets up to this size get the exact diameter by all pairs of convex-hull vertices.
+EXACT_DIAMETER_MAX_POINTS = 20_000
+# Larger sets: widths along this many directions over a half sphere (a width is the same along
+# u and -u). Their covering radius is below 0.04 rad, so the widest is within
+# 1 - cos(0.04) = 0.08 % of the diameter (DIAMETER_MAX_REL_ERROR); the pairs found are then refined.
+DIAMETER_DIRECTIONS = 3000
+DIAMETER_MAX_REL_ERROR = 1.0 - np.cos(0.04)
+
+
+def _half_sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors with z >= 0 on a Fibonacci spiral (even coverage, deterministic)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - i / n  # uniform in z over (0, 1]: uniform in area on the half sphere
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    r = np.sqrt(1.0 - z * z)
+    return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
+
+
+def _max_pair_distance(a: np.ndarray, b: np.ndarray, chunk: int = 2048) -> tuple[float, int, int]:
+    """Largest distance between a point of `a` (n, 3) and one of `b` (m, 3), in row chunks."""
+    best, bi, bj = -1.0, 0, 0
+    b2 = (b * b).sum(1)
+    for start in range(0, len(a), chunk):
+        block = a[start : start + chunk]
+        d2 = (block * block).sum(1)[:, None] + b2[None, :] - 2.0 * block @ b.T
+        k = int(np.argmax(d2))
+        i, j = divmod(k, len(b))
+        if d2[i, j] > best:
+            best, bi, bj = float(d2[i, j]), start + i, j
+    return float(np.sqrt(max(best, 0.0))), bi, bj
+
+
 def diameter(points: np.ndarray) -> float:
-    """Largest distance between two of the (n, 3) points, exact (via the convex hull)."""
+    """Largest distance between two of the (n, 3) points (any unit; the same unit back).
+
+    Up to EXACT_DIAMETER_MAX_POINTS points: exact, over all pairs of convex-hull vertices. More
+    (CAD meshes of 10^5-10^6 faces): the widest of DIAMETER_DIRECTIONS projections, improved by
+    exact pairs among the extreme points of the widest directions; never above the true diameter
+    and at most DIAMETER_MAX_REL_ERROR (0.08 %) below it. Memory stays linear in n.
+    """
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3 or len(points) < 2:
         raise ValueError(f"expected at least two points (n, 3), got {points.shape}")
-    try:
-        hull = trimesh.convex.convex_hull(points).vertices
-    except Exception:  # flat or degenerate sets have no 3-D hull; all points then
-        hull = points
-    d2 = np.max(((hull[:, None, :] - hull[None, :, :]) ** 2).sum(-1))
-    return float(np.sqrt(d2))
+    if len(points) <= EXACT_DIAMETER_MAX_POINTS:
+        try:
+            hull = trimesh.convex.convex_hull(points).vertices
+        except Exception:  # flat or degenerate sets have no 3-D hull; all points then
+            hull = points
+        return _max_pair_distance(hull, hull)[0]
+    # Projections in float32 (fast, 1e-7 relative): they only choose candidates; every distance
+    # returned is computed in float64 from the points themselves.
+    centred = (points - points.mean(0)).astype(np.float32)
+    dirs = _half_sphere_directions(DIAMETER_DIRECTIONS).astype(np.float32)
+    chunk = 8192
+    lo = np.full(len(dirs), np.inf, dtype=np.float32)
+    hi = np.full(len(dirs), -np.inf, dtype=np.float32)
+    lo_chunk = np.zeros(len(dirs), dtype=np.int64)
+    hi_chunk = np.zeros(len(dirs), dtype=np.int64)
+    for c, start in enumerate(range(0, len(centred), chunk)):
+        proj = centred[start : start + chunk] @ dirs.T  # (chunk, directions), 100 MB
+        v_min, v_max = proj.min(0), proj.max(0)
+        better_lo, better_hi = v_min < lo, v_max > hi
+        lo[better_lo], lo_chunk[better_lo] = v_min[better_lo], c
+        hi[better_hi], hi_chunk[better_hi] = v_max[better_hi], c
+    width = (hi - lo).astype(np.float64)
+    # The extreme points of the widest directions are the candidates for the farthest pair; the
+    # distance among them is a true distance, so at least the widest width.
+    top = np.argsort(width)[::-1][:64]
+    ends = []
+    for d in top:
+        for c, pick in ((lo_chunk[d], np.argmin), (hi_chunk[d], np.argmax)):
+            block = centred[c * chunk : (c + 1) * chunk] @ dirs[d]
+            ends.append(c * chunk + int(pick(block)))
+    candidates = np.unique(np.array(ends))
+    best, i, _ = _max_pair_distance(points[candidates], points[candidates])
+    # Walk: the farthest point from an end of the best pair, until it stops improving.
+    a = points[candidates[i]]
+    for _ in range(4):
+        far = int(np.argmax(((points - a) ** 2).sum(1)))
+        d = float(np.linalg.norm(points[far] - a))
+        if d <= best * (1 + 1e-12):
+            break
+        best, a = d, points[far]
+    return float(max(best, float(width.max()) * (1.0 - 1e-6)))  # float32 widths may round up
+
+
+def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
+    """The mesh decimated towards `max_faces` faces (quadric error metric), or the mesh itself when
+    it has no more. Any unit; the surface moves by far less than a camera pixel for CAD parts.
+    Meshes of long thin facets may stay above the target (all collapses left would fold faces)."""
+    if len(mesh.faces) <= max_faces:
+        return mesh
+    import fast_simplification
+
+    vertices, faces = np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces, dtype=np.int32)
+    # A pass can stop short of the target (on long thin facets it refuses collapses that would
+    # fold faces over); another pass helps only while it still makes progress.
+    for _ in range(3):
+        before = len(faces)
+        vertices, faces = fast_simplification.simplify(vertices, np.asarray(faces, dtype=np.int32), target_count=max_faces)
+        if len(faces) <= max_faces or len(faces) > 0.8 * before:
+            break
+    simplified = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)
+    simplified.update_faces(simplified.nondegenerate_faces())
+    simplified.remove_unreferenced_vertices()
+    return simplified
 
 
 def make_part_model(
@@ -104,8 +199,12 @@ def make_part_model(
     n_points: int,
     rng: np.random.Generator,
     source_unit: str,
+    diameter_m: float | None = None,
 ) -> PartModel:
-    """Build a part model from a mesh already in metres (model frame kept as in the CAD file)."""
+    """Build a part model from a mesh already in metres (model frame kept as in the CAD file).
+
+    `diameter_m`: the diameter when already known (from the mesh before simplification).
+    """
     points, normals = sample_surface(mesh_m.vertices, mesh_m.faces, n_points, rng)
     lo, hi = mesh_m.bounds
     return PartModel(
@@ -114,7 +213,7 @@ def make_part_model(
         mesh_faces=np.asarray(mesh_m.faces, dtype=np.int64),
         points_m=points,
         normals=normals,
-        diameter_m=diameter(mesh_m.vertices),
+        diameter_m=diameter(mesh_m.vertices) if diameter_m is None else float(diameter_m),
         centre_m=(lo + hi) / 2.0,
         symmetry=symmetry,
         source_unit=source_unit,

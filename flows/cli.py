@@ -277,6 +277,19 @@ def bench_import_cmd(
     _write_json(out, bench_import(settings, repeats))
 
 
+@bench_app.command("ingest")
+def bench_ingest_cmd(out: Path = typer.Option(..., help="JSON file to write"), params: Path = typer.Option(Path("params.yaml"))) -> None:
+    """Ingest of CAD meshes of 10^4 to 2 x 10^6 faces: time, peak memory, diameter error."""
+    from binpick.bench.ingest import bench_ingest
+    from binpick.params import load_params
+
+    try:
+        settings = load_params(params)
+    except BinpickError as exc:
+        _fail(str(exc))
+    _write_json(out, bench_ingest(settings))
+
+
 @bench_app.command("generate")
 def bench_generate_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),

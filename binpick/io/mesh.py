@@ -30,11 +30,9 @@ def guess_unit(max_extent: float) -> str:
     return "m" if max_extent <= 2.0 else "mm"
 
 
-def load_mesh(path: str | Path, unit: str) -> tuple[trimesh.Trimesh, str]:
-    """Load a triangle mesh and scale it to metres.
+def read_mesh(path: str | Path) -> trimesh.Trimesh:
+    """Read a triangle mesh in the units of its file: vertices merged, degenerate faces dropped.
 
-    Returns the mesh (vertices in metres, model frame of the file, faces with consistent
-    outward winding where the mesh is closed) and the unit that was applied.
     Raises InputError naming the file for a missing, unreadable or empty mesh.
     """
     path = Path(path)
@@ -52,7 +50,6 @@ def load_mesh(path: str | Path, unit: str) -> tuple[trimesh.Trimesh, str]:
         raise InputError(path, "holds no triangles")
     if not np.all(np.isfinite(mesh.vertices)):
         raise InputError(path, "has non-finite vertex coordinates")
-
     n_before = len(mesh.faces)
     mesh.update_faces(mesh.nondegenerate_faces())
     mesh.remove_unreferenced_vertices()
@@ -60,7 +57,18 @@ def load_mesh(path: str | Path, unit: str) -> tuple[trimesh.Trimesh, str]:
         raise InputError(path, "all triangles are degenerate")
     if len(mesh.faces) < n_before:
         log.warning("%s: dropped %d degenerate faces of %d", path, n_before - len(mesh.faces), n_before)
+    return mesh
 
+
+def load_mesh(path: str | Path, unit: str) -> tuple[trimesh.Trimesh, str]:
+    """Load a triangle mesh and scale it to metres.
+
+    Returns the mesh (vertices in metres, model frame of the file, faces with consistent
+    outward winding where the mesh is closed) and the unit that was applied (`auto`: guessed
+    from the size alone; the ingest stage guesses better, from the camera and bin too).
+    Raises InputError naming the file for a missing, unreadable or empty mesh.
+    """
+    mesh = read_mesh(path)
     extent = float(np.max(mesh.extents))
     if unit == "auto":
         unit = guess_unit(extent)
