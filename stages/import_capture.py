@@ -10,6 +10,7 @@ from pathlib import Path
 
 from binpick.cleaning import clean_capture
 from binpick.errors import BinpickError
+from binpick.io.atomic import atomic_paths
 from binpick.io.capture import DEFAULT_TEXT_COLUMNS, ImportOptions, load_capture
 from binpick.io.cloud import save_cloud
 from binpick.params import Params, load_params
@@ -28,7 +29,6 @@ def run(
         cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.import_capture_for(name), derive_int(params.seed, "import", str(capture_path)))
     except BinpickError as exc:
         raise BinpickError(f"{capture_path}: {exc}") from None
-    save_cloud(out, cloud)
     metrics = {
         "import_s": time.perf_counter() - t0,
         "n_points_in": float(len(capture.xyz_m)),
@@ -38,10 +38,12 @@ def run(
         "n_walls": float(len(cloud.wall_planes)),
         **{f"floor_plane_{k}": float(v) for k, v in zip("abcd", cloud.floor_plane, strict=False)},
     }
-    if metrics_path is not None:
-        write_metrics(metrics_path, metrics)
-        if name:
-            log_timings("scenes", f"import-{name}", params.tracking.mlflow_uri, f"import_capture@{name}", metrics, {"capture": name})
+    with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
+        save_cloud(tmp_out, cloud)
+        if tmp_metrics is not None:
+            write_metrics(tmp_metrics, metrics)
+            if name:
+                log_timings("scenes", f"import-{name}", params.tracking.mlflow_uri, f"import_capture@{name}", metrics, {"capture": name})
     log.info("%s: %d points -> %d after cleaning (%.2f s)", capture_path, len(capture.xyz_m), len(cloud.points_m), metrics["import_s"])
     return metrics
 

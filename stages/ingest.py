@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from binpick.ingest import ingest_part
+from binpick.io.atomic import atomic_paths
 from binpick.io.part_model import save_part_model
 from binpick.params import Params, load_params
 from stages.common import entry, parser, start, write_metrics
@@ -17,9 +18,10 @@ log = logging.getLogger("binpick.stage.ingest")
 
 def run(params: Params, part: str, mesh_path: Path, out: Path, metrics_path: Path | None = None) -> dict[str, float | str]:
     model, metrics = ingest_part(params, part, mesh_path)
-    save_part_model(out, model)
-    if metrics_path is not None:
-        write_metrics(metrics_path, metrics)
+    with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
+        save_part_model(tmp_out, model)
+        if tmp_metrics is not None:
+            write_metrics(tmp_metrics, metrics)
     log.info("%s -> %s", part, out)
     return metrics
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from binpick.errors import InputError
+from binpick.io.atomic import atomic_paths
 from binpick.io.cloud import load_cloud, load_segments
 from binpick.io.part_model import load_part_model
 from binpick.io.poses import load_poses, save_poses
@@ -48,7 +49,6 @@ def run(
     result = register(cloud, labels, ppf, params.registration, derive_seed(params.seed, "register", name))
     register_s = time.perf_counter() - t0
     estimates = result.poses
-    save_poses(out, part.name, estimates)
     metrics: dict[str, float] = {
         "register_s": register_s,
         "ms_per_instance_median": float(np.median(result.per_instance_ms)) if result.per_instance_ms else 0.0,
@@ -68,19 +68,26 @@ def run(
         )
         metrics.update(summary)
     timings = {"register_s": register_s}
-    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part.name, "capture": name, "dvc_stage": f"register@{name}"}):
+    # Poses, recording and metrics are committed together, after the MLflow run was logged.
+    with atomic_paths(out, rrd_path, metrics_path) as (tmp_out, tmp_rrd, tmp_metrics):
+        save_poses(tmp_out, part.name, estimates)
+        if tmp_rrd is not None:
+            write_scene_recording(tmp_rrd, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
+        if tmp_metrics is not None:
+            write_metrics(tmp_metrics, metrics)
+        _log_run(params, name, part.name, metrics, timings, estimates)
+    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), params.registration.mode, metrics["n_segments"], register_s)
+    return metrics
+
+
+def _log_run(params: Params, name: str, part: str, metrics: dict[str, float], timings: dict[str, float], estimates: list) -> None:
+    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part, "capture": name, "dvc_stage": f"register@{name}"}):
         import mlflow
 
         mlflow.log_metrics({k: v for k, v in {**metrics, **timings}.items() if np.isfinite(v)})
         for k, e in enumerate(estimates):
             mlflow.log_metric("pose_score", e.score, step=k)
-        mlflow.log_dict({"part": part.name, "poses": [{"segment": e.segment, "score": e.score, "T_cam_from_model": e.T_cam_from_model.tolist()} for e in estimates]}, "poses.json")
-    if rrd_path is not None:
-        write_scene_recording(rrd_path, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
-    if metrics_path is not None:
-        write_metrics(metrics_path, metrics)
-    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), params.registration.mode, metrics["n_segments"], register_s)
-    return metrics
+        mlflow.log_dict({"part": part, "poses": [{"segment": e.segment, "score": e.score, "T_cam_from_model": e.T_cam_from_model.tolist()} for e in estimates]}, "poses.json")
 
 
 @entry

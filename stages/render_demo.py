@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from binpick.generation.scene import generate_scene
+from binpick.io.atomic import atomic_paths
 from binpick.io.part_model import load_part_model
 from binpick.io.ply import PointCloudData, save_ply
 from binpick.io.poses import PartPose, save_poses
@@ -40,12 +41,13 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
     seed = derive_seed(params.seed, "demo_capture", part.name)  # the stage's former name: same scenes
     scene = generate_scene(part, params.generate, camera, ViewParams.of_import(params.import_capture), seed, n_objects=params.render_demo.n_objects)
     H, W = scene.labels.shape
-    save_ply(out, PointCloudData(xyz=scene.xyz_m.reshape(-1, 3) * MM_PER_M, rgb=grey_shading(scene.xyz_m).reshape(-1, 3), shape=(H, W)))
     records = [
         PartPose(T, 1.0, i, {"visible_fraction": round(float(v), 4)})
         for i, (T, v) in enumerate(zip(scene.T_cam_from_model, scene.visible_fraction, strict=False))
     ]
-    save_poses(truth, part.name, records)
+    with atomic_paths(out, truth) as (tmp_out, tmp_truth):  # the capture and its truth together
+        save_ply(tmp_out, PointCloudData(xyz=scene.xyz_m.reshape(-1, 3) * MM_PER_M, rgb=grey_shading(scene.xyz_m).reshape(-1, 3), shape=(H, W)))
+        save_poses(tmp_truth, part.name, records)
     log.info("%s: %dx%d capture with %d parts -> %s", part.name, W, H, len(records), out)
     return len(records)
 

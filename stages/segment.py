@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.io.atomic import atomic_paths
 from binpick.io.cloud import load_cloud, save_segments
 from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
@@ -25,13 +26,14 @@ def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_p
     t0 = time.perf_counter()
     labels = segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))))
     seconds = time.perf_counter() - t0
-    save_segments(out, labels)
     n_inst = int(labels.max()) + 1 if len(labels) else 0
     metrics = {"segment_s": seconds, "n_instances": float(n_inst), "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0}
-    if metrics_path is not None:
-        write_metrics(metrics_path, metrics)
-        if name:
-            log_timings("scenes", f"segment-{name}", params.tracking.mlflow_uri, f"segment@{name}", metrics, {"capture": name})
+    with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
+        save_segments(tmp_out, labels)
+        if tmp_metrics is not None:
+            write_metrics(tmp_metrics, metrics)
+            if name:
+                log_timings("scenes", f"segment-{name}", params.tracking.mlflow_uri, f"segment@{name}", metrics, {"capture": name})
     log.info("%s: %d instances in %.2f s", cloud_path, n_inst, seconds)
     return metrics
 

@@ -11,7 +11,7 @@ import numpy as np
 from binpick.io.part_model import load_part_model
 from binpick.network.calibrate import CALIBRATED, recalibrate
 from binpick.network.infer import cluster_params, default_device, segment_scene
-from binpick.network.train import BEST, load_views, train_fpcc
+from binpick.network.train import BEST, LAST, load_views, train_fpcc
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int, derive_seed
 from stages.common import add_model_version, entry, flat_params, mlflow_run, model_name, parser, start, write_metrics
@@ -40,7 +40,11 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         import mlflow
 
         mlflow.log_params({**flat_params("train", params.train), "train.d_max_m_resolved": dm, "seed": params.seed, "device": str(device)})
-        samples = TrainingRecording(work / "samples.rrd", part.name, [(val_views.points[i], val_views.labels[i]) for i in range(min(SAMPLE_VIEWS, len(val_views)))])
+        # Written under a temporary name and moved into place when training ends, so that a killed
+        # training leaves no truncated recording under the real name.
+        partial = work / ".samples.partial.rrd"
+        partial.unlink(missing_ok=True)
+        samples = TrainingRecording(partial, part.name, [(val_views.points[i], val_views.labels[i]) for i in range(min(SAMPLE_VIEWS, len(val_views)))])
         every = max(1, params.train.epochs // SAMPLE_EPOCHS)
         cp = cluster_params(params.segment, part.diameter_m)
 
@@ -61,7 +65,8 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
             )
         finally:
             samples.close()
-        mlflow.log_artifact(str(samples.path), artifact_path="samples")
+        partial.replace(work / "samples.rrd")
+        mlflow.log_artifact(str(work / "samples.rrd"), artifact_path="samples")
         out.parent.mkdir(parents=True, exist_ok=True)
         chosen = recalibrate(
             work / BEST, out, val_views, params.segment, params.evaluate.iou_threshold, np.random.default_rng(derive_seed(params.seed, "calibrate", part.name)),
@@ -77,6 +82,10 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
         log.info("%s: MLflow run %s, registered as %s version %s", part.name, run_.info.run_id, model_name(part.name), version)
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
+    # The resume points belong to this finished training: the next run of the stage (changed
+    # inputs, or `dvc repro --force`) trains from scratch instead of resuming a finished run.
+    for name in (LAST, BEST):
+        (work / name).unlink(missing_ok=True)
     log.info("%s: best validation loss %.4f at epoch %d -> %s", part.name, metrics["best_val_loss"], metrics["best_epoch"], out)
     return metrics
 

@@ -3,7 +3,8 @@ import pytest
 import torch
 
 from binpick.network.blocks import cover, crop
-from binpick.network.checkpoint import CalibratedClustering, load_checkpoint, save_checkpoint
+from binpick.errors import InputError
+from binpick.network.checkpoint import CalibratedClustering, load_checkpoint, save_checkpoint, write_state
 from binpick.network.infer import ClusterParams, cluster, segment_scene
 from binpick.network.loss import centre_score_targets, fpcc_loss
 from binpick.network.model import (
@@ -177,7 +178,7 @@ def _toy_views(n_scenes, rng):
     return Views(P, N, L)
 
 
-def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path):
+def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path, caplog):
     rng = np.random.default_rng(0)
     train, val = _toy_views(6, rng), _toy_views(2, rng)
     params = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=3, loss_anchors=64, patience_epochs=10)
@@ -187,11 +188,41 @@ def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path):
     # with the three-epoch params. Training on must then end exactly where the full run ended.
     state = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
     state["extra"]["train_params"] = params.model_dump()
-    torch.save(state, tmp_path / "b" / "last.pt")
-    resumed, m_res = train_fpcc(train, val, params, 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False)
+    write_state(tmp_path / "b" / "last.pt", state)
+    with caplog.at_level("INFO", logger="binpick.network.train"):
+        resumed, m_res = train_fpcc(train, val, params, 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False)
+    assert "resuming from" in caplog.text
     for a, b in zip(full.state_dict().values(), resumed.state_dict().values(), strict=False):
         assert torch.equal(a, b)
     assert m_full["best_val_loss"] == m_res["best_val_loss"]
+
+
+def test_a_damaged_resume_point_restarts_training_with_a_warning(tmp_path, caplog):
+    rng = np.random.default_rng(0)
+    train, val = _toy_views(4, rng), _toy_views(2, rng)
+    params = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=2, loss_anchors=64, patience_epochs=10)
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "last.pt").write_bytes(b"PK\x03\x04 truncated by a crash")
+    with caplog.at_level("WARNING", logger="binpick.network.train"):
+        _, metrics = train_fpcc(train, val, params, 0.02, 5, tmp_path / "w", "toy", 0.06, progress=False)
+    assert "starting this training from scratch" in caplog.text and metrics["epochs_run"] == 2
+
+
+def test_a_checkpoint_with_flipped_bytes_is_refused(tmp_path):
+    model = FPCC(FPCCConfig(k_neighbours=4, width=8, embedding_dim=6)).eval()
+    save_checkpoint(tmp_path / "m.pt", model, None, 3, {"loss": 1.0}, {"d_max_m": 0.02})
+    data = bytearray((tmp_path / "m.pt").read_bytes())
+    # Flip bytes inside the largest weight tensor's stored data (torch still reads the file).
+    state = torch.load(tmp_path / "m.pt", weights_only=True)
+    name, tensor = max(state["model"].items(), key=lambda kv: kv[1].numel())
+    raw = tensor.reshape(-1).view(torch.uint8).numpy().tobytes()
+    at = bytes(data).find(raw[:64])
+    assert at > 0, name
+    data[at + 10] ^= 0xFF
+    (tmp_path / "bad.pt").write_bytes(bytes(data))
+    torch.load(tmp_path / "bad.pt", weights_only=True)  # still loads: only the checksum can tell
+    with pytest.raises(InputError, match="damaged: its weights do not match the checksum"):
+        load_checkpoint(tmp_path / "bad.pt")
 
 
 def test_checkpoint_rebuilds_the_network_alone(tmp_path):

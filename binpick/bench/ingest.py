@@ -52,6 +52,7 @@ def _child(params: Params, mesh_path: str, queue: Any) -> None:
     from binpick.ingest import ingest_part
 
     t0 = time.perf_counter()
+    result: dict[str, Any]
     try:
         model, metrics = ingest_part(params, "bench", Path(mesh_path))
         result = {"ingest_s": time.perf_counter() - t0, "diameter_mm": 1000.0 * model.diameter_m,

@@ -10,6 +10,30 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_stale(parent: Path, prefix: str) -> None:
+    """Remove temporaries `<prefix><pid>.*.tmp*` in `parent` left by writers that were killed
+    (their process is gone); a live writer's are left alone."""
+    if not parent.is_dir():
+        return
+    for stale in parent.glob(f"{prefix}*.tmp*"):
+        pid = stale.name[len(prefix):].split(".", 1)[0]
+        if pid.isdigit() and not _pid_alive(int(pid)):
+            if stale.is_dir() and not stale.is_symlink():
+                shutil.rmtree(stale, ignore_errors=True)
+            else:
+                stale.unlink(missing_ok=True)
+
+
 def _umask() -> int:
     mask = os.umask(0)
     os.umask(mask)
@@ -25,7 +49,10 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    # The writer's pid in the name: a killed writer's temporary is swept by the next one.
+    prefix = f".{path.stem}."
+    sweep_stale(path.parent, prefix)
+    fd, tmp_name = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}.", suffix=f".tmp{path.suffix}", dir=path.parent)
     os.close(fd)
     tmp = Path(tmp_name)
     try:
@@ -42,7 +69,9 @@ def atomic_dir(path: str | Path) -> Iterator[Path]:
     """Yield a temporary folder next to `path`; it replaces `path` only if the block succeeds."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent))
+    prefix = f".{path.name}."
+    sweep_stale(path.parent, prefix)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}.", suffix=".tmp", dir=path.parent))
     try:
         yield tmp
         os.chmod(tmp, 0o777 & ~_umask())
@@ -58,3 +87,36 @@ def write_text(path: str | Path, text: str) -> None:
     """Write a text file atomically."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+@contextlib.contextmanager
+def atomic_paths(*paths: str | Path | None) -> Iterator[list[Path | None]]:
+    """Temporary paths for several outputs that are committed together: each moves onto its real
+    path only after the whole block succeeded; a failure anywhere leaves every real path as it
+    was. None stays None (an output not asked for). Suffixes are kept, as in atomic_path."""
+    temps: list[Path | None] = []
+    try:
+        for p in paths:
+            if p is None:
+                temps.append(None)
+                continue
+            p = Path(p)
+            p.parent.mkdir(parents=True, exist_ok=True)
+            prefix = f".{p.stem}."
+            sweep_stale(p.parent, prefix)
+            fd, name = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}.", suffix=f".tmp{p.suffix}", dir=p.parent)
+            os.close(fd)
+            temps.append(Path(name))
+        yield temps
+        for p, tmp in zip(paths, temps, strict=True):
+            if p is not None and tmp is not None:
+                if not tmp.exists() or tmp.stat().st_size == 0:
+                    raise FileNotFoundError(f"{p}: the stage wrote nothing there")
+                os.chmod(tmp, 0o666 & ~_umask())
+        for p, tmp in zip(paths, temps, strict=True):
+            if p is not None and tmp is not None:
+                os.replace(tmp, p)
+    finally:
+        for tmp in temps:
+            if tmp is not None and tmp.exists():
+                tmp.unlink()

@@ -20,7 +20,8 @@ from binpick.io.atomic import atomic_path
 from binpick.network.model import FPCC, FPCCConfig
 from binpick.params import TrainParams
 
-CHECKPOINT_VERSION = 1
+# 2: a SHA-256 of the weights and settings (`sha256`), checked on every load.
+CHECKPOINT_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -94,19 +95,52 @@ def save_checkpoint(
         "metrics": metrics,
         "extra": extra,
     }
-    _write(path, state)
+    write_state(path, state)
+
+
+def content_sha256(state: dict[str, Any]) -> str:
+    """SHA-256 of what a checkpoint means: every weight tensor (name, dtype, shape, bytes) in
+    name order, the optimiser's tensors, and the config, epoch, metrics and extra as JSON. A
+    flipped byte that torch still reads changes it."""
+    import hashlib
+    import json
+
+    h = hashlib.sha256()
+
+    def tensors(prefix: str, value: Any) -> None:
+        if isinstance(value, torch.Tensor):
+            t = value.detach().cpu().contiguous()
+            h.update(f"{prefix}|{t.dtype}|{tuple(t.shape)}|".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        elif isinstance(value, dict):
+            for key in sorted(value, key=str):
+                tensors(f"{prefix}/{key}", value[key])
+        elif isinstance(value, (list, tuple)):
+            for i, item in enumerate(value):
+                tensors(f"{prefix}/{i}", item)
+        else:
+            h.update(f"{prefix}={value!r}|".encode())
+
+    tensors("model", state["model"])
+    tensors("optimiser", state.get("optimiser"))
+    h.update(json.dumps({k: state.get(k) for k in ("version", "config", "epoch", "metrics", "extra")}, sort_keys=True, default=str).encode())
+    return h.hexdigest()
 
 
 def write_with_clustering(source: str | Path, out: str | Path, clustering: CalibratedClustering) -> None:
     """Write the checkpoint at source to out with its calibrated clustering replaced."""
     state = read_checkpoint(source)
     state["extra"] = {**state["extra"], "clustering": clustering.to_dict()}
-    _write(out, state)
+    state.pop("sha256", None)
+    write_state(out, state)
 
 
-def _write(path: str | Path, state: dict[str, Any]) -> None:
+def write_state(path: str | Path, state: dict[str, Any]) -> None:
+    """Write a checkpoint's entries, with a fresh checksum of them."""
     # Through a buffer: torch names the archive inside the file after the file, and the atomic
     # write's temporary name would make equal checkpoints differ byte for byte.
+    state = {**state, "version": CHECKPOINT_VERSION}
+    state["sha256"] = content_sha256(state)
     buffer = io.BytesIO()
     torch.save(state, buffer)
     with atomic_path(path) as tmp:
@@ -121,8 +155,16 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
         state = torch.load(path, map_location=device, weights_only=True)
     except Exception as exc:  # torch raises many types for damaged files
         raise InputError(path, f"not a readable checkpoint ({type(exc).__name__})") from None
-    if not isinstance(state, dict) or state.get("version") != CHECKPOINT_VERSION:
-        raise InputError(path, "not a binpick FPCC checkpoint of this version")
+    if not isinstance(state, dict) or "version" not in state:
+        raise InputError(path, "not a binpick FPCC checkpoint")
+    if state["version"] != CHECKPOINT_VERSION:
+        raise InputError(path, f"a checkpoint of format version {state['version']}, this binpick reads {CHECKPOINT_VERSION}: train the part again")
+    try:
+        intact = state.get("sha256") == content_sha256(state)
+    except Exception:  # noqa: BLE001 - a damaged structure is a damaged file
+        intact = False
+    if not intact:
+        raise InputError(path, "damaged: its weights do not match the checksum stored with them (copy it again, or train the part again)")
     return state
 
 

@@ -126,8 +126,15 @@ def train_fpcc(
 
     start_epoch, best_val, best_epoch = 0, math.inf, -1
     last = checkpoint_dir / LAST
+    state = None
     if last.is_file():
-        state = read_checkpoint(last, device)
+        try:
+            state = read_checkpoint(last, device)
+        except InputError as exc:
+            # A damaged resume point must not block training: start again, and say why.
+            log.warning("%s; starting this training from scratch", exc)
+            last.unlink()
+    if state is not None:
         same_run = all(state["extra"].get(k) == extra[k] for k in ("train_params", "seed", "data_fingerprint", "d_max_m"))
         if state["config"] == config.to_dict() and same_run:
             model.load_state_dict(state["model"])

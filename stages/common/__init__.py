@@ -7,6 +7,8 @@ import argparse
 import contextlib
 import json
 import logging
+import signal
+import socket
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
@@ -27,11 +29,22 @@ def parser(description: str) -> argparse.ArgumentParser:
     return p
 
 
+class Terminated(BaseException):
+    """SIGTERM arrived (BaseException, like KeyboardInterrupt, so no `except Exception` swallows it)."""
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise Terminated()
+
+
 def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:
     """Wrap a stage's main: a BinpickError becomes one line on stderr and exit code 2."""
 
     def wrapped(argv: Sequence[str] | None = None) -> int:
         configure_environment()
+        # SIGTERM (a stopped flow, a killed parent) unwinds like Ctrl-C: open MLflow runs end,
+        # temporary outputs are removed, nothing half-written is left under a real name.
+        signal.signal(signal.SIGTERM, _terminate)
         try:
             return main(argv)
         except BinpickError as exc:
@@ -40,6 +53,9 @@ def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str
         except KeyboardInterrupt:
             sys.stderr.write("error: interrupted\n")
             return 130
+        except Terminated:
+            sys.stderr.write("error: terminated\n")
+            return 143
 
     wrapped.__doc__ = main.__doc__
     return wrapped
@@ -52,8 +68,14 @@ def start(args: argparse.Namespace) -> None:
 
     setup_logging(args.verbose)
     if os.environ.get("DVC_STAGE"):
+        from binpick.lifetime import die_with_parent, find_ancestor, watch_ancestor
         from binpick.project import verify_pipeline_vars
 
+        # Killed with DVC: a stage whose `dvc repro` is gone must not write outputs DVC never records.
+        die_with_parent()
+        dvc = find_ancestor("dvc")
+        if dvc is not None:
+            watch_ancestor(dvc)
         verify_pipeline_vars(project_root())
 
 
@@ -122,13 +144,47 @@ def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags:
         if mlflow.get_experiment_by_name(experiment) is None:
             mlflow.create_experiment(experiment, artifact_location=artifact_location(configured_uri))
         mlflow.set_experiment(experiment)
-        with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **(tags or {})}) as run:
+        end_dead_runs(experiment)
+        own = {"binpick.pid": str(os.getpid()), "binpick.host": socket.gethostname()}
+        with mlflow.start_run(run_name=run_name, tags={**prefect_tags(), **own, **(tags or {})}) as run:
             yield run
     finally:
         if before is None:
             os.environ.pop("MLFLOW_TRACKING_URI", None)
         else:
             os.environ["MLFLOW_TRACKING_URI"] = before
+
+
+def end_dead_runs(experiment: str) -> list[str]:
+    """Mark KILLED the runs of `experiment` still RUNNING whose process (on this host) is gone: a
+    stage killed with SIGKILL cannot end its own run. Returns their ids."""
+    import mlflow
+
+    client = mlflow.MlflowClient()
+    found = client.get_experiment_by_name(experiment)
+    if found is None:
+        return []
+    ended = []
+    for run in client.search_runs([found.experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=200):
+        pid, host = run.data.tags.get("binpick.pid"), run.data.tags.get("binpick.host")
+        if host == socket.gethostname() and pid and pid.isdigit() and not _alive(int(pid)):
+            client.set_terminated(run.info.run_id, status="KILLED")
+            ended.append(run.info.run_id)
+    if ended:
+        log.warning("%s: marked %d run(s) of killed stages as KILLED", experiment, len(ended))
+    return ended
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 # Set by flows/dvc_tasks.py for the stage commands it runs, so that a stage's MLflow run names

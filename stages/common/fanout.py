@@ -27,6 +27,9 @@ _SHARED: dict[str, Any] = {}
 
 
 def _init_worker(shared: Any) -> None:
+    from binpick.lifetime import die_with_parent
+
+    die_with_parent()  # a killed stage takes its pool workers with it
     _SHARED["value"] = shared
 
 
