@@ -67,6 +67,10 @@ def clean_capture(
     sub = view_grid(pts, view)
     pts, idx = pts[sub], idx[sub]
     n_valid = len(pts)
+    if n_valid < MIN_POINTS:
+        # Identical or nearly identical points (a stuck sensor, an export of one point) collapse
+        # into a few voxels: nothing to fit a plane to or segment.
+        raise BinpickError(f"only {n_valid} distinct points at the {params.voxel_size_m * 1000:g} mm voxel grid: the capture holds no surface")
 
     floor = np.full(4, np.nan)
     removed_floor = 0

@@ -383,6 +383,10 @@ def eval_labels(
     from binpick.io.labelled import load_labelled, transfer_labels
     from binpick.metrics.segmentation import scene_counts
 
+    if not 0.0 < iou <= 1.0:
+        _fail(f"--iou {iou:g} must lie in (0, 1]")
+    if not match_distance_m >= 0.0:
+        _fail(f"--match-distance-m {match_distance_m:g} must not be negative")
     try:
         p = load_labelled(pred, tuple(c.strip() for c in pred_columns.split(",")), unit)
         g = load_labelled(gt, tuple(c.strip() for c in gt_columns.split(",")), unit)

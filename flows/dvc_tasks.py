@@ -51,6 +51,9 @@ def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> s
     return proc.stdout
 
 
+_EXCEPTION_LINE = __import__("re").compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\b.*")
+
+
 def failure_reason(root: Path, stdout: str, stderr: str) -> str:
     """The one line that says why `dvc repro` failed: the stage's own `error:` line when a stage
     failed; who holds the lock when another run does; else DVC's last error line."""
@@ -60,6 +63,10 @@ def failure_reason(root: Path, stdout: str, stderr: str) -> str:
         return own[-1]
     if any("Unable to acquire lock" in line for line in lines):
         return lock_holder(root)
+    # A stage that crashed (a bug, not bad input): the exception line of its traceback.
+    crashed = [line for line in lines if _EXCEPTION_LINE.match(line)]
+    if crashed and any(line.startswith("Traceback") for line in lines):
+        return f"the stage crashed: {crashed[-1].strip()} (run it with --verbose, or see `dvc repro -v`)"
     errors = [line.removeprefix("ERROR: ") for line in lines if line.startswith("ERROR: ")]
     return (errors or [line for line in lines if line.strip()] or ["unknown error"])[-1].strip()
 

@@ -27,11 +27,26 @@ DEPLOYMENT = "scheduled"
 
 
 def _healthy(api_url: str) -> bool:
+    """A Prefect server answers at api_url: /health says `true` and /admin/version a version.
+    Any other program on the port (a web server answering 200 to everything) is not one."""
+    import json
+
     try:
         with urllib.request.urlopen(f"{api_url}/health", timeout=2) as response:
-            return response.status == 200
-    except OSError:
+            if response.status != 200 or json.loads(response.read() or b"null") is not True:
+                return False
+        with urllib.request.urlopen(f"{api_url}/admin/version", timeout=2) as response:
+            return isinstance(json.loads(response.read() or b"null"), str)
+    except (OSError, ValueError):
         return False
+
+
+def _port_taken(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        s.settimeout(1.0)
+        return s.connect_ex(("127.0.0.1", port)) == 0
 
 
 @contextlib.contextmanager
@@ -42,6 +57,8 @@ def local_server(port: int, startup_timeout_s: float = 120.0) -> Iterator[str]:
         log.info("using the Prefect server already running at %s", api_url)
         yield api_url
         return
+    if _port_taken(port):
+        raise BinpickError(f"port {port} on 127.0.0.1 is in use by a program that is not a Prefect server: choose another with --port")
     cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port), "--analytics-off"]
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     server = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

@@ -77,3 +77,118 @@ def test_calibrate_a_damaged_checkpoint(tmp_path):
     proc = _run("-m", "flows.cli", "calibrate", "--checkpoint", str(bad), "--scenes", str(tmp_path), "--out", str(tmp_path / "out.pt"))
     _assert_one_line_error(proc, "model.pt", "not a readable checkpoint")
     assert not (tmp_path / "out.pt").exists()
+
+
+def _bad_captures(tmp_path):
+    """Captures that used to end in a traceback (or in a wrong diagnosis)."""
+    import json
+
+    import numpy as np
+    from PIL import Image
+
+    files = {}
+    same = tmp_path / "same.ply"  # a thousand identical points
+    same.write_text("ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\nproperty float z\nend_header\n" + "1 2 500\n" * 1000)
+    files["identical points"] = ([str(same)], "distinct points")
+    pcd = tmp_path / "size3.pcd"
+    pcd.write_text("VERSION 0.7\nFIELDS x y z\nSIZE 3 3 3\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA ascii\n1 1 500\n2 1 500\n")
+    files["PCD SIZE 3"] = ([str(pcd)], "TYPE F with SIZE 3")
+    zdf = tmp_path / "random.zdf"
+    zdf.write_bytes(np.random.default_rng(0).bytes(4096))
+    files["random bytes as .zdf"] = ([str(zdf)], "not a Zivid SDK 1.x frame")
+    ok_intrinsics = tmp_path / "k.json"
+    ok_intrinsics.write_text(json.dumps({"fx": 100.0, "fy": 100.0, "cx": 80.0, "cy": 60.0}))
+    grey = tmp_path / "grey.png"
+    Image.fromarray((np.arange(160 * 120) % 256).astype(np.uint8).reshape(120, 160)).save(grey)
+    files["8-bit PNG as depth"] = ([str(grey), "--intrinsics", str(ok_intrinsics)], "8-bit image")
+    depth = tmp_path / "depth.png"
+    Image.fromarray(np.full((120, 160), 500, np.uint16)).save(depth)
+    wrong = tmp_path / "k_full_res.json"
+    wrong.write_text(json.dumps({"fx": 2660.0, "fy": 2660.0, "cx": 960.0, "cy": 600.0}))
+    files["intrinsics of another resolution"] = ([str(depth), "--intrinsics", str(wrong)], "outside the 160 x 120 depth image")
+    return files
+
+
+CAPTURE_CASES = ["identical points", "PCD SIZE 3", "random bytes as .zdf", "8-bit PNG as depth", "intrinsics of another resolution"]
+
+
+@pytest.mark.parametrize("case", CAPTURE_CASES)
+def test_bad_captures_get_one_line(tmp_path, case):
+    args, needle = _bad_captures(tmp_path)[case]
+    out = tmp_path / "cloud.npz"
+    proc = _run("-m", "stages.import_capture", "--capture", *args, "--out", str(out))
+    _assert_one_line_error(proc, needle)
+    assert not out.exists()
+
+
+def test_an_output_path_that_cannot_be_written(tmp_path):
+    blocker = tmp_path / "results"
+    blocker.write_text("a file where a folder should be")
+    proc = _run("-m", "stages.ingest", "--part", "t_joint", "--mesh", str(ROOT / "data/parts/t_joint.stl"), "--out", str(blocker / "part.npz"))
+    _assert_one_line_error(proc, "results", "cannot read or write")
+
+
+def _labels(path, rows):
+    path.write_text("".join(" ".join(str(v) for v in row) + "\n" for row in rows))
+    return path
+
+
+@pytest.mark.parametrize("case", ["nan coordinates", "huge labels", "iou above 1", "iou 0", "negative distance"])
+def test_eval_labels_refuses_bad_input(tmp_path, case):
+    gt = _labels(tmp_path / "gt.txt", [(i * 0.001, 0.1, 0.5, i % 3) for i in range(50)])
+    pred, extra, needle = gt, [], ""
+    if case == "nan coordinates":
+        pred, needle = _labels(tmp_path / "p.txt", [("nan" if i == 4 else i * 0.001, 0.1, 0.5, i % 3) for i in range(50)]), "non-finite coordinates"
+    elif case == "huge labels":
+        pred, needle = _labels(tmp_path / "p.txt", [(i * 0.001, 0.1, 0.5, 10**12 + i) for i in range(50)]), "small integers"
+    elif case == "iou above 1":
+        extra, needle = ["--iou", "1.5"], "(0, 1]"
+    elif case == "iou 0":
+        extra, needle = ["--iou", "0"], "(0, 1]"
+    else:
+        extra, needle = ["--match-distance-m", "-0.001"], "must not be negative"
+    proc = _run("-m", "flows.cli", "eval-labels", "--pred", str(pred), "--gt", str(gt), *extra)
+    _assert_one_line_error(proc, needle)
+
+
+def test_serve_names_a_foreign_program_on_the_prefect_port(tmp_path):
+    """Another program answering 200 to everything is not mistaken for a Prefect server."""
+    import http.server
+    import os
+    import threading
+
+    class Yes(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):  # noqa: N802 - the http.server API
+            self.send_response(200)
+            self.end_headers()
+            self.wfile.write(b"<html>ok</html>")
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Yes)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
+        proc = subprocess.run([sys.executable, "-m", "flows.cli", "serve", "--port", str(server.server_port)], cwd=ROOT,
+                              capture_output=True, text=True, timeout=120, env=env)
+    finally:
+        server.shutdown()
+    _assert_one_line_error(proc, f"port {server.server_port}", "not a Prefect server")
+
+
+def test_a_crashed_stage_and_a_held_lock_are_reported_by_their_cause(tmp_path):
+    import json
+
+    from flows.dvc_tasks import failure_reason
+
+    crashed = ("Running stage 'segment@x':\n> python -m stages.segment\nTraceback (most recent call last):\n"
+               "  File \"x.py\", line 3, in f\nZeroDivisionError: division by zero\n"
+               "ERROR: failed to reproduce 'segment@x': failed to run: python -m stages.segment, exited with 1\n")
+    assert failure_reason(tmp_path, crashed, "").startswith("the stage crashed: ZeroDivisionError: division by zero")
+    own = "error: data/x.ply: holds no points\nERROR: failed to reproduce 'import_capture@x'\n"
+    assert failure_reason(tmp_path, "", own) == "data/x.ply: holds no points"
+    (tmp_path / ".dvc" / "tmp").mkdir(parents=True)
+    (tmp_path / ".dvc" / "tmp" / "rwlock").write_text(json.dumps({"write": {"data/x": {"pid": 4242, "cmd": "dvc repro train@t_joint"}}}))
+    locked = failure_reason(tmp_path, "", "ERROR: Unable to acquire lock. Most likely another DVC process is running")
+    assert "another run holds the repository lock (pid 4242: dvc repro train@t_joint)" in locked and "delete" not in locked

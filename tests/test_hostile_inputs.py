@@ -135,3 +135,25 @@ def test_the_whole_settings_file_is_validated(project, case):
     proc = _run(project, "-m", "stages.ingest", "--part", "t_joint", "--mesh", "data/parts/t_joint.stl", "--out", "data/models/x/part.npz")
     _one_error_line(proc, needle)
     assert not (project / "data/models/x").exists()
+
+
+def test_a_failing_capture_is_set_aside_and_blocks_nothing(project):
+    """A capture whose import fails is set aside: reported with its stage's own error line, left out
+    of the pipeline DVC sees, not retried until the file changes, and no traceback is shown."""
+    folder = project / "data/captures/monday"
+    folder.mkdir(parents=True)
+    (folder / "bin_a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nend_header\n")
+    first = _run(project, "-m", "flows.cli", "scenes", "data/captures/monday", "--part", "t_joint")
+    assert first.returncode == 1, first.stdout + first.stderr
+    assert "Traceback" not in first.stdout + first.stderr
+    assert "failed, set aside: bin_a (data/captures/monday/bin_a.ply:" in first.stdout
+    assert "bin_a" not in yaml.safe_load((project / "data/pipeline.yaml").read_text())["stage_captures"]
+    assert "bin_a" in yaml.safe_load((project / "data/set_aside.yaml").read_text())["captures"]
+    status = subprocess.run([sys.executable, "-m", "dvc", "status", "import_capture@demo"], cwd=project, capture_output=True, text=True)
+    assert status.returncode == 0, status.stderr  # the rest of the pipeline still parses and runs
+    second = _run(project, "-m", "flows.cli", "scenes", "data/captures/monday", "--part", "t_joint")
+    assert second.returncode == 0 and "still set aside: bin_a" in second.stdout, second.stdout + second.stderr
+    # A changed file is tried again.
+    (folder / "bin_a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n")
+    third = _run(project, "-m", "flows.cli", "scenes", "data/captures/monday", "--part", "t_joint")
+    assert "failed, set aside: bin_a" in third.stdout, third.stdout + third.stderr

@@ -89,11 +89,15 @@ def test_watcher_trains_a_new_part_and_skips_unchanged_ones(project):
 
     box = trimesh.creation.box(extents=[40.0, 24.0, 12.0])  # millimetres, as CAD exports are
     box.export(project / "data" / "parts" / "Bracket Block.stl")
+    # A broken file sorted before it blocks nothing: it is set aside, the others are trained.
+    (project / "data" / "parts" / "Angle.stl").write_bytes(b"solid nothing\nendsolid\n")
     with prefect_test_harness(server_startup_timeout=120):
         first = watch_parts(project)
         second = watch_parts(project)
-    assert (first.added, first.ran, first.failed) == (["bracket_block"], ["bracket_block"], {})
+    assert (first.added, first.ran) == (["angle", "bracket_block"], ["bracket_block"])
+    assert list(first.failed) == ["angle"] and "Angle.stl" in first.failed["angle"]
     assert (second.added, second.ran, second.failed) == ([], [], {})
+    assert list(second.set_aside) == ["angle"]  # not retried until its file changes
     assert first.notes == {"bracket_block": "unit guessed: mm"}
     params = yaml.safe_load((project / "params.yaml").read_text())
     assert params["parts"]["bracket_block"]["mesh"] == "data/parts/Bracket Block.stl"

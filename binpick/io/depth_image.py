@@ -47,6 +47,20 @@ def load_depth_png(path: str | Path) -> np.ndarray:
     except (UnidentifiedImageError, OSError) as exc:
         raise InputError(path, f"not a readable image ({exc})") from None
     depth = np.asarray(img)
-    if depth.ndim != 2 or depth.dtype not in (np.uint16, np.int32, np.uint8):
+    if depth.dtype == np.uint8:
+        # 8 bits cannot hold depth (256 levels): this is a grey or colour picture, or a preview.
+        raise InputError(path, f"an 8-bit image ({img.mode}); depth images are 16-bit PNGs of depth values (0 = missing)")
+    if depth.ndim != 2 or depth.dtype not in (np.uint16, np.int32):
         raise InputError(path, f"expected a single-channel 16-bit depth image, got {depth.dtype} {depth.shape}")
     return depth
+
+
+def check_intrinsics_fit(path: str | Path, intrinsics: tuple[float, float, float, float], shape: tuple[int, int]) -> None:
+    """Refuse intrinsics that cannot belong to an image of this (H, W): the principal point must
+    lie inside the image and the focal lengths be positive."""
+    fx, fy, cx, cy = intrinsics
+    H, W = shape
+    if not (fx > 0 and fy > 0):
+        raise InputError(path, f"focal lengths must be positive (fx {fx}, fy {fy})")
+    if not (0.0 <= cx <= W and 0.0 <= cy <= H):
+        raise InputError(path, f"principal point ({cx:g}, {cy:g}) px lies outside the {W} x {H} depth image: intrinsics of another resolution?")

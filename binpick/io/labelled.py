@@ -29,6 +29,10 @@ class LabelledScene:
     scores: np.ndarray | None
 
 
+# Instance ids beyond this are not instance ids (a column of another quantity read as labels).
+MAX_LABEL = 1_000_000
+
+
 def load_labelled(path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z label"], unit: str = "m") -> LabelledScene:
     path = Path(path)
     if not path.is_file():
@@ -39,11 +43,16 @@ def load_labelled(path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z la
         raise InputError(path, f"unknown unit {unit!r} (use mm, m or in)")
     cols = load_text_columns(path, list(columns))
     labels = cols["label"]
-    if not np.all(labels == np.round(labels)):
+    if not np.all(np.isfinite(labels)) or not np.all(labels == np.round(labels)):
         raise InputError(path, "labels must be integers")
+    if len(labels) and (labels.max() > MAX_LABEL or labels.min() < -MAX_LABEL):
+        raise InputError(path, f"labels must be small integers (instance ids, -1 = none); found {labels.min():.0f} to {labels.max():.0f}")
     labels = labels.astype(np.int64)
     labels[labels < 0] = -1
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1) * METRES_PER_UNIT[unit]
+    bad = ~np.all(np.isfinite(points), axis=1)
+    if bad.any():
+        raise InputError(path, f"{int(bad.sum())} points have non-finite coordinates (first at row {int(np.argmax(bad)) + 1})")
     return LabelledScene(points, labels, cols.get("score"))
 
 

@@ -78,6 +78,11 @@ def load_pcd(path: str | Path) -> PointCloudData:
         kind = header["DATA"][0].lower()
     except (KeyError, ValueError, IndexError) as exc:
         raise InputError(path, f"malformed PCD header ({exc})") from None
+    if not len(fields) == len(sizes) == len(types) == len(counts):
+        raise InputError(path, f"malformed PCD header: {len(fields)} FIELDS, {len(sizes)} SIZE, {len(types)} TYPE, {len(counts)} COUNT")
+    for f, s, t in zip(fields, sizes, types, strict=True):
+        if (t, s) not in _TYPES:
+            raise InputError(path, f"field {f!r} has TYPE {t} with SIZE {s}, which PCD does not define (F: 4 or 8; U, I: 1, 2 or 4)")
     dtype = np.dtype([(f"{f}{j}" if c > 1 else f, "<" + _TYPES[(t, s)]) for f, s, t, c in zip(fields, sizes, types, counts, strict=False) for j in range(c)])
     body = raw[start:]
     try:

@@ -40,13 +40,19 @@ def _read_sdk2(path: Path) -> PointCloudData:
     try:
         import zivid  # noqa: F401
     except ImportError:
+        # SDK 2.x's layout is not public, so without the SDK a file that is not HDF5 cannot be
+        # told apart from random bytes: say both.
         raise MissingDependencyError(
-            f"{path}: a Zivid SDK 2.x frame; reading it needs the zivid package: {ZIVID_INSTALL_HINT}"
+            f"{path}: not a Zivid SDK 1.x frame (no HDF5 signature); if it is an SDK 2.x frame, reading it "
+            f"needs the zivid package: {ZIVID_INSTALL_HINT}"
         ) from None
     import zivid
 
     app = zivid.Application()  # noqa: F841 - the SDK needs an application alive while loading
-    frame = zivid.Frame(str(path))
+    try:
+        frame = zivid.Frame(str(path))
+    except RuntimeError as exc:
+        raise InputError(path, f"not a Zivid frame the SDK can read ({exc})") from None
     cloud = frame.point_cloud()
     xyz = np.asarray(cloud.copy_data("xyz"), dtype=np.float32)
     rgba = np.asarray(cloud.copy_data("rgba"))

@@ -56,6 +56,13 @@ def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str
         except Terminated:
             sys.stderr.write("error: terminated\n")
             return 143
+        except OSError as exc:
+            # A read-only folder, a full disk, a path through a file: the system's words, one line.
+            if "-v" in sys.argv or "--verbose" in sys.argv:
+                raise
+            where = f"{exc.filename}: " if exc.filename else ""
+            sys.stderr.write(f"error: {where}cannot read or write ({exc.strerror or exc})\n")
+            return 2
 
     wrapped.__doc__ = main.__doc__
     return wrapped
