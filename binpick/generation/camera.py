@@ -98,6 +98,14 @@ def _pixel_box(vertices: np.ndarray, intr: Intrinsics) -> tuple[int, int, int, i
     return (v0, v1, u0, u1) if u0 < u1 and v0 < v1 else None
 
 
+HIT_GRID_M = 1e-7
+
+
+def quantise(values: np.ndarray, step: float) -> np.ndarray:
+    """Values rounded to a multiple of `step` (same dtype; inf and nan kept)."""
+    return (np.round(values.astype(np.float64) / step) * step).astype(values.dtype)
+
+
 def render(
     meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: Intrinsics, background: Render | None = None
 ) -> Render:
@@ -131,7 +139,11 @@ def render(
         rays = _rays(intr).reshape(-1, 6)
         hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))  # type: ignore[call-overload]
         label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
-        _composite(sel, hit["t_hit"].numpy(), hit["geometry_ids"].numpy(), hit["primitive_normals"].numpy(), rays[:, 3:], label_of,
+        # Embree picks its kernels by CPU instruction set, so hit distances may differ in their
+        # last bits between CPUs; a 0.1 micrometre grid (far below any sensor's noise) makes them
+        # the same except where a hit lies within rounding of a grid line.
+        t_hit = quantise(hit["t_hit"].numpy(), HIT_GRID_M)
+        _composite(sel, t_hit, hit["geometry_ids"].numpy(), hit["primitive_normals"].numpy(), rays[:, 3:], label_of,
                    xyz, normals, labels)
     return Render(xyz_m=xyz.reshape(H, W, 3), normals=normals.reshape(H, W, 3), labels=labels.reshape(H, W))
 

@@ -34,7 +34,9 @@ def render_scene(
     """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
     measure visibility and build the network's view."""
     T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m))
-    T_cam_model = T_cam_bin @ T_bin_from_model
+    # Poses on a 1e-12 grid: sin, cos and matrix products may differ in the last bit between CPUs
+    # (numpy and BLAS dispatch by instruction set); what is rendered should not.
+    T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(generate.bin)]
     intr = Intrinsics.from_params(camera)
