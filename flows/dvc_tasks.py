@@ -99,8 +99,17 @@ def lock_holder(root: Path) -> str:
       retry_condition_fn=lambda task, run, state: "lock" in str(state.message or "").lower())
 def repro_stage(target: str, root: Path) -> str:
     """One DVC stage; retried once only when another DVC process held the repository lock."""
+    import logging
+    import time
+
+    progress = logging.getLogger("binpick.flows")
+    progress.info("%s ...", target)
+    t0 = time.perf_counter()
     out = repro(target, root, prefect_run_env())
     logger = get_run_logger()
-    skipped = "didn't change, skipping" in out or "is cached" in out
+    # `dvc repro <target>` also reports the upstream stages it skipped: only a line that starts
+    # the target itself says it ran.
+    skipped = f"Running stage '{target}'" not in out
     logger.info("%s: %s", target, "up to date" if skipped else "ran")
+    progress.info("%s: %s (%.0f s)", target, "up to date" if skipped else "done", time.perf_counter() - t0)
     return out

@@ -192,3 +192,36 @@ def test_a_crashed_stage_and_a_held_lock_are_reported_by_their_cause(tmp_path):
     (tmp_path / ".dvc" / "tmp" / "rwlock").write_text(json.dumps({"write": {"data/x": {"pid": 4242, "cmd": "dvc repro train@t_joint"}}}))
     locked = failure_reason(tmp_path, "", "ERROR: Unable to acquire lock. Most likely another DVC process is running")
     assert "another run holds the repository lock (pid 4242: dvc repro train@t_joint)" in locked and "delete" not in locked
+
+
+def _bad_meshes(tmp_path):
+    import numpy as np
+    import trimesh
+
+    cases = {}
+    garbage = tmp_path / "garbage.stl"
+    garbage.write_bytes(np.random.default_rng(1).bytes(3000))
+    cases["random bytes"] = (garbage, "garbage.stl")
+    empty = tmp_path / "empty.obj"
+    empty.write_text("# nothing\n")
+    cases["no triangles"] = (empty, "empty.obj")
+    flat = tmp_path / "flat.obj"
+    flat.write_text("v 0 0 0\nv 1 1 1\nv 2 2 2\nf 1 2 3\n")
+    cases["degenerate faces only"] = (flat, "flat.obj")
+    speck = tmp_path / "speck.stl"
+    trimesh.creation.box(extents=[0.05, 0.05, 0.05]).export(speck)  # 50 um in mm: fits no unit
+    cases["a speck"] = (speck, "too small")
+    pair = tmp_path / "pair.stl"
+    b = trimesh.creation.box(extents=[20.0, 20.0, 20.0])
+    trimesh.util.concatenate([b, b.copy().apply_translation([60.0, 0.0, 0.0])]).export(pair)
+    cases["two bodies"] = (pair, "an assembly")
+    return cases
+
+
+@pytest.mark.parametrize("case", ["random bytes", "no triangles", "degenerate faces only", "a speck", "two bodies"])
+def test_bad_meshes_get_one_line_and_no_model(tmp_path, case):
+    path, needle = _bad_meshes(tmp_path)[case]
+    out = tmp_path / "models" / "part.npz"
+    proc = _run("-m", "stages.ingest", "--part", "t_joint", "--mesh", str(path), "--out", str(out), "--metrics", str(tmp_path / "m.json"))
+    _assert_one_line_error(proc, needle)
+    assert not out.exists() and not (tmp_path / "m.json").exists()

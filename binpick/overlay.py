@@ -1,0 +1,82 @@
+"""Poses drawn over a capture's colour image, for a look by eye beside the rerun recording.
+
+Each pose's model surface points are projected into the image (pinhole K); points the camera
+could not see (behind the measured depth at their pixel) are skipped, so a pose drawn where the
+part is looks like a tint on it and a pose behind a wall does not hide the wall.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+# Instance colours (RGB), cycled.
+PALETTE = np.array([
+    (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
+    (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 190), (0, 128, 128), (170, 110, 40),
+], dtype=np.uint8)
+# A model point this far behind the measured depth at its pixel is hidden.
+HIDDEN_MARGIN_M = 0.005
+
+
+def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Pinhole K (3, 3) of an organized cloud, by least squares on u = fx x / z + cx (and v).
+
+    xyz_m : (H * W, 3) camera frame, NaN where nothing was measured.
+    """
+    H, W = shape
+    v, u = np.divmod(np.arange(H * W), W)
+    ok = np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0)
+    if ok.sum() < 10:
+        raise ValueError("too few measured pixels to fit intrinsics")
+    x, y, z = (xyz_m[ok] / xyz_m[ok, 2:3]).T[:2].tolist() + [None]  # type: ignore[misc]
+    fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u[ok], rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v[ok], rcond=None)[0]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def draw_poses(
+    image: np.ndarray,
+    K: np.ndarray,
+    depth_m: np.ndarray | None,
+    model_points_m: np.ndarray,
+    T_cam_from_model: np.ndarray,
+    scores: list[float],
+    alpha: float = 0.55,
+) -> np.ndarray:
+    """The image (H, W, 3) uint8 with each pose's visible model points tinted in its colour.
+
+    model_points_m : (n, 3) model frame; T_cam_from_model : (k, 4, 4); depth_m : (H, W) measured
+    depth (NaN = none) or None (every projected point drawn). Returns a new array.
+    """
+    out = image.astype(np.float32).copy()
+    H, W = image.shape[:2]
+    for i, T in enumerate(np.asarray(T_cam_from_model).reshape(-1, 4, 4)):
+        p = model_points_m @ T[:3, :3].T + T[:3, 3]
+        p = p[p[:, 2] > 1e-6]
+        uv = p @ K.T
+        u = np.round(uv[:, 0] / uv[:, 2]).astype(np.int64)
+        v = np.round(uv[:, 1] / uv[:, 2]).astype(np.int64)
+        inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        u, v, z = u[inside], v[inside], p[inside, 2]
+        if depth_m is not None:
+            measured = depth_m[v, u]
+            u, v = u[~(z > measured + HIDDEN_MARGIN_M)], v[~(z > measured + HIDDEN_MARGIN_M)]
+        colour = PALETTE[i % len(PALETTE)].astype(np.float32)
+        out[v, u] = (1 - alpha) * out[v, u] + alpha * colour
+    return np.clip(out, 0, 255).astype(np.uint8)
+
+
+def label_poses(image: np.ndarray, K: np.ndarray, T_cam_from_model: np.ndarray, scores: list[float]) -> np.ndarray:
+    """Write each pose's index and score at its model origin's pixel."""
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(image)
+    draw = ImageDraw.Draw(img)
+    for i, (T, s) in enumerate(zip(np.asarray(T_cam_from_model).reshape(-1, 4, 4), scores, strict=True)):
+        if T[2, 3] <= 0:
+            continue
+        uvw = K @ T[:3, 3]
+        x, y = uvw[0] / uvw[2], uvw[1] / uvw[2]
+        draw.text((x + 1, y + 1), f"{i}:{s:.2f}", fill=(0, 0, 0))
+        draw.text((x, y), f"{i}:{s:.2f}", fill=tuple(int(c) for c in PALETTE[i % len(PALETTE)]))
+    return np.asarray(img)
