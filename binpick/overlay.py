@@ -28,7 +28,8 @@ def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     ok = np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0)
     if ok.sum() < 10:
         raise ValueError("too few measured pixels to fit intrinsics")
-    x, y, z = (xyz_m[ok] / xyz_m[ok, 2:3]).T[:2].tolist() + [None]  # type: ignore[misc]
+    x = xyz_m[ok, 0] / xyz_m[ok, 2]
+    y = xyz_m[ok, 1] / xyz_m[ok, 2]
     fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u[ok], rcond=None)[0]
     fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v[ok], rcond=None)[0]
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -62,7 +63,12 @@ def draw_poses(
             measured = depth_m[v, u]
             u, v = u[~(z > measured + HIDDEN_MARGIN_M)], v[~(z > measured + HIDDEN_MARGIN_M)]
         colour = PALETTE[i % len(PALETTE)].astype(np.float32)
-        out[v, u] = (1 - alpha) * out[v, u] + alpha * colour
+        # Each surface point covers a few pixels at full resolution: a 3 x 3 block.
+        mask = np.zeros((H, W), bool)
+        for du in (-1, 0, 1):
+            for dv in (-1, 0, 1):
+                mask[np.clip(v + dv, 0, H - 1), np.clip(u + du, 0, W - 1)] = True
+        out[mask] = (1 - alpha) * out[mask] + alpha * colour
     return np.clip(out, 0, 255).astype(np.uint8)
 
 
@@ -80,3 +86,49 @@ def label_poses(image: np.ndarray, K: np.ndarray, T_cam_from_model: np.ndarray, 
         draw.text((x + 1, y + 1), f"{i}:{s:.2f}", fill=(0, 0, 0))
         draw.text((x, y), f"{i}:{s:.2f}", fill=tuple(int(c) for c in PALETTE[i % len(PALETTE)]))
     return np.asarray(img)
+
+
+def overlay_capture(capture_path, options, poses_path, part_model_path, image_path=None) -> np.ndarray:
+    """The overlay image (H, W, 3) uint8 of a processed capture: its colour image (or `image_path`,
+    or depth shading when it has no colour) with its poses drawn. The capture must be organized."""
+    from pathlib import Path
+
+    from PIL import Image
+
+    from binpick.errors import InputError
+    from binpick.io.capture import load_capture
+    from binpick.io.depth_image import load_intrinsics
+    from binpick.io.part_model import load_part_model
+    from binpick.io.poses import load_poses
+
+    capture = load_capture(capture_path, options)
+    if capture.shape is None:
+        raise InputError(capture_path, "not an organized capture (one point per pixel): there is no image to draw on")
+    H, W = capture.shape
+    xyz = capture.xyz_m.reshape(-1, 3)
+    if options.intrinsics is not None:
+        fx, fy, cx, cy = load_intrinsics(options.intrinsics)
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    else:
+        K = fit_intrinsics(xyz, (H, W))
+    if image_path is not None:
+        try:
+            image = np.asarray(Image.open(Path(image_path)).convert("RGB"))
+        except OSError as exc:
+            raise InputError(image_path, f"not a readable image ({exc})") from None
+        if image.shape[:2] != (H, W):
+            raise InputError(image_path, f"is {image.shape[1]} x {image.shape[0]}, the capture {W} x {H}")
+    elif capture.rgb is not None and np.any(capture.rgb):
+        image = np.asarray(capture.rgb, dtype=np.uint8).reshape(H, W, 3)
+    else:
+        z = xyz[:, 2].reshape(H, W)
+        ok = np.isfinite(z)
+        lo, hi = (np.nanmin(z), np.nanmax(z)) if ok.any() else (0.0, 1.0)
+        grey = np.where(ok, 230 - 180 * (z - lo) / max(hi - lo, 1e-9), 0).astype(np.uint8)
+        image = np.repeat(grey[..., None], 3, axis=-1)
+    _, poses = load_poses(poses_path)
+    part = load_part_model(part_model_path)
+    T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
+    scores = [p.score for p in poses]
+    drawn = draw_poses(image, K, xyz[:, 2].reshape(H, W), part.points_m.astype(np.float64), T, scores)
+    return label_poses(drawn, K, T, scores)

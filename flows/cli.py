@@ -252,6 +252,39 @@ def review(capture: str = typer.Option("demo", help="capture whose recording to 
         typer.echo(cmd)
 
 
+@app.command()
+def overlay(
+    capture: str = typer.Option(..., help="a capture listed in params.yaml, processed (poses.json exists)"),
+    out: Path = typer.Option(None, help="PNG to write; default data/results/<capture>/overlay.png"),
+    image: Path = typer.Option(None, help="colour image of the capture (e.g. an RGB-D camera's rgb/0000.png); default: the capture's own colours"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Draw a capture's poses over its colour image (each pose's visible model surface, tinted, with
+    its index and score), for a look by eye beside the rerun recording."""
+    from PIL import Image
+
+    from binpick.io.atomic import atomic_path
+    from binpick.io.capture import ImportOptions
+    from binpick.overlay import overlay_capture
+    from binpick.params import load_params
+
+    root = project_root()
+    try:
+        p = load_params(params)
+        if capture not in p.captures:
+            _fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
+        entry = p.captures[capture]
+        options = ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
+        drawn = overlay_capture(root / entry.file, options, root / "data" / "results" / capture / "poses.json",
+                                root / "data" / "models" / entry.part / "part.npz", image)
+        target = out or root / "data" / "results" / capture / "overlay.png"
+        with atomic_path(target) as tmp:
+            Image.fromarray(drawn).save(tmp)
+    except BinpickError as exc:
+        _fail(str(exc))
+    typer.echo(f"wrote {target}")
+
+
 def _write_json(out: Path, result: dict) -> None:
     import json
 
