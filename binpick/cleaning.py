@@ -23,6 +23,37 @@ MIN_PLANE_FRACTION = 0.05  # a support plane holds at least this share of the po
 MAX_BEHIND_FRACTION = 0.25
 WALL_MAX_COS_TO_FLOOR = 0.3  # walls stand within ~17 degrees of perpendicular to the floor
 MIN_POINTS = 10
+WALL_INNER_SHARE = 0.8  # a bin wall has most of what is left on the bin's side
+
+
+def bin_reference_point(floor: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """A point inside the bin: where the optical axis meets the floor (the camera looks into the
+    bin), or the points' centroid on the floor when the axis runs nearly parallel to it."""
+    n, d = floor[:3], floor[3]
+    if n[2] < -0.2:  # the normal faces the camera: the floor is ahead along +z
+        return np.array([0.0, 0.0, -d / n[2]])
+    c = points.mean(0)
+    return c - (c @ n + d) * n
+
+
+def inside_walls(points: np.ndarray, floor: np.ndarray, walls: list[np.ndarray], threshold_m: float) -> np.ndarray:
+    """(n,) bool: points on the bin's side of every wall plane found (the side of
+    bin_reference_point). A wall that passes within a centimetre of that point decides nothing,
+    nor does a "wall" with fewer than WALL_INNER_SHARE of the points on that side: the face of a
+    part standing in the middle of a table is not the edge of a bin.
+
+    points : (n, 3) camera frame, metres; floor, walls : planes (a, b, c, d) with unit normals.
+    """
+    ref = bin_reference_point(floor, points) if len(points) else np.zeros(3)
+    keep = np.ones(len(points), bool)
+    for wall in walls:
+        side = float(ref @ wall[:3] + wall[3])
+        if abs(side) < 0.01:
+            continue
+        inner = np.sign(side) * (points @ wall[:3] + wall[3]) > -threshold_m
+        if inner.mean() >= WALL_INNER_SHARE:
+            keep &= inner
+    return keep
 
 
 def clean_capture(
@@ -95,17 +126,31 @@ def clean_capture(
     walls: list[np.ndarray] = []
     removed_walls = 0
     if params.remove_walls and np.isfinite(floor).all():
-        for w in range(params.max_walls):
-            if len(pts) < MIN_POINTS:
+        # Planes other than walls (the rims' tops, the top of a stack of parts) are set aside
+        # from the search, not removed, and the search goes on: a few more tries than walls.
+        search = np.ones(len(pts), bool)
+        for w in range(2 * params.max_walls):
+            if len(walls) >= params.max_walls or search.sum() < MIN_POINTS:
                 break
-            plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence)
-            if inliers.sum() < params.wall_min_fraction * n_valid or abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR:
+            plane, inl = fit_plane_ransac(pts[search], params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence)
+            if inl.sum() < params.wall_min_fraction * n_valid:
                 break
+            inliers = np.zeros(len(pts), bool)
+            inliers[np.flatnonzero(search)[inl]] = True
+            if abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR:
+                search &= ~inliers
+                continue
             walls.append(plane)
             removed_walls += int(inliers.sum())
-            pts, idx = pts[~inliers], idx[~inliers]
+            pts, idx, search = pts[~inliers], idx[~inliers], search[~inliers]
         if walls:
             log.info("removed %d wall planes, %.1f%% of the points", len(walls), 100.0 * removed_walls / n_valid)
+        if walls and params.crop_to_walls:
+            inside = inside_walls(pts, floor, walls, params.plane_threshold_m)
+            removed_walls += int((~inside).sum())
+            if (~inside).any():
+                log.info("%.1f%% of the points lie outside the bin walls: removed", 100.0 * (~inside).sum() / n_valid)
+            pts, idx = pts[inside], idx[inside]
 
     removed_outliers = 0
     if params.outlier_neighbours > 0 and len(pts) > params.outlier_neighbours:

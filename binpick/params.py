@@ -288,6 +288,8 @@ class ImportCaptureParams(_Strict):
     max_walls: int = Field(ge=0)
     wall_min_fraction: float = Field(ge=0, le=1, description="smallest wall, share of points")
     keep_above_plane_m: float = Field(ge=0, description="points lower than this are floor")
+    # With walls found, keep only points on the bin's side of each: the desk, the room behind.
+    crop_to_walls: bool
     voxel_size_m: float = Field(ge=0, description="0 = no downsampling")
     normal_radius_m: float = Field(gt=0)
     outlier_neighbours: int = Field(ge=0, description="statistical outlier removal; 0 = off")
@@ -565,6 +567,36 @@ def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str =
     comments; validated before it replaces the file. Optional keys (truth, intrinsics) are left
     out, as a user would write the entry."""
     _add_entries(path, "captures", {name: {"file": file, "part": part, "unit": unit} for name, file in files.items()})
+
+
+def set_capture_overrides(path: str | Path, capture: str, overrides: dict[str, Any]) -> None:
+    """Set keys of `captures.<capture>.import_capture` in params.yaml, keeping comments;
+    validated as a whole before it replaces the file."""
+    import io
+
+    from ruamel.yaml import YAML
+
+    from binpick.io.atomic import write_text
+
+    path = Path(path)
+    yaml_rt = YAML()
+    yaml_rt.preserve_quotes = True
+    doc = yaml_rt.load(path.read_text())
+    entry = (doc.get("captures") or {}).get(capture)
+    if entry is None:
+        raise ParamsError(f"{path}: capture {capture!r} is not listed under 'captures'")
+    if entry.get("import_capture") is None:
+        entry["import_capture"] = {}
+    for key, value in overrides.items():
+        entry["import_capture"][key] = value
+    buffer = io.StringIO()
+    yaml_rt.dump(doc, buffer)
+    text = buffer.getvalue()
+    try:
+        check_whole(yaml.safe_load(text))
+    except ParamsError as exc:
+        raise ParamsError(f"{path}: {exc}") from None
+    write_text(path, text)
 
 
 def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, Any]]) -> None:

@@ -252,6 +252,69 @@ def review(capture: str = typer.Option("demo", help="capture whose recording to 
         typer.echo(cmd)
 
 
+@app.command("fit-bin")
+def fit_bin(
+    capture: str = typer.Option(..., help="a capture listed in params.yaml that shows the cell's bin"),
+    apply: bool = typer.Option(False, "--apply", help="write the box into the capture's params entry (import_capture)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Fit the bin as a box from one capture (support plane, then the region standing on it where
+    the camera looks, its smallest enclosing rectangle and height); write a recording to check it
+    (data/results/<capture>/bin.rrd) and print the import_capture settings that crop to it. Keep
+    them in the capture's entry (--apply), or in the import_capture section for every capture of
+    the cell."""
+    import numpy as np
+    import yaml
+
+    from binpick.bin_fit import fit_bin_box
+    from binpick.geometry.pointcloud import fit_plane_ransac
+    from binpick.geometry.transforms import invert_T, transform_points
+    from binpick.io.capture import ImportOptions, load_capture
+    from binpick.params import load_params
+    from binpick.view import ViewParams, view_grid
+    from stages.common.recording import write_bin_recording
+
+    root = project_root()
+    try:
+        p = load_params(params)
+        if capture not in p.captures:
+            _fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
+        entry = p.captures[capture]
+        settings = load_params(params, entry.part).import_capture_for(capture)
+        options = ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
+        cap = load_capture(root / entry.file, options)
+        xyz = cap.xyz_m.reshape(-1, 3)
+        valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
+        pts = xyz[valid]
+        grid = pts[view_grid(pts, ViewParams(max(settings.voxel_size_m, 0.002), settings.normal_radius_m))]
+        floor, inliers = fit_plane_ransac(grid, settings.plane_threshold_m, settings.plane_ransac_iterations, p.seed, settings.plane_ransac_confidence)
+        if floor[3] < 0:
+            floor = -floor
+        box = fit_bin_box(grid, floor, settings.keep_above_plane_m)
+    except BinpickError as exc:
+        _fail(str(exc))
+    except ValueError as exc:
+        _fail(f"{root / entry.file}: {exc}")
+    in_bin = transform_points(invert_T(box.T_cam_from_bin), pts)
+    inside = np.all((in_bin >= box.inner_min_m) & (in_bin <= box.inner_max_m), axis=1)
+    rrd = root / "data" / "results" / capture / "bin.rrd"
+    write_bin_recording(rrd, capture, pts, cap.rgb[valid] if cap.rgb is not None else None, inside, box.T_cam_from_bin, box.inner_min_m, box.inner_max_m)
+    size = 1000 * (box.inner_max_m - box.inner_min_m)
+    typer.echo(f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
+               f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}")
+    snippet = {"import_capture": box.as_import_settings()}
+    if apply:
+        from binpick.params import set_capture_overrides
+
+        try:
+            set_capture_overrides(root / params if not params.is_absolute() else params, capture, box.as_import_settings())
+        except BinpickError as exc:
+            _fail(str(exc))
+        typer.echo(f"wrote captures.{capture}.import_capture in {params}")
+    else:
+        typer.echo(yaml.safe_dump({"captures": {capture: snippet}}, default_flow_style=None, sort_keys=False).rstrip())
+
+
 @app.command()
 def overlay(
     capture: str = typer.Option(..., help="a capture listed in params.yaml, processed (poses.json exists)"),

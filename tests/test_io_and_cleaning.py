@@ -119,3 +119,34 @@ def test_plane_quad_lies_on_the_plane_under_the_points():
     assert np.allclose(quad[:, :2].min(axis=0), pts[:, :2].min(axis=0) - 0.01, atol=1e-6)
     assert np.allclose(quad[:, :2].max(axis=0), pts[:, :2].max(axis=0) + 0.01, atol=1e-6)
     assert plane_quad(np.array([1.0, 0.0, 0.0, 0.1]), pts) is None  # edge-on to the camera
+
+
+def test_points_outside_the_bin_walls_are_dropped():
+    """A rendered bin with a part inside and a carton standing on the table outside it: the walls
+    are found and only what lies inside them is kept."""
+    import trimesh
+
+    from binpick.generation.bin import T_bin_from_cam, bin_meshes
+    from binpick.generation.camera import Intrinsics, render
+    from binpick.geometry.transforms import invert_T, transform_points
+
+    bin_params = PARAMS.generate.bin
+    table = trimesh.creation.box(extents=[1.2, 1.0, 0.01])
+    table.apply_translation([0.0, 0.0, -0.025])  # a table reaching far beyond the bin
+    inside = trimesh.creation.box(extents=[0.06, 0.04, 0.03])
+    inside.apply_translation([0.03, 0.02, 0.015])
+    outside = trimesh.creation.box(extents=[0.08, 0.05, 0.12])  # a carton beside the bin
+    outside.apply_translation([bin_params.inner_x_m / 2 + 0.09, 0.0, 0.04])
+    T_cam_bin = invert_T(T_bin_from_cam(0.8))  # far enough to see past the bin
+    meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), table, inside, outside]]
+    labels = [-1] * (len(meshes) - 3) + [-1, 0, 1]
+    camera = PARAMS.camera.model_copy(update={"downscale": 4})
+    frame = render(meshes, labels, Intrinsics.from_params(camera))
+    H, W = frame.labels.shape
+    params = changed(PARAMS.import_capture, crop_to_walls=True)
+    cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), params, 0)
+    kept = frame.labels.reshape(-1)[cloud.pixel_index]
+    assert len(cloud.wall_planes) >= 2
+    assert (kept == 0).sum() > 50 and (kept == 1).sum() == 0  # the part stays, the carton goes
+    uncropped = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(params, crop_to_walls=False), 0)
+    assert (frame.labels.reshape(-1)[uncropped.pixel_index] == 1).sum() > 50  # it was there to drop

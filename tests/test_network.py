@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from binpick.network.blocks import cover, crop
 from binpick.errors import InputError
+from binpick.network.blocks import cover, crop
 from binpick.network.checkpoint import CalibratedClustering, load_checkpoint, save_checkpoint, write_state
 from binpick.network.infer import ClusterParams, cluster, segment_scene
 from binpick.network.loss import centre_score_targets, fpcc_loss

@@ -144,3 +144,12 @@ def nearest_neighbours(reference: np.ndarray, query: np.ndarray, k: int = 1) -> 
     query = _check_points(query, "query")
     d, i = cKDTree(reference).query(query, k=k, workers=-1)
     return d, i
+
+
+def plane_frame(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two orthonormal vectors (2, 3) spanning the plane (a, b, c, d; unit normal) and the point
+    (3,) of the plane nearest the origin; (axes, origin) with n, axes[0], axes[1] right-handed."""
+    n = np.asarray(plane[:3], dtype=np.float64)
+    u = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    return np.stack([u, np.cross(n, u)]), -float(plane[3]) * n

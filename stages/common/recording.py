@@ -114,3 +114,28 @@ class TrainingRecording:
 def _instance_rgb(labels: np.ndarray) -> np.ndarray:
     palette = instance_colours(max(int(labels.max()) + 1 if len(labels) else 1, 1))
     return np.where((labels >= 0)[:, None], palette[np.maximum(labels, 0) % len(palette)], NOISE_GREY)
+
+
+def write_bin_recording(path: Path, name: str, points_m: np.ndarray, rgb: np.ndarray | None, inside: np.ndarray,
+                        T_cam_from_bin: np.ndarray, inner_min_m: np.ndarray, inner_max_m: np.ndarray) -> None:
+    """`binpick fit-bin`'s recording: the capture (points inside the fitted box in colour, the
+    rest grey) and the box, camera frame, for the user to check before keeping the box."""
+    import rerun as rr
+
+    from binpick.geometry.transforms import transform_points
+
+    rec = rr.RecordingStream("binpick", recording_id=f"bin-{name}")
+    with atomic_path(path) as tmp:
+        rec.save(str(tmp))
+        rec.log("camera", rr.ViewCoordinates.RDF, static=True)
+        colours = np.asarray(rgb if rgb is not None else np.full((len(points_m), 3), 200), dtype=np.uint8).copy()
+        colours[~inside] = 90
+        rec.log("camera/capture", rr.Points3D(points_m, colors=colours, radii=0.001), static=True)
+        lo, hi = np.asarray(inner_min_m), np.asarray(inner_max_m)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        c = transform_points(T_cam_from_bin, corners)
+        edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+        rec.log("camera/bin_box", rr.LineStrips3D([[c[a], c[b]] for a, b in edges], colors=[255, 160, 0], radii=0.0015), static=True)
+        rec.log("camera/bin_box/size", rr.TextDocument(
+            f"inner box {1000 * (hi[0] - lo[0]):.0f} x {1000 * (hi[1] - lo[1]):.0f} mm, {1000 * lo[2]:.0f}-{1000 * hi[2]:.0f} mm above the support plane"), static=True)
+        rec.disconnect()

@@ -1,0 +1,112 @@
+"""Fit the bin of a cell once, from one capture, as a box the import crops every capture to.
+
+The support plane (table or bin floor) comes first; the bin is the connected region of what
+stands on it nearest to where the camera looks (the optical axis meets the plane there, as a bin
+camera is mounted), and its footprint is that region's smallest enclosing rectangle. The box is
+given in its own frame (`T_cam_from_bin`: origin at the footprint's centre on the plane, z up
+toward the camera, x along the long side), as import_capture's region of interest takes it, for
+the user to check in the recording and keep in params.yaml.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Occupancy grid of what stands on the plane; gaps up to one cell join a region.
+GRID_CELL_M = 0.005
+# The box reaches this far above the tallest of most points of the region (percentile below).
+HEIGHT_MARGIN_M = 0.02
+HEIGHT_PERCENTILE = 98.0
+
+
+@dataclass(frozen=True)
+class BinBox:
+    """T_cam_from_bin (4, 4); inner_min_m, inner_max_m (3,): the box corners in the bin frame."""
+
+    T_cam_from_bin: np.ndarray
+    inner_min_m: np.ndarray
+    inner_max_m: np.ndarray
+    n_points: int
+
+    def as_import_settings(self) -> dict[str, object]:
+        """The import_capture keys that crop to this box."""
+        return {
+            "T_cam_from_roi": [[round(float(x), 6) for x in row] for row in self.T_cam_from_bin],
+            "roi_min_m": [round(float(x), 4) for x in self.inner_min_m],
+            "roi_max_m": [round(float(x), 4) for x in self.inner_max_m],
+        }
+
+
+def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
+    """Smallest rectangle around 2-D points (n, 2): (centre (2,), angle of its first side in
+    radians, half sizes (2,), first side the longer). Rotating calipers over the hull's edges."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = uv[ConvexHull(uv).vertices]
+    except QhullError:
+        hull = uv
+    best = (np.inf, 0.0, np.zeros(2), np.zeros(2))
+    edges = np.diff(np.vstack([hull, hull[:1]]), axis=0)
+    for angle in np.unique(np.mod(np.arctan2(edges[:, 1], edges[:, 0]), np.pi / 2)):
+        c, s = np.cos(angle), np.sin(angle)
+        rot = hull @ np.array([[c, -s], [s, c]])  # coordinates along the rotated axes
+        lo, hi = rot.min(0), rot.max(0)
+        area = float(np.prod(hi - lo))
+        if area < best[0]:
+            centre = ((lo + hi) / 2) @ np.array([[c, s], [-s, c]])
+            best = (area, float(angle), centre, (hi - lo) / 2)
+    _, angle, centre, half = best
+    if half[1] > half[0]:
+        angle, half = angle + np.pi / 2, half[::-1]
+    return centre, angle, half
+
+
+def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) -> BinBox:
+    """The bin standing on the support plane `floor` (a, b, c, d; normal toward the camera).
+
+    points_m : (n, 3) camera frame, metres (a voxel grid of the capture is plenty).
+    Raises ValueError when nothing stands on the plane.
+    """
+    from scipy import ndimage
+
+    from binpick.cleaning import bin_reference_point
+    from binpick.geometry.pointcloud import plane_frame
+
+    n = floor[:3]
+    height = points_m @ n + floor[3]
+    above = points_m[height > keep_above_m]
+    if len(above) < 10:
+        raise ValueError("nothing stands on the support plane")
+    axes, origin = plane_frame(floor)
+    uv = (above - origin) @ axes.T
+    lo = uv.min(0)
+    cells = np.floor((uv - lo) / GRID_CELL_M).astype(np.int64)
+    grid = np.zeros(cells.max(0) + 1, bool)
+    grid[cells[:, 0], cells[:, 1]] = True
+    regions, count = ndimage.label(ndimage.binary_closing(grid, iterations=1) | grid)
+    ref_uv = (bin_reference_point(floor, points_m) - origin) @ axes.T
+    labels = regions[cells[:, 0], cells[:, 1]]
+    # The region nearest the reference point (containing it, usually).
+    best, best_d = 0, np.inf
+    for k in range(1, count + 1):
+        member = labels == k
+        if member.sum() < 10:
+            continue
+        d = float(np.min(np.linalg.norm(uv[member] - ref_uv, axis=1)))
+        if d < best_d:
+            best, best_d = k, d
+    if best == 0:
+        raise ValueError("no region of points stands on the support plane")
+    member = labels == best
+    centre, angle, half = min_area_rectangle(uv[member])
+    x_axis = np.cos(angle) * axes[0] + np.sin(angle) * axes[1]
+    z_axis = n / np.linalg.norm(n)
+    y_axis = np.cross(z_axis, x_axis)
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([x_axis, y_axis, z_axis])
+    T[:3, 3] = origin + centre[0] * axes[0] + centre[1] * axes[1]
+    top = float(np.percentile(height[height > keep_above_m][member], HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
+    return BinBox(T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]), int(member.sum()))
