@@ -33,7 +33,7 @@ class BinBox:
     def as_import_settings(self) -> dict[str, object]:
         """The import_capture keys that crop to this box."""
         return {
-            "T_cam_from_roi": [[round(float(x), 6) for x in row] for row in self.T_cam_from_bin],
+            "T_cam_from_roi": [[round(float(x), 9) for x in row] for row in self.T_cam_from_bin],
             "roi_min_m": [round(float(x), 4) for x in self.inner_min_m],
             "roi_max_m": [round(float(x), 4) for x in self.inner_max_m],
         }

@@ -13,6 +13,7 @@ from binpick.geometry.pointcloud import fit_plane_ransac, statistical_outliers
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.params import ImportCaptureParams
+from binpick.registration.visibility import depth_view
 from binpick.view import ViewParams, view_grid, view_normals
 
 log = logging.getLogger(__name__)
@@ -81,6 +82,8 @@ def clean_capture(
             f"the scene is {extent:.4g} m across, more than max_scene_extent_m={params.max_scene_extent_m}: "
             "is the unit right (millimetres read as metres)?"
         )
+    # What the camera saw, before anything is removed: registration checks poses against it.
+    seen = depth_view(xyz_m, frame_shape, params.voxel_size_m)
     range2 = np.einsum("ij,ij->i", xyz, xyz)
     keep = (range2 >= params.min_range_m**2) & (range2 <= params.max_range_m**2)
     if params.roi_min_m is not None and params.roi_max_m is not None:
@@ -171,4 +174,6 @@ def clean_capture(
         floor_plane=floor,
         wall_planes=np.asarray(walls, dtype=np.float64).reshape(-1, 4),
         removed_fraction=np.array([removed_floor, removed_walls, removed_outliers], dtype=np.float64) / n_valid,
+        seen_depth_m=seen.depth_m,
+        seen_K=seen.K,
     )

@@ -330,6 +330,9 @@ class RegisterParams(_Strict):
     # for parts the segmentation missed or merged. max_instances bounds whole-scene poses.
     mode: Literal["segments", "whole_scene", "segments_then_scene"]
     max_instances: int = Field(ge=1)
+    # Poses with more than this share of their camera-facing surface in space the camera saw
+    # through (in front of what it measured) are dropped; 1 = no such check.
+    max_seen_through: float = Field(ge=0, le=1)
 
 
 class RenderDemoParams(_Strict):

@@ -26,6 +26,8 @@ from binpick.io.ppf_model import PPFModel, load_ppf_model
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, RegisterParams
 from binpick.registration.matching import match_scene, match_segment, suppress_duplicates
+from binpick.registration.verification import seen_through
+from binpick.registration.visibility import DepthView
 from binpick.seeding import derive_int, derive_seed
 
 log = logging.getLogger(__name__)
@@ -79,6 +81,7 @@ class Registration:
     n_segments: int
     n_duplicates_suppressed: int
     per_instance_ms: list[float]
+    n_seen_through: int = 0  # poses dropped: too much of their surface where the camera saw through
 
 
 @dataclass(frozen=True)
@@ -140,7 +143,18 @@ def register(
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
         log.info("whole-scene matching added %d poses", len(more))
-    return Registration(poses, n_segments, n_duplicates, per_instance_ms)
+    # Verification against what the camera saw: a pose whose surface lies where the sensor saw
+    # through it (a cup fitted into a box wall, a part floating before the wall behind a desk)
+    # is not there, whatever its fit to the points near it.
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    kept_poses = []
+    for pose in poses:
+        share = seen_through(ppf, pose.T_cam_from_model, view)
+        if share <= params.max_seen_through:
+            kept_poses.append(replace(pose, extra={**(pose.extra or {}), "seen_through": round(share, 4)}))
+    if len(kept_poses) < len(poses):
+        log.info("dropped %d of %d poses lying where the camera saw through them", len(poses) - len(kept_poses), len(poses))
+    return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses))
 
 
 def process(

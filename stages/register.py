@@ -54,6 +54,7 @@ def run(
         "ms_per_instance_median": float(np.median(result.per_instance_ms)) if result.per_instance_ms else 0.0,
         "n_segments": float(result.n_segments),
         "n_duplicates_suppressed": float(result.n_duplicates_suppressed),
+        "n_seen_through": float(result.n_seen_through),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }

@@ -80,3 +80,26 @@ def test_segment_modes_need_labels(t_joint, models):
     cloud = clean(xyz, None, shape, models.import_params, seed=0)
     with pytest.raises(ValueError, match="needs segment labels"):
         register(cloud, None, models.ppf, changed(models.register_params, mode="segments"), seed=0)
+
+
+def test_poses_where_the_camera_saw_through_are_dropped(t_joint, models):
+    """Verification against what the camera saw: the rendered poses keep almost all of their
+    surface on or behind the measurements; the same part lifted 3 cm toward the camera (floating
+    in free space) is seen through."""
+    from binpick.registration.verification import seen_through
+    from binpick.registration.visibility import DepthView
+
+    scene, xyz, shape = _capture(t_joint, seed=31, n_objects=6)
+    cloud = clean(xyz, None, shape, models.import_params, seed=0)
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    well_visible = [T for T, v in zip(scene.T_cam_from_model, scene.visible_fraction, strict=True) if v > 0.5]
+    assert max(seen_through(models.ppf, T, view) for T in well_visible) < 0.05
+    limit = models.register_params.max_seen_through
+    T = well_visible[0].copy()
+    lifted = T.copy()
+    lifted[:3, 3] -= 0.03 * T[:3, 3] / np.linalg.norm(T[:3, 3])  # 3 cm along its ray, toward the camera
+    assert seen_through(models.ppf, lifted, view) > 0.9 > limit
+    # The whole path keeps every rendered pose.
+    labels = scene.labels.reshape(-1)[cloud.pixel_index].astype(np.int32)
+    result = register(cloud, labels, models.ppf, changed(models.register_params, mode="segments"), seed=0)
+    assert result.n_seen_through == 0 and all(p.extra["seen_through"] <= limit for p in result.poses)

@@ -22,7 +22,9 @@ class CleanCloud:
     organized frame, -1 when the capture is not organized; frame_shape (2,) int64 (H, W) or (0, 0);
     floor_plane (4,) float64 a, b, c, d with unit normal toward the camera, NaN when none;
     wall_planes (k, 4) float64; removed_fraction (3,) float64 shares of the valid input points
-    removed as floor, walls and outliers.
+    removed as floor, walls and outliers; seen_depth_m (h, w) float32 the nearest measured depth
+    per cell of everything the capture measured, before cleaning (inf = nothing; (0, 0) when
+    unknown) and seen_K (3, 3) float64 the pinhole of that grid (registration/visibility.py).
     """
 
     points_m: np.ndarray
@@ -33,6 +35,8 @@ class CleanCloud:
     floor_plane: np.ndarray
     wall_planes: np.ndarray
     removed_fraction: np.ndarray
+    seen_depth_m: np.ndarray
+    seen_K: np.ndarray
 
 
 def save_cloud(path: str | Path, cloud: CleanCloud) -> None:

@@ -67,3 +67,9 @@ class Scales:
             reach_m=0.5 * diameter_m + 2.0 * params.sample_step_rel * diameter_m,
             cluster_translation_m=params.cluster_translation_rel * diameter_m,
         )
+
+# Verification against what the camera saw (visibility.py): a posed model point counts as seen
+# through when it lies this far (share of the part diameter, at least the floor below) in front
+# of the measured depth along its ray; below that it is sensor noise or a silhouette pixel.
+SEEN_THROUGH_MARGIN_REL = 0.05
+SEEN_THROUGH_MARGIN_MIN_M = 0.003

@@ -12,7 +12,14 @@ from scipy.spatial import cKDTree
 
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.ppf_model import PPFModel
-from binpick.registration.constants import ICP_RELATIVE_CHANGE, MAX_SHARED_SUPPORT, SCORE_STRIDE
+from binpick.registration.constants import (
+    ICP_RELATIVE_CHANGE,
+    MAX_SHARED_SUPPORT,
+    SCORE_STRIDE,
+    SEEN_THROUGH_MARGIN_MIN_M,
+    SEEN_THROUGH_MARGIN_REL,
+)
+from binpick.registration.visibility import DepthView, seen_through_share
 
 
 def score_pose(
@@ -34,6 +41,15 @@ def score_pose(
     # Scene points against the model's own tree, in the model frame: built once per model.
     d_scene, _ = model.dense_tree.query(transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m)
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView, stride: int = SCORE_STRIDE) -> float:
+    """Share of the pose's camera-facing surface lying in space the camera saw through
+    (visibility.py); 0 when the view is unknown."""
+    facing = _facing(model, T_cam_from_model, stride)
+    points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
+    margin = max(SEEN_THROUGH_MARGIN_REL * model.diameter_m, SEEN_THROUGH_MARGIN_MIN_M)
+    return seen_through_share(points, view, margin)
 
 
 def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:

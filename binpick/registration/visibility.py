@@ -1,0 +1,119 @@
+"""Verification against what the camera saw: a pose is wrong where its surface lies in front of a
+measurement, in space the sensor saw through.
+
+For each camera-facing model point at a pose, the depth the camera measured along its ray (a
+z-buffer of the capture, `DepthView`) says one of four things: a measurement at the point's depth
+supports it; a measurement behind it contradicts it (the sensor saw through the surface); a
+measurement in front of it hides it (neutral: another part, the bin wall); no measurement says
+nothing. `seen_through_share` is contradicted / (supported + contradicted + hidden): the share of
+the model's camera-facing surface that cannot be there. It means the same for every part and
+sensor, so one threshold (register.max_seen_through) serves all: a right pose leaves only noise
+and silhouette pixels there; a pose on a box wall or floating in front of the wall behind a desk
+has most of its surface in seen-through space.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# The z-buffer keeps the nearest measurement per cell of this many pixels across (a coarser
+# grid than the sensor's: robust to single-pixel gaps, cheap to keep in cloud.npz).
+CELL_PX = 4
+
+
+@dataclass(frozen=True)
+class DepthView:
+    """depth_m (h, w) float32: the nearest measured depth (z, metres) per cell, inf where none;
+    K (3, 3): pinhole intrinsics of that grid (camera frame, OpenCV convention)."""
+
+    depth_m: np.ndarray
+    K: np.ndarray
+
+    @classmethod
+    def empty(cls) -> DepthView:
+        return cls(np.zeros((0, 0), np.float32), np.eye(3))
+
+    @property
+    def is_empty(self) -> bool:
+        return self.depth_m.size == 0
+
+
+def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Pinhole K (3, 3) of an organized cloud, by least squares on u = fx x / z + cx (and v).
+
+    xyz_m : (H * W, 3) camera frame, NaN where nothing was measured.
+    """
+    H, W = shape
+    v, u = np.divmod(np.arange(H * W), W)
+    ok = np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0)
+    if ok.sum() < 10:
+        raise ValueError("too few measured pixels to fit intrinsics")
+    x = xyz_m[ok, 0] / xyz_m[ok, 2]
+    y = xyz_m[ok, 1] / xyz_m[ok, 2]
+    fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u[ok], rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v[ok], rcond=None)[0]
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _zbuffer(points: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    depth = np.full(h * w, np.inf, np.float32)
+    z = points[:, 2]
+    ok = z > 1e-6
+    uv = points[ok] @ K.T
+    u = np.floor(uv[:, 0] / uv[:, 2]).astype(np.int64)
+    v = np.floor(uv[:, 1] / uv[:, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    np.minimum.at(depth, v[inside] * w + u[inside], z[ok][inside].astype(np.float32))
+    return depth.reshape(h, w)
+
+
+def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: float) -> DepthView:
+    """The z-buffer of everything a capture measured (before any cleaning).
+
+    Organized frames (H * W, 3): the sensor's own pixel grid at 1/CELL_PX, intrinsics fitted to
+    the frame. Other clouds: a virtual pinhole at the origin whose cell is about `voxel_m` wide
+    at the median depth, over the cloud's field of view.
+    """
+    xyz = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
+    valid = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 1e-6)
+    if valid.sum() < 10:
+        return DepthView.empty()
+    if frame_shape is not None and frame_shape[0] * frame_shape[1] == len(xyz):
+        K = fit_intrinsics(xyz, frame_shape)
+        cell = np.diag([1.0 / CELL_PX, 1.0 / CELL_PX, 1.0]) @ K
+        shape = (int(np.ceil(frame_shape[0] / CELL_PX)), int(np.ceil(frame_shape[1] / CELL_PX)))
+        return DepthView(_zbuffer(xyz[valid], cell, shape), cell)
+    pts = xyz[valid]
+    f = float(np.median(pts[:, 2])) / max(voxel_m, 1e-4)
+    x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
+    lo_x, lo_y = float(x.min()), float(y.min())
+    w = int(np.ceil((float(x.max()) - lo_x) * f)) + 1
+    h = int(np.ceil((float(y.max()) - lo_y) * f)) + 1
+    if h * w > 4_000_000:  # a cloud spread over a very wide view: coarser cells
+        s = np.sqrt(h * w / 4_000_000)
+        f, w, h = f / s, int(w / s) + 1, int(h / s) + 1
+    K = np.array([[f, 0.0, -lo_x * f], [0.0, f, -lo_y * f], [0.0, 0.0, 1.0]])
+    return DepthView(_zbuffer(pts, K, (h, w)), K)
+
+
+def seen_through_share(points_cam: np.ndarray, view: DepthView, margin_m: float) -> float:
+    """Share of the posed, camera-facing model points (k, 3; camera frame) that lie in front of
+    a measurement by more than margin_m, among those with a measurement along their ray."""
+    if view.is_empty or len(points_cam) == 0:
+        return 0.0
+    h, w = view.depth_m.shape
+    z = points_cam[:, 2]
+    ok = z > 1e-6
+    uv = points_cam[ok] @ view.K.T
+    u = np.floor(uv[:, 0] / uv[:, 2]).astype(np.int64)
+    v = np.floor(uv[:, 1] / uv[:, 2]).astype(np.int64)
+    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    measured = view.depth_m[v[inside], u[inside]]
+    known = np.isfinite(measured)
+    if not known.any():
+        return 0.0
+    zk = z[ok][inside][known]
+    return float(np.mean(zk < measured[known] - margin_m))

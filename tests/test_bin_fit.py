@@ -1,0 +1,97 @@
+"""Fitting a cell's bin as a box from one capture (binpick fit-bin)."""
+
+import numpy as np
+import trimesh
+
+from binpick.bin_fit import fit_bin_box, min_area_rectangle
+from binpick.generation.bin import T_bin_from_cam, bin_meshes
+from binpick.generation.camera import Intrinsics, render
+from binpick.geometry.pointcloud import fit_plane_ransac
+from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
+
+from settings import PARAMS
+
+
+def test_smallest_rectangle_of_a_turned_rectangle():
+    rng = np.random.default_rng(0)
+    uv = rng.uniform([-0.2, -0.05], [0.2, 0.05], (2000, 2))
+    angle = np.radians(25.0)
+    R = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    centre, found, half = min_area_rectangle(uv @ R.T + [0.3, -0.1])
+    assert np.allclose(centre, [0.3, -0.1], atol=0.003) and np.allclose(half, [0.2, 0.05], atol=0.003)
+    assert abs(np.mod(found - angle + np.pi / 2, np.pi) - np.pi / 2) < np.radians(1.0)
+
+
+def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
+    bin_params = PARAMS.generate.bin
+    table = trimesh.creation.box(extents=[1.2, 1.0, 0.01])
+    table.apply_translation([0.0, 0.0, -0.025])
+    part = trimesh.creation.box(extents=[0.06, 0.04, 0.03])
+    part.apply_translation([0.03, 0.02, 0.015])
+    carton = trimesh.creation.box(extents=[0.08, 0.05, 0.12])
+    carton.apply_translation([bin_params.inner_x_m / 2 + 0.12, 0.0, 0.04])
+    # The bin turned by 20 degrees on the table and seen from a camera tilted by 10 degrees.
+    T_table_bin = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(20.0)), np.zeros(3))
+    T_cam_table = invert_T(T_bin_from_cam(0.8)) @ make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(10.0)), np.zeros(3))
+    meshes = [(transform_points(T_cam_table @ T_table_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), part]]
+    meshes += [(transform_points(T_cam_table, np.asarray(m.vertices)), np.asarray(m.faces)) for m in (table, carton)]
+    labels_of_meshes = [-1] * len(bin_meshes(bin_params)) + [1, -1, -1]  # the part is 1
+    frame = render(meshes, labels_of_meshes, Intrinsics.from_params(PARAMS.camera.model_copy(update={"downscale": 4})))
+    xyz = frame.xyz_m.reshape(-1, 3)
+    ok = np.all(np.isfinite(xyz), axis=1)
+    pts = xyz[ok]
+    floor, _ = fit_plane_ransac(pts, 0.003, 1000, 0)
+    floor = floor if floor[3] > 0 else -floor
+    box = fit_bin_box(pts, floor, 0.004)
+    outer = np.array([bin_params.inner_x_m, bin_params.inner_y_m]) + 2 * bin_params.wall_thickness_m
+    size = box.inner_max_m[:2] - box.inner_min_m[:2]
+    assert np.allclose(size, outer, atol=0.01), size  # the bin's footprint, walls included
+    centre_in_table = transform_points(invert_T(T_cam_table), box.T_cam_from_bin[:3, 3][None])[0]
+    assert np.linalg.norm(centre_in_table[:2]) < 0.01
+    in_box = transform_points(invert_T(box.T_cam_from_bin), pts)
+    inside = np.all((in_box >= box.inner_min_m) & (in_box <= box.inner_max_m), axis=1)
+    labels = frame.labels.reshape(-1)[ok]
+    assert inside[labels == 1].all()  # the part in the bin
+    carton_pts = transform_points(invert_T(T_cam_table), pts)
+    near_carton = np.abs(carton_pts[:, 0] - (bin_params.inner_x_m / 2 + 0.12)) < 0.03
+    assert near_carton.sum() > 20 and not inside[near_carton & (carton_pts[:, 2] > 0.01)].any()
+
+
+def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_path):
+    """The real RGB-D bin frame (cardboard box on a desk): the box is fitted from the frame, the
+    capture is cropped to it, whole-scene registration of the cup (no network needed) runs, and
+    no pose lies outside the box; no kept pose lies where the camera saw through it."""
+    import json
+
+    from binpick.cleaning import clean_capture
+    from binpick.geometry.symmetry import symmetry_transforms
+    from binpick.ingest import ingest_part
+    from binpick.io.capture import ImportOptions, load_capture
+    from binpick.params import PartParams
+    from binpick.registration.model import train_ppf
+    from binpick.scene_path import register
+    from binpick.view import ViewParams, view_grid
+
+    from settings import changed
+
+    scan = shared_data / "scans" / "icbin_scene1"
+    camera = json.loads((scan / "camera.json").read_text())
+    (tmp_path / "k.json").write_text(json.dumps({k: camera[k] for k in ("fx", "fy", "cx", "cy")}))
+    cap = load_capture(scan / "depth" / "0000.png", ImportOptions(unit="mm", intrinsics=tmp_path / "k.json"))
+    settings = changed(PARAMS.import_capture, plane_threshold_m=0.008)
+    xyz = cap.xyz_m[np.all(np.isfinite(cap.xyz_m), axis=1)]
+    grid = xyz[view_grid(xyz, ViewParams(0.004, 0.01))]
+    floor, _ = fit_plane_ransac(grid, settings.plane_threshold_m, 1000, 0)
+    floor = floor if floor[3] > 0 else -floor
+    box = fit_bin_box(grid, floor, settings.keep_above_plane_m)
+    size = box.inner_max_m[:2] - box.inner_min_m[:2]
+    assert 0.2 < size[1] <= size[0] < 0.6  # a desk-top box, not the desk
+    cropped = changed(settings, **box.as_import_settings())
+    cloud = clean_capture(cap.xyz_m, cap.rgb, cap.shape, cropped, 0)
+    params = PARAMS.model_copy(update={"parts": {"cup": PartParams(mesh="cup.ply", unit="mm")}})
+    cup, _ = ingest_part(params, "cup", scan / "coffee_cup_model.ply")
+    ppf = train_ppf(cup.points_m, cup.normals, cup.diameter_m, symmetry_transforms(cup.symmetry), PARAMS.registration)
+    result = register(cloud, None, ppf, changed(PARAMS.registration, mode="whole_scene", max_instances=10), seed=0)
+    centres = transform_points(invert_T(box.T_cam_from_bin), np.array([p.T_cam_from_model[:3, :3] @ cup.centre_m + p.T_cam_from_model[:3, 3] for p in result.poses]).reshape(-1, 3))
+    assert np.all((centres >= box.inner_min_m - 1e-9) & (centres <= box.inner_max_m + 1e-9))
+    assert all(p.extra["seen_through"] <= PARAMS.registration.max_seen_through for p in result.poses)
