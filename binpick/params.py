@@ -219,6 +219,34 @@ class PlacementParams(_Strict):
         return self
 
 
+class ClutterParams(_Strict):
+    """What real bins have and a clean render lacks, each drawn per scene: distractors (boxes,
+    cylinders, thin plates, labelled -1) in and around the bin, other bin sizes and wall heights,
+    a tilted camera at other heights, more or less sensor noise. All off: the plain scene."""
+
+    n_distractors_max: int = Field(ge=0, description="0..n distractors per scene")
+    distractor_size_rel: tuple[float, float] = Field(description="largest side, in part diameters")
+    outside_share: float = Field(ge=0, le=1, description="share of distractors beside the bin, on the table")
+    bin_scale: tuple[float, float] = Field(description="inner x and y scaled by a factor in this range")
+    wall_height_scale: tuple[float, float]
+    camera_tilt_deg_max: float = Field(ge=0, lt=60)
+    camera_distance_scale: tuple[float, float]
+    noise_scale: tuple[float, float] = Field(description="depth noise scaled by a factor in this range")
+
+    @model_validator(mode="after")
+    def _ranges(self) -> ClutterParams:
+        for name in ("distractor_size_rel", "bin_scale", "wall_height_scale", "camera_distance_scale", "noise_scale"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"clutter.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
+        return self
+
+    @property
+    def active(self) -> bool:
+        return bool(self.n_distractors_max or self.camera_tilt_deg_max) or any(
+            getattr(self, n) != (1.0, 1.0) for n in ("bin_scale", "wall_height_scale", "camera_distance_scale", "noise_scale"))
+
+
 class GenerateParams(_Strict):
     n_train: int = Field(ge=1)
     n_val: int = Field(ge=1)
@@ -226,6 +254,7 @@ class GenerateParams(_Strict):
     placement: PlacementParams
     bin: BinParams
     noise: NoiseParams
+    clutter: ClutterParams
 
 
 class TrainParams(_Strict):

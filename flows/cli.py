@@ -386,6 +386,27 @@ def bench_ingest_cmd(out: Path = typer.Option(..., help="JSON file to write"), p
     _write_json(out, bench_ingest(settings))
 
 
+@bench_app.command("clutter")
+def bench_clutter_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    scenes: int = typer.Option(4, min=1, help="cluttered scenes per part"),
+    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw, three-way pipe and IC-BIN coffee cup)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Pose precision/recall and wrong poses outside the bin on bins with distractors and tilted
+    views, through the real scene path, against the scoring without bin crop and verification."""
+    from binpick.bench.clutter import DEFAULT_PARTS, bench_clutter
+    from binpick.params import load_params
+
+    root = project_root()
+    names = part or list(DEFAULT_PARTS)
+    try:
+        result = bench_clutter(load_params(params), names, scenes, {n: root / "data" / "fpcc" / n / "model.pt" for n in names})
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
 @bench_app.command("generate")
 def bench_generate_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),

@@ -26,6 +26,8 @@ GENERATE = {
                   "mode": "drop", "settle_max_s": 2.0, "max_penetration_m": 0.001},
     "bin": {"inner_x_m": 0.30, "inner_y_m": 0.20, "wall_height_m": 0.08, "wall_thickness_m": 0.01},
     "noise": {"depth_sigma_m": 0.0002, "depth_sigma_per_m2": 0.0004, "max_incidence_deg": 80.0, "dropout_fraction": 0.01},
+    "clutter": {"n_distractors_max": 0, "distractor_size_rel": [0.3, 1.2], "outside_share": 0.5, "bin_scale": [1.0, 1.0],
+                "wall_height_scale": [1.0, 1.0], "camera_tilt_deg_max": 0.0, "camera_distance_scale": [1.0, 1.0], "noise_scale": [1.0, 1.0]},
 }
 
 

@@ -38,3 +38,13 @@ def test_ppf_bench_recovers_poses():
     ours = result["binpick_ppf"]
     assert ours["add_success_rate"] == 1.0 and ours["rot_err_deg_median"] < 1.0
     assert set(result["per_part"]) == {"t_joint"}
+
+
+def test_clutter_bench_reports_both_scorings():
+    from binpick.bench.clutter import bench_clutter
+
+    result = bench_clutter(PARAMS, ["t_joint"], n_scenes=1, checkpoints={})
+    part = result["parts"]["t_joint"]
+    for key in ("pose_precision", "pose_recall", "false_poses_outside_bin", "n_scenes"):
+        assert key in part and f"baseline_{key}" in part and key in result and f"baseline_{key}" in result
+    assert part["n_scenes"] == 1 and part["pose_recall"] >= 0.5 and part["false_poses_outside_bin"] == 0

@@ -168,3 +168,30 @@ def test_start_heights_follow_the_chosen_law():
     d = {start_height(rng, changed(PARAMS.generate.placement, heights="discrete", height_levels_m=[0.0, 0.05]), b) for _ in range(50)}
     assert d == {0.0, 0.05}
     assert start_height(rng, PARAMS.generate.placement, b) == 0.0
+
+
+def test_clutter_adds_distractors_tilts_the_camera_and_changes_nothing_when_off(t_joint):
+    """Distractors are rendered (label -1, standing above the floor), the camera is tilted; with
+    clutter off the scene is the plain one, draw for draw."""
+    from binpick.generation.scene import generate_scene
+    from binpick.view import ViewParams
+
+    view = ViewParams.of_import(PARAMS.import_capture)
+    camera = changed(PARAMS.camera, downscale=4)
+    plain = generate_scene(t_joint, PARAMS.generate, camera, view, 3, n_objects=4)
+    off = PARAMS.generate.model_copy(update={"clutter": changed(PARAMS.generate.clutter, n_distractors_max=0)})
+    assert np.array_equal(generate_scene(t_joint, off, camera, view, 3, n_objects=4).labels, plain.labels)
+    on = PARAMS.generate.model_copy(update={"clutter": changed(PARAMS.generate.clutter, n_distractors_max=6, camera_tilt_deg_max=25.0)})
+    busy = generate_scene(t_joint, on, camera, view, 3, n_objects=4)
+    tilted_only = generate_scene(t_joint, on.model_copy(update={"clutter": changed(on.clutter, n_distractors_max=0)}), camera, view, 3, n_objects=4)
+    # The camera's optical axis is no longer the bin's vertical, and the same tilt is drawn with
+    # or without distractors (they are drawn last).
+    assert abs(invert_T(busy.T_cam_from_bin)[2, 2]) < 0.9999
+    assert np.allclose(busy.T_cam_from_bin, tilted_only.T_cam_from_bin)
+    # Background points standing well above the bin floor that the plain scene does not have: distractors.
+    def raised_background(scene):
+        pts = scene.xyz_m.reshape(-1, 3)[scene.labels.reshape(-1) < 0]
+        pts = pts[np.all(np.isfinite(pts), axis=1)]
+        height = transform_points(invert_T(scene.T_cam_from_bin), pts)[:, 2]
+        return int((height > 0.01).sum())
+    assert raised_background(busy) > raised_background(tilted_only) + 50

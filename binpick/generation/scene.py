@@ -5,13 +5,14 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+import trimesh
 
-from binpick.generation.bin import T_bin_from_cam, bin_meshes
+from binpick.generation.bin import FLOOR_THICKNESS_M, T_bin_from_cam, bin_meshes
 from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, render_background, visible_fractions
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
-from binpick.geometry.transforms import invert_T, transform_points
+from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.params import CameraParams, GenerateParams
@@ -30,15 +31,19 @@ def render_scene(
     camera: CameraParams,
     view: ViewParams,
     rng: np.random.Generator,
+    T_bin_from_camera: np.ndarray | None = None,
+    distractors: list[trimesh.Trimesh] | None = None,
 ) -> SyntheticScene:
     """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
-    measure visibility and build the network's view."""
-    T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m))
+    measure visibility and build the network's view. T_bin_from_camera: the camera's pose
+    (default: camera.distance_m straight above the bin floor centre); distractors: meshes in the
+    bin frame, rendered with the bin (label -1)."""
+    T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m) if T_bin_from_camera is None else T_bin_from_camera)
     # Poses on a 1e-12 grid: sin, cos and matrix products may differ in the last bit between CPUs
     # (numpy and BLAS dispatch by instruction set); what is rendered should not.
     T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
-    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(generate.bin)]
+    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(generate.bin), *(distractors or [])]]
     intr = Intrinsics.from_params(camera)
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
@@ -67,6 +72,9 @@ def generate_scene(
 ) -> SyntheticScene:
     """Place objects (count drawn from the params unless given), then render the scene."""
     rng = np.random.default_rng(seed)
+    T_bin_camera, distractors = None, None
+    if generate.clutter.active:
+        generate, camera, T_bin_camera, distractors = draw_clutter(generate, camera, part.diameter_m, clutter_generator(seed))
     placement = generate.placement
     if n_objects is None:
         n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
@@ -74,7 +82,74 @@ def generate_scene(
     T_bin_from_model = placed.T_bin_from_model
     if placement.mode == "physics":
         T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
-    return render_scene(part, T_bin_from_model, generate, camera, view, rng)
+    return render_scene(part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors)
+
+
+CLUTTER_STREAM = 7_777
+
+
+def clutter_generator(seed: int | np.random.SeedSequence) -> np.random.Generator:
+    """The random stream a scene's clutter is drawn from: its own, beside the scene's, so that
+    turning clutter on changes no other draw (and a caller can redraw the same clutter)."""
+    seq = np.random.default_rng(seed).bit_generator.seed_seq
+    return np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, CLUTTER_STREAM)))  # type: ignore[attr-defined]
+
+
+def _scaled(lo_hi: tuple[float, float], rng: np.random.Generator) -> float:
+    lo, hi = lo_hi
+    return float(rng.uniform(lo, hi)) if hi > lo else float(lo)
+
+
+def draw_clutter(
+    generate: GenerateParams, camera: CameraParams, diameter_m: float, rng: np.random.Generator
+) -> tuple[GenerateParams, CameraParams, np.ndarray, list[trimesh.Trimesh]]:
+    """One scene's variation (generate.clutter): the bin and noise settings, the camera's pose
+    (bin frame: tilted about a horizontal axis through the bin floor centre, at a scaled height)
+    and the distractor meshes (bin frame, metres) standing on the bin floor or on the table."""
+    c = generate.clutter
+    b = generate.bin
+    bin_params = b.model_copy(update={
+        "inner_x_m": b.inner_x_m * _scaled(c.bin_scale, rng), "inner_y_m": b.inner_y_m * _scaled(c.bin_scale, rng),
+        "wall_height_m": b.wall_height_m * _scaled(c.wall_height_scale, rng),
+    })
+    k = _scaled(c.noise_scale, rng)
+    noise = generate.noise.model_copy(update={"depth_sigma_m": generate.noise.depth_sigma_m * k, "depth_sigma_per_m2": generate.noise.depth_sigma_per_m2 * k})
+    distance = camera.distance_m * _scaled(c.camera_distance_scale, rng)
+    camera = camera.model_copy(update={"distance_m": distance})
+    tilt = np.radians(float(rng.uniform(0.0, c.camera_tilt_deg_max))) if c.camera_tilt_deg_max > 0 else 0.0
+    heading = float(rng.uniform(0.0, 2.0 * np.pi))
+    R = axis_angle_to_R(np.array([np.cos(heading), np.sin(heading), 0.0]), tilt)
+    T_bin_camera = make_T(R, np.zeros(3)) @ T_bin_from_cam(distance)
+    meshes = []
+    n = int(rng.integers(0, c.n_distractors_max + 1)) if c.n_distractors_max else 0
+    X, Y, W = bin_params.inner_x_m, bin_params.inner_y_m, bin_params.wall_thickness_m
+    for _ in range(n):
+        size = _scaled(c.distractor_size_rel, rng) * diameter_m
+        kind = int(rng.integers(0, 3))
+        if kind == 0:  # a box
+            mesh = trimesh.creation.box(extents=size * rng.uniform(0.3, 1.0, 3))
+        elif kind == 1:  # a cylinder standing or lying
+            mesh = trimesh.creation.cylinder(radius=size * float(rng.uniform(0.15, 0.35)), height=size, sections=24)
+            if rng.random() < 0.5:
+                mesh.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+        else:  # a thin plate
+            mesh = trimesh.creation.box(extents=[size, size * float(rng.uniform(0.4, 1.0)), max(0.002, 0.04 * size)])
+        mesh.apply_transform(trimesh.transformations.rotation_matrix(float(rng.uniform(0, 2 * np.pi)), [0, 0, 1]))
+        half = (mesh.bounds[1] - mesh.bounds[0]) / 2.0
+        if rng.random() < c.outside_share:  # on the table beside the bin
+            side = int(rng.integers(0, 4))
+            gap = float(rng.uniform(0.01, 0.08))
+            along = float(rng.uniform(-0.5, 0.5))
+            x = (X / 2 + W + gap + half[0]) * (1 if side == 0 else -1) if side < 2 else along * X
+            y = (Y / 2 + W + gap + half[1]) * (1 if side == 2 else -1) if side >= 2 else along * Y
+            z0 = -FLOOR_THICKNESS_M
+        else:  # on the bin floor
+            x = float(rng.uniform(-1, 1)) * max(X / 2 - half[0], 0.0)
+            y = float(rng.uniform(-1, 1)) * max(Y / 2 - half[1], 0.0)
+            z0 = 0.0
+        mesh.apply_translation(np.array([x, y, z0 + half[2]]) - (mesh.bounds[0] + mesh.bounds[1]) / 2.0)
+        meshes.append(mesh)
+    return generate.model_copy(update={"bin": bin_params, "noise": noise}), camera, T_bin_camera, meshes
 
 
 def settle_in_bin(part: PartModel, T_bin_from_model: np.ndarray, generate: GenerateParams, rng: np.random.Generator) -> np.ndarray:

@@ -1,0 +1,146 @@
+"""Clutter benchmark: bins with distractors in and around them, seen by a tilted camera, through
+the real scene path (import and cleaning, segmentation when the part has a trained network,
+registration with verification), against the scoring without the checks this benchmark is for
+(`baseline_*`: no crop to the bin walls, no verification against what the camera saw).
+
+Per part: pose_precision and pose_recall (parts at least half visible, ADD(-S) < 0.1 d, as the
+register stage counts them), false_poses_outside_bin (wrong poses whose centre lies outside the
+bin's inner footprint), n_scenes; then the same over all parts.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from binpick.bench import machine
+from binpick.generation.scene import generate_scene
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.io.part_model import PartModel
+from binpick.metrics.pose import MIN_VISIBLE_FRACTION, scene_pose_metrics
+from binpick.params import Params
+from binpick.registration.model import train_ppf
+from binpick.scene_path import PartModels, SceneSeeds, process
+from binpick.view import ViewParams
+
+log = logging.getLogger(__name__)
+
+CUP = "icbin_coffee_cup"
+DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe", CUP)
+CLUTTER = {"n_distractors_max": 8, "distractor_size_rel": (0.3, 1.2), "outside_share": 0.5, "bin_scale": (0.9, 1.2),
+           "wall_height_scale": (0.6, 1.4), "camera_tilt_deg_max": 20.0, "camera_distance_scale": (0.95, 1.2), "noise_scale": (0.5, 2.0)}
+
+
+def _cup(n_points: int) -> PartModel | None:
+    from binpick.bench.parts import shared_parts_folder
+    from binpick.io.mesh import load_mesh
+    from binpick.params import SymmetryParams
+    from binpick.parts import make_part_model
+
+    parts = shared_parts_folder()
+    path = parts.parent / "scans" / "icbin_scene1" / "coffee_cup_model.ply" if parts else None
+    if path is None or not path.is_file():
+        log.warning("skipping %s: ../shared/data/scans/icbin_scene1/coffee_cup_model.ply not found", CUP)
+        return None
+    mesh, unit = load_mesh(path, "mm")
+    return make_part_model(CUP, mesh, SymmetryParams(), n_points, np.random.default_rng(0), unit)
+
+
+def scaled_settings(settings: Params, part: PartModel) -> Params:
+    """The project's settings with the bin, camera distance and grids scaled to a part larger than
+    the default bin was made for (the gear shaft is 0.44 m long), and clutter on."""
+    g, cam, imp = settings.generate, settings.camera.model_copy(update={"downscale": 2}), settings.import_capture
+    d = part.diameter_m
+    inner_x = max(g.bin.inner_x_m, 2.2 * d)
+    inner_y = max(g.bin.inner_y_m, 1.6 * d)
+    # The camera sees the bin and a margin around it.
+    distance = max(cam.distance_m, 1.25 * inner_x * cam.fx_px / cam.width_px, 1.25 * inner_y * cam.fy_px / cam.height_px)
+    voxel = max(imp.voxel_size_m, d / 35.0)
+    generate = g.model_copy(update={
+        "bin": g.bin.model_copy(update={"inner_x_m": inner_x, "inner_y_m": inner_y, "wall_height_m": max(g.bin.wall_height_m, 0.4 * d)}),
+        "clutter": g.clutter.model_copy(update=CLUTTER),
+    })
+    return settings.model_copy(update={
+        "generate": generate, "camera": cam.model_copy(update={"distance_m": distance}),
+        "import_capture": imp.model_copy(update={"voxel_size_m": voxel, "normal_radius_m": 3.0 * voxel}),
+    })
+
+
+def _outside_bin(T_cam_from_model: np.ndarray, centre_m: np.ndarray, T_cam_from_bin: np.ndarray, inner_x: float, inner_y: float) -> bool:
+    c = transform_points(invert_T(T_cam_from_bin), (T_cam_from_model[:3, :3] @ centre_m + T_cam_from_model[:3, 3])[None])[0]
+    return bool(abs(c[0]) > inner_x / 2 or abs(c[1]) > inner_y / 2)
+
+
+def _score(poses, scene, ppf, part, inner_x, inner_y) -> dict[str, float]:
+    T_est = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
+    summary, per_est = scene_pose_metrics(T_est, scene.T_cam_from_model, scene.visible_fraction, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m)
+    false = [i for i, m in enumerate(per_est) if not m or not m["add_ok"]]
+    outside = sum(_outside_bin(T_est[i], part.centre_m, scene.T_cam_from_bin, inner_x, inner_y) for i in false)
+    return {"n_est": float(len(poses)), "n_ok": float(len(poses) - len(false)), "n_pickable": summary["n_pickable"],
+            "n_found": summary["pose_recall"] * summary["n_pickable"], "outside": float(outside)}
+
+
+def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
+    n_est, n_ok = sum(r["n_est"] for r in rows), sum(r["n_ok"] for r in rows)
+    n_pick, n_found = sum(r["n_pickable"] for r in rows), sum(r["n_found"] for r in rows)
+    return {"pose_precision": n_ok / n_est if n_est else 0.0, "pose_recall": n_found / n_pick if n_pick else 0.0,
+            "false_poses_outside_bin": sum(r["outside"] for r in rows), "n_scenes": float(len(rows))}
+
+
+def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, checkpoints: dict[str, Path], seed: int = 0) -> dict[str, object]:
+    """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
+    without one are registered over the whole scene, no network)."""
+    from binpick.bench.parts import bench_parts
+
+    wanted = list(names or DEFAULT_PARTS)
+    parts = bench_parts([n for n in wanted if n != CUP], n_points=settings.ingest.n_surface_points)
+    if CUP in wanted and (cup := _cup(settings.ingest.n_surface_points)) is not None:
+        parts.append(cup)
+    per_part: dict[str, dict[str, float]] = {}
+    all_new: list[dict[str, float]] = []
+    all_base: list[dict[str, float]] = []
+    for part in parts:
+        p = scaled_settings(settings, part)
+        ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
+        segmenter = None
+        if part.name in checkpoints and checkpoints[part.name].is_file():
+            from binpick.network.infer import load_segmenter
+
+            segmenter = load_segmenter(checkpoints[part.name], p.segment)
+        mode = p.registration.mode if segmenter is not None else "whole_scene"
+        new = PartModels(part, ppf, segmenter, p.import_capture, p.registration.model_copy(update={"mode": mode}))
+        base = PartModels(part, ppf, segmenter, p.import_capture.model_copy(update={"crop_to_walls": False}),
+                          p.registration.model_copy(update={"mode": mode, "max_seen_through": 1.0}))
+        rows_new: list[dict[str, float]] = []
+        rows_base: list[dict[str, float]] = []
+        for k in range(n_scenes):
+            scene = generate_scene(part, p.generate, p.camera, ViewParams.of_import(p.import_capture), seed * 1000 + k,
+                                   n_objects=int(np.random.default_rng(k).integers(6, 11)))
+            H, W = scene.labels.shape
+            xyz = scene.xyz_m.reshape(-1, 3)
+            # The bin actually drawn for this scene (clutter scales it): the one in the scene's frame.
+            inner_x, inner_y = _drawn_bin(p, part, seed * 1000 + k)
+            for models, rows in ((new, rows_new), (base, rows_base)):
+                result = process(xyz, None, (H, W), models, SceneSeeds.of(seed, f"clutter-{part.name}-{k}"))
+                rows.append(_score(result.registration.poses, scene, ppf, part, inner_x, inner_y))
+        per_part[part.name] = {**_summary(rows_new), **{f"baseline_{k}": v for k, v in _summary(rows_base).items()},
+                               "segmentation": 1.0 if segmenter is not None else 0.0, "diameter_mm": 1000.0 * part.diameter_m}
+        all_new += rows_new
+        all_base += rows_base
+        log.info("%s: %s", part.name, {k: round(v, 3) for k, v in per_part[part.name].items()})
+    return {
+        "machine": machine(), "parts": per_part,
+        **_summary(all_new), **{f"baseline_{k}": v for k, v in _summary(all_base).items()},
+        "min_visible_fraction": MIN_VISIBLE_FRACTION, "clutter": {k: list(v) if isinstance(v, tuple) else v for k, v in CLUTTER.items()},
+    }
+
+
+def _drawn_bin(p: Params, part: PartModel, seed: int) -> tuple[float, float]:
+    """The inner bin size generate_scene drew for this seed (it draws clutter from its own stream)."""
+    from binpick.generation.scene import clutter_generator, draw_clutter
+
+    generate, _, _, _ = draw_clutter(p.generate, p.camera, part.diameter_m, clutter_generator(seed))
+    return generate.bin.inner_x_m, generate.bin.inner_y_m
