@@ -37,6 +37,17 @@ def bin_reference_point(floor: np.ndarray, points: np.ndarray) -> np.ndarray:
     return c - (c @ n + d) * n
 
 
+def _at_the_edge(others: np.ndarray, floor: np.ndarray, plane: np.ndarray, threshold_m: float) -> bool:
+    """A bin wall stands at the edge of what is left: WALL_INNER_SHARE of the other points lie on
+    one side of it. A plane through a heap of parts (the flank of a pile of long cylinders) has
+    parts on both sides and is not a wall."""
+    if len(others) == 0:
+        return True
+    side = (others @ plane[:3] + plane[3]) > -threshold_m
+    share = float(side.mean())
+    return max(share, 1.0 - share) >= WALL_INNER_SHARE
+
+
 def inside_walls(points: np.ndarray, floor: np.ndarray, walls: list[np.ndarray], threshold_m: float) -> np.ndarray:
     """(n,) bool: points on the bin's side of every wall plane found (the side of
     bin_reference_point). A wall that passes within a centimetre of that point decides nothing,
@@ -140,7 +151,7 @@ def clean_capture(
                 break
             inliers = np.zeros(len(pts), bool)
             inliers[np.flatnonzero(search)[inl]] = True
-            if abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR:
+            if abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m):
                 search &= ~inliers
                 continue
             walls.append(plane)

@@ -241,6 +241,11 @@ class ClutterParams(_Strict):
                 raise ValueError(f"clutter.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
         return self
 
+    def off(self) -> ClutterParams:
+        """A copy that draws nothing: the plain scene."""
+        return self.model_copy(update={"n_distractors_max": 0, "camera_tilt_deg_max": 0.0, "bin_scale": (1.0, 1.0),
+                                       "wall_height_scale": (1.0, 1.0), "camera_distance_scale": (1.0, 1.0), "noise_scale": (1.0, 1.0)})
+
     @property
     def active(self) -> bool:
         return bool(self.n_distractors_max or self.camera_tilt_deg_max) or any(

@@ -39,7 +39,10 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
     part = load_part_model(part_model_path)
     camera = params.camera.model_copy(update={"downscale": params.render_demo.downscale})
     seed = derive_seed(params.seed, "demo_capture", part.name)  # the stage's former name: same scenes
-    scene = generate_scene(part, params.generate, camera, ViewParams.of_import(params.import_capture), seed, n_objects=params.render_demo.n_objects)
+    # The demo bin stays the plain one whatever clutter the training scenes have: its figures
+    # stay comparable from run to run.
+    generate = params.generate.model_copy(update={"clutter": params.generate.clutter.off()})
+    scene = generate_scene(part, generate, camera, ViewParams.of_import(params.import_capture), seed, n_objects=params.render_demo.n_objects)
     H, W = scene.labels.shape
     records = [
         PartPose(T, 1.0, i, {"visible_fraction": round(float(v), 4)})
