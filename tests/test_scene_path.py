@@ -30,7 +30,8 @@ def models(t_joint, tmp_path_factory):
 
 def _capture(t_joint, seed: int, n_objects: int):
     """A rendered bin as a camera delivers it: organized xyz (H * W, 3), NaN = no return."""
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams.of_import(PARAMS.import_capture), seed, n_objects)
+    plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})  # the path, not clutter, is tested here
+    scene = generate_scene(t_joint, plain, changed(PARAMS.camera, downscale=2), ViewParams.of_import(PARAMS.import_capture), seed, n_objects)
     H, W = scene.labels.shape
     return scene, scene.xyz_m.reshape(-1, 3), (H, W)
 
