@@ -157,3 +157,28 @@ def test_a_failing_capture_is_set_aside_and_blocks_nothing(project):
     (folder / "bin_a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nend_header\n")
     third = _run(project, "-m", "flows.cli", "scenes", "data/captures/monday", "--part", "t_joint")
     assert "failed, set aside: bin_a" in third.stdout, third.stdout + third.stderr
+
+
+def test_truth_and_intrinsics_files_are_dependencies(project):
+    """Editing a capture's intrinsics or truth file makes its stages stale: both are deps, and an
+    entry without them (as the README writes it) still resolves."""
+
+    from dvc.repo import Repo
+
+    (project / "data/captures/cam").mkdir(parents=True)
+    (project / "data/captures/cam/depth.png").write_bytes(b"")
+    (project / "data/captures/cam/k.json").write_text('{"fx": 1, "fy": 1, "cx": 0, "cy": 0}')
+    (project / "data/captures/cam/truth.json").write_text("{}")
+
+    def add(raw):
+        raw["captures"]["cam"] = {"file": "data/captures/cam/depth.png", "part": "t_joint", "intrinsics": "data/captures/cam/k.json",
+                                  "truth": "data/captures/cam/truth.json"}
+        raw["captures"]["bare"] = {"file": "data/captures/cam/depth.png", "part": "t_joint"}
+
+    _edit(project, add)
+    assert _run(project, "-m", "flows.cli", "check").returncode == 0
+    with Repo(str(project)) as repo:
+        deps = {s.addressing.split(":")[-1]: {str(Path(d.def_path)) for d in s.deps} for s in repo.index.stages}
+    assert "data/captures/cam/k.json" in deps["import_capture@cam"]
+    assert "data/captures/cam/truth.json" in deps["register@cam"]
+    assert "data/captures/cam/depth.png" in deps["import_capture@bare"] and "register@bare" in deps
