@@ -365,8 +365,9 @@ class RegisterParams(_Strict):
     mode: Literal["segments", "whole_scene", "segments_then_scene"]
     max_instances: int = Field(ge=1)
     # Poses with more than this share of their camera-facing surface in space the camera saw
-    # through (in front of what it measured) are dropped; 1 = no such check.
-    max_seen_through: float = Field(ge=0, le=1)
+    # through (in front of what it measured) are dropped; 1 = no such check; null = the value
+    # chosen on the validation scenes at training (in the checkpoint).
+    max_seen_through: float | None = Field(ge=0, le=1)
 
 
 class RenderDemoParams(_Strict):

@@ -23,8 +23,10 @@ from binpick.io.cloud import CleanCloud
 from binpick.io.part_model import PartModel, load_part_model
 from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel, load_ppf_model
+from binpick.network.checkpoint import InferenceSettings
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, RegisterParams
+from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
 from binpick.registration.matching import match_scene, match_segment, suppress_duplicates
 from binpick.registration.verification import seen_through
 from binpick.registration.visibility import DepthView
@@ -48,13 +50,23 @@ class PartModels:
     @classmethod
     def load(cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None) -> PartModels:
         """params: resolved for the part (load_params(path, part)); checkpoint None: no network."""
+        segmenter = load_segmenter(checkpoint, params.segment) if checkpoint is not None else None
         return cls(
             part=load_part_model(part_model),
             ppf=load_ppf_model(ppf_model),
-            segmenter=load_segmenter(checkpoint, params.segment) if checkpoint is not None else None,
+            segmenter=segmenter,
             import_params=params.import_capture,
-            register_params=params.registration,
+            register_params=with_verification(params.registration, segmenter.settings if segmenter is not None else None),
         )
+
+
+def with_verification(params: RegisterParams, settings: InferenceSettings | None) -> RegisterParams:
+    """register params with max_seen_through resolved: the value in params, else the one chosen
+    at training (in the checkpoint's settings), else DEFAULT_MAX_SEEN_THROUGH."""
+    if params.max_seen_through is not None:
+        return params
+    chosen = settings.max_seen_through if settings is not None else None
+    return params.model_copy(update={"max_seen_through": DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen})
 
 
 @dataclass(frozen=True)
@@ -147,10 +159,11 @@ def register(
     # through it (a cup fitted into a box wall, a part floating before the wall behind a desk)
     # is not there, whatever its fit to the points near it.
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    limit = DEFAULT_MAX_SEEN_THROUGH if params.max_seen_through is None else params.max_seen_through
     kept_poses = []
     for pose in poses:
         share = seen_through(ppf, pose.T_cam_from_model, view)
-        if share <= params.max_seen_through:
+        if share <= limit:
             kept_poses.append(replace(pose, extra={**(pose.extra or {}), "seen_through": round(share, 4)}))
     if len(kept_poses) < len(poses):
         log.info("dropped %d of %d poses lying where the camera saw through them", len(poses) - len(kept_poses), len(poses))

@@ -24,7 +24,7 @@ from binpick.io.part_model import PartModel
 from binpick.metrics.pose import MIN_VISIBLE_FRACTION, scene_pose_metrics
 from binpick.params import Params
 from binpick.registration.model import train_ppf
-from binpick.scene_path import PartModels, SceneSeeds, process
+from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
@@ -118,7 +118,8 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
 
             segmenter = load_segmenter(checkpoints[part.name], p.segment)
         mode = p.registration.mode if segmenter is not None else "whole_scene"
-        new = PartModels(part, ppf, segmenter, p.import_capture, p.registration.model_copy(update={"mode": mode}))
+        new = PartModels(part, ppf, segmenter, p.import_capture,
+                         with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None))
         base = PartModels(part, ppf, segmenter, p.import_capture.model_copy(update={"crop_to_walls": False}),
                           p.registration.model_copy(update={"mode": mode, "max_seen_through": 1.0}))
         rows_new: list[dict[str, float]] = []

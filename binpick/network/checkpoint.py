@@ -51,6 +51,9 @@ class InferenceSettings:
     d_max_m: float
     train: TrainParams
     clustering: CalibratedClustering | None = None
+    # The pose verification threshold (register.max_seen_through) chosen on the validation
+    # scenes after training (binpick/verification_threshold.py); None until chosen.
+    max_seen_through: float | None = None
 
     def to_extra(self) -> dict[str, Any]:
         """The stored form. Key order is part of the file's bytes: keep it."""
@@ -58,6 +61,8 @@ class InferenceSettings:
                                  "train_params": self.train.model_dump(), "d_max_m": self.d_max_m}
         if self.clustering is not None:
             extra["clustering"] = self.clustering.to_dict()
+        if self.max_seen_through is not None:
+            extra["verification"] = {"max_seen_through": self.max_seen_through}
         return extra
 
     @classmethod
@@ -72,6 +77,7 @@ class InferenceSettings:
                 train=TrainParams.model_validate(extra["train_params"]),
                 clustering=None if clustering is None else CalibratedClustering(
                     float(clustering["centre_threshold"]), float(clustering["embedding_threshold"]), int(clustering["min_instance_points"])),
+                max_seen_through=float(extra["verification"]["max_seen_through"]) if "verification" in extra else None,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(path, f"holds no complete inference settings ({type(exc).__name__}: {exc})") from None
@@ -133,6 +139,19 @@ def write_with_clustering(source: str | Path, out: str | Path, clustering: Calib
     state["extra"] = {**state["extra"], "clustering": clustering.to_dict()}
     state.pop("sha256", None)
     write_state(out, state)
+
+
+def write_with_verification(source: str | Path, out: str | Path, max_seen_through: float) -> None:
+    """Write the checkpoint at source to out with its pose verification threshold set."""
+    state = read_checkpoint(source)
+    state["extra"] = {**state["extra"], "verification": {"max_seen_through": float(max_seen_through)}}
+    state.pop("sha256", None)
+    write_state(out, state)
+
+
+def read_settings(path: str | Path) -> InferenceSettings:
+    """A checkpoint's inference settings, without building its network."""
+    return InferenceSettings.from_extra(read_checkpoint(path)["extra"], path)
 
 
 def write_state(path: str | Path, state: dict[str, Any]) -> None:
