@@ -315,6 +315,80 @@ def fit_bin(
         typer.echo(yaml.safe_dump({"captures": {capture: snippet}}, default_flow_style=None, sort_keys=False).rstrip())
 
 
+@app.command("hand-eye")
+def hand_eye(
+    pairs: Path = typer.Option(..., help='JSON: {"pairs": [{"capture": FILE, "T_base_from_flange": 4x4 metres, "unit": "mm", "image": PNG?, "intrinsics": JSON?}, ...]}'),
+    setup: str = typer.Option("eye-to-hand", help="eye-to-hand (camera fixed, board on the flange) or eye-in-hand"),
+    pattern: str = typer.Option("9x6", help="inner corners of the checkerboard, columns x rows"),
+    square_mm: float = typer.Option(25.0, min=0.1, help="side of a checkerboard square"),
+    out: Path = typer.Option(Path("data/hand_eye.json"), help="result to write"),
+) -> None:
+    """Hand-eye calibration from robot flange poses and captures of a checkerboard (OpenCV): the
+    camera's pose in the robot base frame (eye-to-hand: T_base_from_cam) or on the flange
+    (eye-in-hand: T_flange_from_cam), with residuals in mm and degrees."""
+    import json
+
+    import numpy as np
+
+    from binpick.hand_eye import board_pose, solve_hand_eye
+    from binpick.io.atomic import write_text
+    from binpick.io.capture import ImportOptions, load_capture
+    from binpick.io.depth_image import load_intrinsics
+    from binpick.registration.visibility import fit_intrinsics
+
+    if setup not in ("eye-to-hand", "eye-in-hand"):
+        _fail(f"--setup {setup!r} is not eye-to-hand or eye-in-hand")
+    try:
+        cols, rows = (int(x) for x in pattern.lower().split("x"))
+    except ValueError:
+        _fail(f"--pattern {pattern!r} is not COLSxROWS, e.g. 9x6")
+    try:
+        import cv2  # noqa: F401
+    except ImportError:
+        _fail("hand-eye calibration needs OpenCV: pip install -e .[bench]")
+    try:
+        doc = json.loads(pairs.read_text())
+        entries = doc["pairs"]
+        flange = np.array([np.asarray(e["T_base_from_flange"], dtype=float).reshape(4, 4) for e in entries])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        _fail(f"{pairs}: not a list of pairs with capture and T_base_from_flange ({type(exc).__name__}: {exc})")
+    targets = []
+    try:
+        for e in entries:
+            capture = pairs.parent / e["capture"]
+            intrinsics = pairs.parent / e["intrinsics"] if e.get("intrinsics") else None
+            cap = load_capture(capture, ImportOptions(unit=e.get("unit", "mm"), intrinsics=intrinsics))
+            if cap.shape is None:
+                _fail(f"{capture}: not an organized capture: the board must be found in its image")
+            H, W = cap.shape
+            xyz = cap.xyz_m.reshape(H, W, 3)
+            if intrinsics is not None:
+                fx, fy, cx, cy = load_intrinsics(intrinsics)
+                K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+            else:
+                K = fit_intrinsics(cap.xyz_m.reshape(-1, 3), (H, W))
+            if e.get("image"):
+                from PIL import Image
+
+                image = np.asarray(Image.open(pairs.parent / e["image"]).convert("RGB"))
+            else:
+                image = np.asarray(cap.rgb, dtype=np.uint8).reshape(H, W, 3)
+            T = board_pose(image, (cols, rows), square_mm / 1000.0, K, xyz)
+            if T is None:
+                _fail(f"{capture}: no {cols}x{rows} checkerboard found in its image")
+            targets.append(T)
+        result = solve_hand_eye(flange, np.array(targets), "eye_to_hand" if setup == "eye-to-hand" else "eye_in_hand")
+    except BinpickError as exc:
+        _fail(str(exc))
+    key = "T_base_from_cam" if result.setup == "eye_to_hand" else "T_flange_from_cam"
+    answer = {"setup": result.setup, key: result.T.round(9).tolist(), "n_poses": result.n_poses,
+              "residual_mm_median": result.residual_mm_median, "residual_mm_max": result.residual_mm_max,
+              "residual_deg_median": result.residual_deg_median, "residual_deg_max": result.residual_deg_max}
+    write_text(out, json.dumps(answer, indent=1) + "\n")
+    typer.echo(f"{key} from {result.n_poses} poses: residuals {result.residual_mm_median:.2f} mm / {result.residual_deg_median:.2f} deg "
+               f"(median), {result.residual_mm_max:.2f} mm / {result.residual_deg_max:.2f} deg (largest); wrote {out}")
+
+
 @app.command()
 def overlay(
     capture: str = typer.Option(..., help="a capture listed in params.yaml, processed (poses.json exists)"),
