@@ -77,9 +77,13 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
                  chosen["embedding_threshold"], chosen["min_instance_points"], chosen["precision"], chosen["recall"])
         metrics.update({f"calibrated_{k}" if k in CALIBRATED else f"val_{k}": v for k, v in chosen.items()})
         if ppf_path is not None:
-            metrics.update(_choose_verification(params, part, ppf_path, scenes, out))
+            threshold, stats = _choose_verification(params, part, ppf_path, scenes, out)
+            metrics["calibrated_max_seen_through"] = threshold
+            # What it was chosen on goes to MLflow only: which borderline validation poses ICP's
+            # threads find can differ between runs, and the DVC metrics hold what a rerun reproduces.
+            mlflow.log_metrics({f"verification_{k}": v for k, v in stats.items()})
         mlflow.log_metrics({k: metrics[k] for k in [f"calibrated_{k}" for k in CALIBRATED] + ["val_precision", "val_recall"]
-                            + [k for k in metrics if k.startswith("verification_") or k == "calibrated_max_seen_through"]})
+                            + [k for k in metrics if k == "calibrated_max_seen_through"]})
         mlflow.log_artifact(str(out), artifact_path="model")
         version = add_model_version(part.name, out, run_, f"train@{part.name}")
         # The run id and version stay in MLflow: the DVC metrics hold only what a rerun reproduces.
@@ -94,7 +98,7 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
     return metrics
 
 
-def _choose_verification(params: Params, part, ppf_path: Path, scenes: Path, checkpoint: Path) -> dict[str, float]:
+def _choose_verification(params: Params, part, ppf_path: Path, scenes: Path, checkpoint: Path) -> tuple[float, dict[str, float]]:
     """Choose the part's pose verification threshold on the validation scenes with the network
     just trained, and store it in the checkpoint."""
     from binpick.io.ppf_model import load_ppf_model
@@ -110,7 +114,7 @@ def _choose_verification(params: Params, part, ppf_path: Path, scenes: Path, che
     write_with_verification(checkpoint, checkpoint, threshold)
     log.info("%s: pose verification threshold %.2f on %d validation scenes (%d right poses up to %.2f, %d wrong from %.2f)",
              part.name, threshold, len(val), stats["n_right"], stats["right_max"], stats["n_wrong"], stats["wrong_min"])
-    return {"calibrated_max_seen_through": threshold, **{f"verification_{k}": v for k, v in stats.items()}}
+    return threshold, stats
 
 
 @entry
