@@ -18,23 +18,6 @@ PALETTE = np.array([
 HIDDEN_MARGIN_M = 0.005
 
 
-def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Pinhole K (3, 3) of an organized cloud, by least squares on u = fx x / z + cx (and v).
-
-    xyz_m : (H * W, 3) camera frame, NaN where nothing was measured.
-    """
-    H, W = shape
-    v, u = np.divmod(np.arange(H * W), W)
-    ok = np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0)
-    if ok.sum() < 10:
-        raise ValueError("too few measured pixels to fit intrinsics")
-    x = xyz_m[ok, 0] / xyz_m[ok, 2]
-    y = xyz_m[ok, 1] / xyz_m[ok, 2]
-    fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u[ok], rcond=None)[0]
-    fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v[ok], rcond=None)[0]
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-
-
 def draw_poses(
     image: np.ndarray,
     K: np.ndarray,
@@ -100,6 +83,7 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
     from binpick.io.depth_image import load_intrinsics
     from binpick.io.part_model import load_part_model
     from binpick.io.poses import load_poses
+    from binpick.registration.visibility import fit_intrinsics
 
     capture = load_capture(capture_path, options)
     if capture.shape is None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 import difflib
 import re
+from collections.abc import Callable
 from pathlib import Path, PurePosixPath
 from typing import Any, Literal
 
@@ -610,34 +611,34 @@ def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str =
 def set_capture_overrides(path: str | Path, capture: str, overrides: dict[str, Any]) -> None:
     """Set keys of `captures.<capture>.import_capture` in params.yaml, keeping comments;
     validated as a whole before it replaces the file."""
-    import io
 
-    from ruamel.yaml import YAML
+    def change(doc: Any) -> None:
+        entry = (doc.get("captures") or {}).get(capture)
+        if entry is None:
+            raise ParamsError(f"{path}: capture {capture!r} is not listed under 'captures'")
+        if entry.get("import_capture") is None:
+            entry["import_capture"] = {}
+        for key, value in overrides.items():
+            entry["import_capture"][key] = value
 
-    from binpick.io.atomic import write_text
-
-    path = Path(path)
-    yaml_rt = YAML()
-    yaml_rt.preserve_quotes = True
-    doc = yaml_rt.load(path.read_text())
-    entry = (doc.get("captures") or {}).get(capture)
-    if entry is None:
-        raise ParamsError(f"{path}: capture {capture!r} is not listed under 'captures'")
-    if entry.get("import_capture") is None:
-        entry["import_capture"] = {}
-    for key, value in overrides.items():
-        entry["import_capture"][key] = value
-    buffer = io.StringIO()
-    yaml_rt.dump(doc, buffer)
-    text = buffer.getvalue()
-    try:
-        check_whole(yaml.safe_load(text))
-    except ParamsError as exc:
-        raise ParamsError(f"{path}: {exc}") from None
-    write_text(path, text)
+    _edit(path, change)
 
 
 def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, Any]]) -> None:
+    def change(doc: Any) -> None:
+        if doc.get(section) is None:
+            doc[section] = {}
+        for name, entry in entries.items():
+            if name in doc[section]:
+                raise ParamsError(f"{path}: {section} already has {name!r}")
+            doc[section][name] = entry
+
+    _edit(path, change)
+
+
+def _edit(path: str | Path, change: Callable[[Any], None]) -> None:
+    """Apply `change` to params.yaml's document, keeping comments and order; the result is
+    validated as a whole (check_whole) before it replaces the file."""
     import io
 
     from ruamel.yaml import YAML
@@ -648,12 +649,7 @@ def _add_entries(path: str | Path, section: str, entries: dict[str, dict[str, An
     yaml_rt = YAML()
     yaml_rt.preserve_quotes = True
     doc = yaml_rt.load(path.read_text())
-    if doc.get(section) is None:
-        doc[section] = {}
-    for name, entry in entries.items():
-        if name in doc[section]:
-            raise ParamsError(f"{path}: {section} already has {name!r}")
-        doc[section][name] = entry
+    change(doc)
     buffer = io.StringIO()
     yaml_rt.dump(doc, buffer)
     text = buffer.getvalue()

@@ -8,12 +8,17 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from binpick.env import configure_environment, project_root
 from binpick.errors import BinpickError
 from binpick.log import setup_logging
+
+if TYPE_CHECKING:
+    from binpick.io.capture import ImportOptions
+    from binpick.params import CaptureParams, Params
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=__doc__)
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each writes its measurements as JSON.")
@@ -252,6 +257,16 @@ def review(capture: str = typer.Option("demo", help="capture whose recording to 
         typer.echo(cmd)
 
 
+def _listed_capture(p: Params, params: Path, capture: str, root: Path) -> tuple[CaptureParams, ImportOptions]:
+    """A capture listed in params.yaml and the options it is read with (one error line if absent)."""
+    from binpick.io.capture import ImportOptions
+
+    if capture not in p.captures:
+        _fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
+    entry = p.captures[capture]
+    return entry, ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
+
+
 @app.command("fit-bin")
 def fit_bin(
     capture: str = typer.Option(..., help="a capture listed in params.yaml that shows the cell's bin"),
@@ -269,7 +284,7 @@ def fit_bin(
     from binpick.bin_fit import fit_bin_box
     from binpick.geometry.pointcloud import fit_plane_ransac
     from binpick.geometry.transforms import invert_T, transform_points
-    from binpick.io.capture import ImportOptions, load_capture
+    from binpick.io.capture import load_capture
     from binpick.params import load_params
     from binpick.view import ViewParams, view_grid
     from stages.common.recording import write_bin_recording
@@ -277,11 +292,8 @@ def fit_bin(
     root = project_root()
     try:
         p = load_params(params)
-        if capture not in p.captures:
-            _fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
-        entry = p.captures[capture]
+        entry, options = _listed_capture(p, params, capture, root)
         settings = load_params(params, entry.part).import_capture_for(capture)
-        options = ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
         cap = load_capture(root / entry.file, options)
         xyz = cap.xyz_m.reshape(-1, 3)
         valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
@@ -401,17 +413,12 @@ def overlay(
     from PIL import Image
 
     from binpick.io.atomic import atomic_path
-    from binpick.io.capture import ImportOptions
     from binpick.overlay import overlay_capture
     from binpick.params import load_params
 
     root = project_root()
     try:
-        p = load_params(params)
-        if capture not in p.captures:
-            _fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
-        entry = p.captures[capture]
-        options = ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
+        entry, options = _listed_capture(load_params(params), params, capture, root)
         drawn = overlay_capture(root / entry.file, options, root / "data" / "results" / capture / "poses.json",
                                 root / "data" / "models" / entry.part / "part.npz", image)
         target = out or root / "data" / "results" / capture / "overlay.png"

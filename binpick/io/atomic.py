@@ -9,15 +9,7 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
-
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+from binpick.lifetime import pid_alive
 
 
 def sweep_stale(parent: Path, prefix: str) -> None:
@@ -27,7 +19,7 @@ def sweep_stale(parent: Path, prefix: str) -> None:
         return
     for stale in parent.glob(f"{prefix}*.tmp*"):
         pid = stale.name[len(prefix):].split(".", 1)[0]
-        if pid.isdigit() and not _pid_alive(int(pid)):
+        if pid.isdigit() and not pid_alive(int(pid)):
             if stale.is_dir() and not stale.is_symlink():
                 shutil.rmtree(stale, ignore_errors=True)
             else:

@@ -167,6 +167,8 @@ def end_dead_runs(experiment: str) -> list[str]:
     stage killed with SIGKILL cannot end its own run. Returns their ids."""
     import mlflow
 
+    from binpick.lifetime import pid_alive
+
     client = mlflow.MlflowClient()
     found = client.get_experiment_by_name(experiment)
     if found is None:
@@ -174,24 +176,12 @@ def end_dead_runs(experiment: str) -> list[str]:
     ended = []
     for run in client.search_runs([found.experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=200):
         pid, host = run.data.tags.get("binpick.pid"), run.data.tags.get("binpick.host")
-        if host == socket.gethostname() and pid and pid.isdigit() and not _alive(int(pid)):
+        if host == socket.gethostname() and pid and pid.isdigit() and not pid_alive(int(pid)):
             client.set_terminated(run.info.run_id, status="KILLED")
             ended.append(run.info.run_id)
     if ended:
         log.warning("%s: marked %d run(s) of killed stages as KILLED", experiment, len(ended))
     return ended
-
-
-def _alive(pid: int) -> bool:
-    import os
-
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 # Set by flows/dvc_tasks.py for the stage commands it runs, so that a stage's MLflow run names
