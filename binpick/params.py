@@ -39,7 +39,7 @@ SECTIONS = (
     "register",
     "render_demo",
 )
-PER_PART_SECTIONS = ("ingest", "camera", "generate", "import_capture", "train", "evaluate", "segment", "register")
+PER_PART_SECTIONS = ("ingest", "camera", "generate", "import_capture", "train", "evaluate", "segment", "register", "pick")
 
 
 # Names and paths from this file reach DVC's command lines (dvc.yaml interpolates them into shell
@@ -118,11 +118,19 @@ class PartParams(_Strict):
     evaluate: dict[str, Any] = {}
     segment: dict[str, Any] = {}
     registration: dict[str, Any] = Field({}, alias="register")
+    pick: dict[str, Any] = {}
+    # A grasp file (data/README.md#grasps) with the part's pick points; '' = generated from the CAD model.
+    grasps: str = ""
 
     @field_validator("mesh")
     @classmethod
     def _safe_mesh(cls, mesh: str) -> str:
         return check_project_path(mesh, "mesh path")
+
+    @field_validator("grasps")
+    @classmethod
+    def _safe_grasps(cls, grasps: str) -> str:
+        return grasps if grasps == "" else check_project_path(grasps, "grasps path")
 
 
 class CaptureParams(_Strict):
@@ -371,6 +379,86 @@ class RegisterParams(_Strict):
     max_seen_through: float | None = Field(ge=0, le=1)
 
 
+class SuctionParams(_Strict):
+    """A suction gripper: the cup (a cylinder of cup_radius_m, cup_length_m long, its lip at the
+    tool centre point) on a tool (a cylinder behind it). A grasp point needs a patch of the part
+    that the cup's lip covers, flat within max_deviation_m, its normals within max_normal_deg of
+    the cup's axis (a bellows cup seals on that much curvature)."""
+
+    cup_radius_m: float = Field(gt=0)
+    cup_length_m: float = Field(gt=0)
+    tool_radius_m: float = Field(gt=0)
+    tool_length_m: float = Field(gt=0)
+    max_deviation_m: float = Field(gt=0)
+    max_normal_deg: float = Field(gt=0, lt=90)
+
+
+class JawParams(_Strict):
+    """A parallel-jaw gripper: two box fingers closing along the tool's x axis, the tool centre
+    point midway between the finger pads' centres; a palm behind the fingers and a tool cylinder
+    behind the palm. Fingers open to the grasp width plus open_margin_m (at most opening_max_m)
+    to approach; contacts need normals within friction_deg of the closing axis."""
+
+    finger_length_m: float = Field(gt=0, description="along the approach")
+    finger_width_m: float = Field(gt=0, description="across the approach and the closing axis")
+    finger_thickness_m: float = Field(gt=0, description="along the closing axis")
+    opening_min_m: float = Field(ge=0)
+    opening_max_m: float = Field(gt=0)
+    open_margin_m: float = Field(ge=0)
+    palm_depth_m: float = Field(gt=0)
+    palm_width_m: float = Field(gt=0)
+    tool_radius_m: float = Field(gt=0)
+    tool_length_m: float = Field(gt=0)
+    friction_deg: float = Field(gt=0, lt=90)
+
+    @model_validator(mode="after")
+    def _opening(self) -> JawParams:
+        if self.opening_min_m >= self.opening_max_m:
+            raise ValueError("jaw.opening_min_m must be below jaw.opening_max_m")
+        return self
+
+
+PICK_ORDER_KEYS = ("height", "score", "clearance")
+
+
+class PickParams(_Strict):
+    """Picks (binpick/picking.py): the gripper, where it may come from and how parts are ranked."""
+
+    gripper: Literal["suction", "jaw"]
+    suction: SuctionParams
+    jaw: JawParams
+    max_grasps: int = Field(ge=1, description="generated grasps per part, before the symmetry expands them")
+    approach_cone_deg: float = Field(ge=0, le=90, description="approach at most this far from straight down the bin's up axis")
+    pregrasp_distance_m: float = Field(ge=0, description="the pre-grasp pose: this far back along the approach")
+    retreat_distance_m: float = Field(ge=0, description="the post-grasp pose: this far back along the approach")
+    clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
+    own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
+    order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
+    height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")
+    max_candidates_per_part: int = Field(ge=1, description="grasps tried per part, best-ranked first")
+    T_base_from_cam: list[list[float]] | None = Field(description="eye-to-hand calibration (binpick hand-eye); null = not calibrated")
+
+    @field_validator("order")
+    @classmethod
+    def _unique_order(cls, order: list[str]) -> list[str]:
+        if len(set(order)) != len(order):
+            raise ValueError(f"pick.order repeats a key: {order}")
+        return order
+
+    @field_validator("T_base_from_cam")
+    @classmethod
+    def _rigid(cls, T: list[list[float]] | None) -> list[list[float]] | None:
+        if T is None:
+            return T
+        M = np.asarray(T, dtype=float)
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise ValueError("pick.T_base_from_cam must be a 4 x 4 matrix of numbers")
+        R = M[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(M[3], [0, 0, 0, 1]):
+            raise ValueError("pick.T_base_from_cam must be a rigid transform (a rotation and a translation, last row 0 0 0 1)")
+        return T
+
+
 class RenderDemoParams(_Strict):
     """The built-in demo capture: a synthetic bin rendered at full camera resolution."""
 
@@ -392,6 +480,26 @@ class ZividCameraParams(_Strict):
     aperture: float = Field(gt=0, description="f-number")
     brightness: float = Field(ge=0)
     gain: float = Field(gt=0)
+
+
+class ServiceParams(_Strict):
+    """`binpick service`: the resident pick service (flows/service.py)."""
+
+    host: str = Field(description="address to bind; beyond loopback only with a token")
+    http_port: int = Field(ge=1, le=65535)
+    tcp_port: int = Field(ge=0, le=65535, description="the JSON line protocol; 0 = off")
+    token_env: str = Field(description="environment variable holding the access token; unset or empty = no token")
+    max_request_mb: float = Field(gt=0)
+    max_requests_per_min: int = Field(ge=1)
+    max_queue: int = Field(ge=1, description="requests waiting beyond the one being answered; more are refused as busy")
+    keep_requests: int = Field(ge=0, description="the newest requests kept for review; older ones are deleted")
+    keep_dir: str = Field(description="where kept requests go, inside the project")
+    capture_folders: list[str] = Field(description="folders (besides the project) a request may name a capture file in")
+
+    @field_validator("keep_dir")
+    @classmethod
+    def _safe_keep_dir(cls, path: str) -> str:
+        return check_project_path(path, "service.keep_dir")
 
 
 class TrackingParams(_Strict):
@@ -433,6 +541,8 @@ class Params(_Strict):
     segment: SegmentParams
     registration: RegisterParams = Field(alias="register")
     render_demo: RenderDemoParams
+    pick: PickParams
+    service: ServiceParams
     zivid_camera: ZividCameraParams
     tracking: TrackingParams
     orchestration: OrchestrationParams
@@ -504,7 +614,7 @@ def resolve(raw: dict[str, Any], part: str | None = None) -> dict[str, Any]:
         if part not in parts:
             raise ParamsError(f"part {part!r} is not listed under 'parts' (have: {sorted(parts)})")
         for section in PER_PART_SECTIONS:
-            resolved[section] = deep_merge(resolved[section], (parts[part] or {}).get(section) or {})
+            resolved[section] = deep_merge(resolved.get(section) or {}, (parts[part] or {}).get(section) or {})
     return resolved
 
 
@@ -620,6 +730,18 @@ def set_capture_overrides(path: str | Path, capture: str, overrides: dict[str, A
             entry["import_capture"] = {}
         for key, value in overrides.items():
             entry["import_capture"][key] = value
+
+    _edit(path, change)
+
+
+def set_section_key(path: str | Path, section: str, key: str, value: Any) -> None:
+    """Set `<section>.<key>` in params.yaml (e.g. pick.T_base_from_cam from hand-eye), keeping
+    comments; validated as a whole before it replaces the file."""
+
+    def change(doc: Any) -> None:
+        if doc.get(section) is None:
+            raise ParamsError(f"{path}: has no {section!r} section")
+        doc[section][key] = value
 
     _edit(path, change)
 

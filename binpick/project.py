@@ -21,6 +21,7 @@ from binpick.io.pipeline_vars import (
     PipelineVars,
     SetAside,
     StageCapture,
+    StagePart,
     load_set_aside,
     read_pipeline_vars_text,
     save_set_aside,
@@ -56,7 +57,7 @@ def _file_digest(path: Path) -> str:
 def fingerprint(root: Path, kind: str, name: str, params: Params) -> str:
     """SHA-256 of a part's or capture's params entry and of every file it names."""
     entry = (params.parts if kind == "parts" else params.captures)[name]
-    files = [entry.mesh] if kind == "parts" else [entry.file, entry.truth, entry.intrinsics]  # type: ignore[union-attr]
+    files = [entry.mesh, entry.grasps] if kind == "parts" else [entry.file, entry.truth, entry.intrinsics]  # type: ignore[union-attr]
     h = hashlib.sha256(json.dumps(entry.model_dump(by_alias=True), sort_keys=True).encode())
     for rel in files:
         if rel:
@@ -73,6 +74,8 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
     """The parts and captures that run, and the set-aside entries still in force (same fingerprint)."""
     for name, part in params.parts.items():
         _inside(root, part.mesh, f"parts.{name}.mesh")
+        if part.grasps:
+            _inside(root, part.grasps, f"parts.{name}.grasps")
     for name, capture in params.captures.items():
         for key in ("file", "truth", "intrinsics"):
             if getattr(capture, key):
@@ -83,7 +86,7 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
                if n in (params.parts if kind == "parts" else params.captures) and e.fingerprint == fingerprint(root, kind, n, params)}
         for kind in recorded
     }
-    parts = {n: p.mesh for n, p in params.parts.items() if n not in in_force["parts"]}
+    parts = {n: StagePart(p.mesh, p.grasps) for n, p in params.parts.items() if n not in in_force["parts"]}
     captures = {
         n: StageCapture(c.file, c.part, c.truth, c.intrinsics)
         for n, c in params.captures.items()
@@ -125,7 +128,7 @@ def verify_pipeline_vars(root: Path) -> None:
         doc = {}
     recorded = load_set_aside(root)
     stage_parts, stage_captures = doc.get("stage_parts") or {}, doc.get("stage_captures") or {}
-    stale = [n for n, p in params.parts.items() if (stage_parts.get(n) or {}).get("mesh") != p.mesh and n not in recorded["parts"]]
+    stale = [n for n, p in params.parts.items() if stage_parts.get(n) != StagePart(p.mesh, p.grasps).as_vars() and n not in recorded["parts"]]
     stale += [n for n in stage_parts if n not in params.parts]
     stale += [
         n for n, c in params.captures.items()

@@ -5,8 +5,9 @@ they cannot drift apart.
 
 Steps: `clean` (range, region, floor and walls, the network's voxel grid and normals),
 `segment` (FPCC instance labels), `register` (PPF matching per segment and/or over the whole
-scene, score filter, duplicate suppression); `process` runs the three. Camera frame, metres;
-poses are T_cam_from_model.
+scene, score filter, duplicate suppression), `pick` (a collision-free grasp per part, ranked);
+`process` runs them (picks when the models carry grasps). Camera frame, metres; poses are
+T_cam_from_model.
 """
 
 from __future__ import annotations
@@ -20,12 +21,14 @@ import numpy as np
 
 from binpick.cleaning import clean_capture
 from binpick.io.cloud import CleanCloud
+from binpick.io.grasps import GraspSet, load_grasps
 from binpick.io.part_model import PartModel, load_part_model
 from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel, load_ppf_model
 from binpick.network.checkpoint import InferenceSettings
 from binpick.network.infer import Segmenter, load_segmenter
-from binpick.params import ImportCaptureParams, Params, RegisterParams
+from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
+from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
 from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
 from binpick.registration.matching import match_scene, match_segment, suppress_duplicates
 from binpick.registration.verification import seen_through
@@ -46,17 +49,28 @@ class PartModels:
     segmenter: Segmenter | None
     import_params: ImportCaptureParams
     register_params: RegisterParams
+    grasps: GraspSet | None = None  # None: no picks
+    pick_params: PickParams | None = None
 
     @classmethod
-    def load(cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None) -> PartModels:
-        """params: resolved for the part (load_params(path, part)); checkpoint None: no network."""
+    def load(
+        cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None, grasps: str | Path | None = None
+    ) -> PartModels:
+        """params: resolved for the part (load_params(path, part)); checkpoint None: no network;
+        grasps: the part's grasp file (None: no picks)."""
         segmenter = load_segmenter(checkpoint, params.segment) if checkpoint is not None else None
+        register_params = params.registration
+        if segmenter is None and register_params.mode != "whole_scene":
+            log.info("no network for the part: registration over the whole scene")
+            register_params = register_params.model_copy(update={"mode": "whole_scene"})
         return cls(
             part=load_part_model(part_model),
             ppf=load_ppf_model(ppf_model),
             segmenter=segmenter,
             import_params=params.import_capture,
-            register_params=with_verification(params.registration, segmenter.settings if segmenter is not None else None),
+            register_params=with_verification(register_params, segmenter.settings if segmenter is not None else None),
+            grasps=load_grasps(grasps)[params.pick.gripper] if grasps is not None else None,
+            pick_params=params.pick,
         )
 
 
@@ -104,6 +118,7 @@ class SceneResult:
     labels: np.ndarray
     registration: Registration
     timings_s: dict[str, float] = field(default_factory=dict)
+    picks: PickPlan | None = None
 
     @property
     def poses(self) -> list[PartPose]:
@@ -170,10 +185,30 @@ def register(
     return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses))
 
 
+def bin_box_of(params: ImportCaptureParams) -> BinBoxObstacle | None:
+    """The bin given in params (import_capture's region of interest with its frame), else None."""
+    if params.T_cam_from_roi is None or params.roi_min_m is None or params.roi_max_m is None:
+        return None
+    return BinBoxObstacle(np.asarray(params.T_cam_from_roi, dtype=np.float64), np.asarray(params.roi_min_m, float), np.asarray(params.roi_max_m, float))
+
+
+def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: GraspSet, params: PickParams, import_params: ImportCaptureParams) -> PickPlan:
+    """Picks for the posed parts (binpick/picking.py): obstacles are everything the capture
+    measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
+    when params give it, and the other parts at their poses."""
+    captured = DepthView(cloud.seen_depth_m, cloud.seen_K).points_m()
+    if len(captured) == 0:
+        captured = cloud.points_m
+    T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
+    scores = np.array([p.score for p in poses], dtype=np.float64)
+    return plan_picks(T, scores, grasps, part.points_m, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params))
+
+
 def process(
     xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, models: PartModels, seeds: SceneSeeds
 ) -> SceneResult:
-    """clean, segment (unless the models have no segmenter) and register one capture."""
+    """clean, segment (unless the models have no segmenter), register and (when the models carry
+    grasps) pick one capture."""
     t0 = time.perf_counter()
     cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
     t1 = time.perf_counter()
@@ -181,6 +216,11 @@ def process(
     t2 = time.perf_counter()
     registration = register(cloud, labels, models.ppf, models.register_params, seeds.register)
     t3 = time.perf_counter()
+    plan = None
+    if models.grasps is not None and models.pick_params is not None:
+        plan = pick(cloud, registration.poses, models.part, models.grasps, models.pick_params, models.import_params)
+    t4 = time.perf_counter()
     if labels is None:
         labels = np.full(len(cloud.points_m), -1, np.int32)
-    return SceneResult(cloud, labels, registration, {"clean_s": t1 - t0, "segment_s": t2 - t1, "register_s": t3 - t2})
+    timings = {"clean_s": t1 - t0, "segment_s": t2 - t1, "register_s": t3 - t2, **({"pick_s": t4 - t3} if plan is not None else {})}
+    return SceneResult(cloud, labels, registration, timings, plan)

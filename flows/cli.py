@@ -77,13 +77,14 @@ def review_commands(root: Path, capture: str = "demo") -> list[str]:
     return [
         f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{root / 'data' / 'mlflow' / 'mlflow.db'} --host 127.0.0.1 --port 5000",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
+        f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'picks.rrd'}",
         # rerun binds to every interface unless told otherwise
         f"{bin_dir / 'rerun'} --web-viewer --bind 127.0.0.1 {root / 'data' / 'results' / capture / 'scene.rrd'}",
     ]
 
 
 def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
-    ev, reg = results.get("evaluate", {}), results.get("register", {})
+    ev, reg, pick = results.get("evaluate", {}), results.get("register", {}), results.get("pick", {})
 
     def f(d: dict[str, float], key: str, fmt: str = "{:.3f}") -> str:
         return fmt.format(d[key]) if key in d else "n/a"
@@ -96,6 +97,7 @@ def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
         ("pose precision (ADD < 0.1 d)", f(reg, "pose_precision")),
         ("rotation error, median", f(reg, "rot_err_deg_median", "{:.2f} deg")),
         ("translation error, median", f(reg, "trans_err_mm_median", "{:.2f} mm")),
+        ("parts with a collision-free pick", f"{f(pick, 'n_picks', '{:.0f}')} of {f(pick, 'n_parts', '{:.0f}')}"),
         ("wall time", f"{minutes:.1f} min"),
     ]
     width = max(len(r[0]) for r in rows)
@@ -233,6 +235,106 @@ def serve(
 
 
 @app.command()
+def service(
+    host: str = typer.Option(None, help="address to bind (default service.host, 127.0.0.1)"),
+    http_port: int = typer.Option(None, min=1, max=65535, help="default service.http_port"),
+    tcp_port: int = typer.Option(None, min=0, max=65535, help="the JSON line protocol; 0 = off (default service.tcp_port)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """The pick service: loads every trained part once, then answers "picks for this capture"
+    over HTTP/JSON and a JSON line protocol until stopped (see README, "The pick service")."""
+    import socket
+
+    from binpick.params import load_params
+    from flows.service import run_service
+
+    root = project_root()
+    params = params if params.is_absolute() else root / params
+    try:
+        s = load_params(params).service
+    except BinpickError as exc:
+        _fail(str(exc))
+    for port in (http_port or s.http_port, s.tcp_port if tcp_port is None else tcp_port):
+        if not port:
+            continue
+        with socket.socket() as probe:
+            try:
+                probe.bind((host or s.host, port))
+            except OSError as exc:
+                _fail(f"cannot listen on {host or s.host}:{port} ({exc.strerror}); another program holds it, or choose another port")
+    try:
+        run_service(root, params, host, http_port, tcp_port)
+    except BinpickError as exc:
+        _fail(str(exc))
+    except KeyboardInterrupt:
+        typer.echo("stopped")
+
+
+@app.command()
+def requests(
+    last: int = typer.Option(10, min=1, help="how many of the newest kept requests to list"),
+    open_id: str = typer.Option(None, "--open", help="print the command that opens this request's recording (an id, or 'latest')"),
+    add: str = typer.Option(None, "--add", help="add this kept request (an id, or 'latest') to params.yaml as a capture, for dvc repro"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """The service's kept requests, newest first: when, part, picks, timings; open one in rerun,
+    or add one to the batch pipeline as a capture."""
+    import json
+    import shutil
+    import sys
+
+    from binpick.params import add_captures, load_params
+    from flows.service import list_requests
+
+    root = project_root()
+    params = params if params.is_absolute() else root / params
+    try:
+        p = load_params(params)
+    except BinpickError as exc:
+        _fail(str(exc))
+    kept = list_requests(root / p.service.keep_dir / "requests")
+    if not kept:
+        _fail(f"no kept requests under {root / p.service.keep_dir / 'requests'} (is `binpick service` running, and asked?)")
+
+    def find(wanted: str) -> Path:
+        for folder in kept:
+            if wanted in ("latest", folder.name):
+                return folder
+        _fail(f"no kept request {wanted!r} (newest: {kept[0].name})")
+        raise AssertionError
+
+    if open_id:
+        folder = find(open_id)
+        typer.echo(f"{Path(sys.executable).parent / 'rerun'} {folder / 'scene.rrd'}")
+        return
+    if add:
+        folder = find(add)
+        info = json.loads((folder / "request.json").read_text())
+        capture = next(iter(sorted(folder.glob("capture.*"))), None)
+        if capture is None:
+            _fail(f"{folder}: the capture was not kept")
+        target = root / "data" / "captures" / "service" / f"{folder.name}{capture.suffix}"
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(capture, target)
+        name = folder.name.replace("T", "_", 1)[:64]
+        try:
+            add_captures(params, {name: target.relative_to(root).as_posix()}, info["part"], info.get("unit", "mm"))
+        except BinpickError as exc:
+            target.unlink(missing_ok=True)
+            _fail(str(exc))
+        typer.echo(f"added capture {name} ({target.relative_to(root)}, part {info['part']}): `make repro` processes it")
+        return
+    for folder in kept[:last]:
+        try:
+            info = json.loads((folder / "request.json").read_text())
+        except (OSError, ValueError):
+            typer.echo(f"{folder.name}  (being written)")
+            continue
+        t, c = info["timings_s"], info["counts"]
+        typer.echo(f"{folder.name}  {info['part']}: {c['n_picks']:.0f} picks of {c['n_parts']:.0f} parts, {t['total_s']:.2f} s")
+
+
+@app.command()
 def grab(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = typer.Option(Path("params.yaml"))) -> None:
     """Grab one frame from a connected Zivid camera and save it as a capture (needs the zivid package)."""
     from binpick.params import load_params
@@ -334,10 +436,13 @@ def hand_eye(
     pattern: str = typer.Option("9x6", help="inner corners of the checkerboard, columns x rows"),
     square_mm: float = typer.Option(25.0, min=0.1, help="side of a checkerboard square"),
     out: Path = typer.Option(Path("data/hand_eye.json"), help="result to write"),
+    apply: bool = typer.Option(False, "--apply", help="eye-to-hand: write T_base_from_cam into params.yaml (pick.T_base_from_cam)"),
+    params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
     """Hand-eye calibration from robot flange poses and captures of a checkerboard (OpenCV): the
     camera's pose in the robot base frame (eye-to-hand: T_base_from_cam) or on the flange
-    (eye-in-hand: T_flange_from_cam), with residuals in mm and degrees."""
+    (eye-in-hand: T_flange_from_cam), with residuals in mm and degrees. With --apply, picks are
+    given in the robot base frame from then on."""
     import json
 
     import numpy as np
@@ -396,9 +501,19 @@ def hand_eye(
     answer = {"setup": result.setup, key: result.T.round(9).tolist(), "n_poses": result.n_poses,
               "residual_mm_median": result.residual_mm_median, "residual_mm_max": result.residual_mm_max,
               "residual_deg_median": result.residual_deg_median, "residual_deg_max": result.residual_deg_max}
+    if apply and result.setup != "eye_to_hand":
+        _fail("--apply sets pick.T_base_from_cam, which an eye-in-hand result is not (it moves with the flange)")
     write_text(out, json.dumps(answer, indent=1) + "\n")
     typer.echo(f"{key} from {result.n_poses} poses: residuals {result.residual_mm_median:.2f} mm / {result.residual_deg_median:.2f} deg "
                f"(median), {result.residual_mm_max:.2f} mm / {result.residual_deg_max:.2f} deg (largest); wrote {out}")
+    if apply:
+        from binpick.params import set_section_key
+
+        try:
+            set_section_key(params, "pick", "T_base_from_cam", answer[key])
+        except BinpickError as exc:
+            _fail(str(exc))
+        typer.echo(f"set pick.T_base_from_cam in {params}: picks are given in the robot base frame")
 
 
 @app.command()
@@ -483,6 +598,75 @@ def bench_clutter_cmd(
     names = part or list(DEFAULT_PARTS)
     try:
         result = bench_clutter(load_params(params), names, scenes, {n: root / "data" / "fpcc" / n / "model.pt" for n in names})
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+@bench_app.command("picking")
+def bench_picking_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    bins: int = typer.Option(10, min=1, help="bins per part"),
+    min_parts: int = typer.Option(10, min=1, help="parts per bin, at least"),
+    max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
+    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"),
+    gripper: str = typer.Option(None, help="suction or jaw (default: pick.gripper)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Empty simulated bins one pick at a time through the real scene path; every pick checked
+    against the simulator's true state (right part touched, path free)."""
+    from binpick.bench.picking import DEFAULT_PARTS, bench_picking
+    from binpick.params import load_params
+
+    if min_parts > max_parts:
+        _fail(f"--min-parts {min_parts} is above --max-parts {max_parts}")
+    if gripper not in (None, "suction", "jaw"):
+        _fail(f"--gripper must be suction or jaw, not {gripper!r}")
+    root = project_root()
+    names = part or list(DEFAULT_PARTS)
+    try:
+        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), {n: root / "data" / "fpcc" / n / "model.pt" for n in names}, gripper)
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+@bench_app.command("scene")
+def bench_scene_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """The in-process scene path per step on 1920 x 1200 captures of 8- and 20-part bins, and the
+    pick service end to end (process start to first answer, warm requests over HTTP and TCP)."""
+    from binpick.bench.scene import DEFAULT_PARTS, bench_scene
+    from binpick.params import load_params
+
+    root = project_root()
+    names = part or list(DEFAULT_PARTS)
+    try:
+        result = bench_scene(load_params(params), params.read_text(), names, {n: root / "data" / "fpcc" / n / "model.pt" for n in names})
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
+@bench_app.command("soak")
+def bench_soak_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    requests: int = typer.Option(1000, min=1, help="sequential requests"),
+    clients: int = typer.Option(4, min=1, help="concurrent clients after them"),
+    per_client: int = typer.Option(25, min=1, help="requests per concurrent client"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Load and soak test of the pick service on generated 8-part bins of the built-in part:
+    failed answers, memory over the run, the same answer for the same capture."""
+    from binpick.bench.scene import bench_soak
+    from binpick.params import load_params
+
+    checkpoint = project_root() / "data" / "fpcc" / "t_joint" / "model.pt"
+    try:
+        result = bench_soak(load_params(params), params.read_text(), requests, clients, per_client, checkpoint if checkpoint.is_file() else None)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)

@@ -20,8 +20,8 @@ from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, repro_stage
 
 log = logging.getLogger("binpick.flows")
-PART_STAGES = ("ingest", "ppf", "generate", "train", "evaluate")
-SCENE_STAGES = ("import_capture", "segment", "register")
+PART_STAGES = ("ingest", "ppf", "grasps", "generate", "train", "evaluate")
+SCENE_STAGES = ("import_capture", "segment", "register", "pick")
 
 
 @dataclass
@@ -64,14 +64,14 @@ def safe_file_name(root: Path, path: Path) -> str | None:
 
 @flow(name="train-part", flow_run_name="train-{part}")
 def train_part(part: str, root: Path) -> None:
-    """ingest -> ppf -> generate -> train -> evaluate, each the part's DVC stage."""
+    """ingest -> ppf -> grasps -> generate -> train -> evaluate, each the part's DVC stage."""
     for stage in PART_STAGES:
         repro_stage(f"{stage}@{part}", root)
 
 
 @flow(name="scene", flow_run_name="scene-{capture}")
 def process_capture(capture: str, root: Path) -> None:
-    """import (+ plane filter) -> segment -> register for one capture listed in params.yaml."""
+    """import (+ plane filter) -> segment -> register -> pick for one capture listed in params.yaml."""
     for stage in SCENE_STAGES:
         repro_stage(f"{stage}@{capture}", root)
 
@@ -161,4 +161,5 @@ def demo(root: Path, part: str = "t_joint", capture: str = "demo") -> dict[str, 
         "register": read_metrics(root, "scenes", capture, "register.json"),
         "segment": read_metrics(root, "scenes", capture, "segment.json"),
         "import": read_metrics(root, "scenes", capture, "import.json"),
+        "pick": read_metrics(root, "scenes", capture, "pick.json"),
     }

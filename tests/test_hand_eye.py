@@ -122,6 +122,14 @@ def test_the_command_calibrates_from_captures_of_a_board_on_the_flange(tmp_path)
     assert proc.returncode == 0, proc.stderr
     found = np.asarray(json.loads((tmp_path / "he.json").read_text())["T_base_from_cam"])
     assert np.linalg.norm(found[:3, 3] - T_base_cam[:3, 3]) < 0.005 and _angle_deg(found[:3, :3].T @ T_base_cam[:3, :3]) < 0.5
+    # --apply: the result becomes the pick setting, comments kept, the file still valid.
+    (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
+    proc = subprocess.run([*run, "--apply", "--params", str(tmp_path / "params.yaml")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    from binpick.params import load_params
+
+    assert np.allclose(load_params(tmp_path / "params.yaml").pick.T_base_from_cam, found, atol=1e-8)
+    assert "# grasps and picks" in (tmp_path / "params.yaml").read_text()
     (tmp_path / "pairs.json").write_text(json.dumps({"pairs": pairs[:2]}))
     proc = subprocess.run(run, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 2 and "Traceback" not in proc.stderr and "at least 3 robot poses" in proc.stderr

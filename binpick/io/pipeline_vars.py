@@ -31,6 +31,18 @@ _HEADER = (
 
 
 @dataclass(frozen=True)
+class StagePart:
+    """A part as the per-part stages see it: its mesh, its grasp file ('' when generated) and
+    `grasps_dep`, a file DVC can always track (the grasp file, else the mesh)."""
+
+    mesh: str
+    grasps: str = ""
+
+    def as_vars(self) -> dict[str, str]:
+        return {"mesh": self.mesh, "grasps": self.grasps, "grasps_dep": self.grasps or self.mesh}
+
+
+@dataclass(frozen=True)
 class StageCapture:
     """A capture as the scene stages see it. `truth`/`intrinsics` are '' when absent; the `*_dep`
     fields are files DVC can always track: the truth or intrinsics file, else the capture itself."""
@@ -49,7 +61,7 @@ class StageCapture:
 
 @dataclass(frozen=True)
 class PipelineVars:
-    parts: dict[str, str]  # part name -> mesh path
+    parts: dict[str, StagePart]
     captures: dict[str, StageCapture]
     demo_part: str
     demo_file: str
@@ -57,7 +69,7 @@ class PipelineVars:
 
     def as_yaml(self) -> str:
         doc = {
-            "stage_parts": {name: {"mesh": mesh} for name, mesh in sorted(self.parts.items())},
+            "stage_parts": {name: part.as_vars() for name, part in sorted(self.parts.items())},
             "stage_captures": {name: c.as_vars() for name, c in sorted(self.captures.items())},
             "stage_demo": {"part": self.demo_part, "file": self.demo_file, "truth": self.demo_truth},
         }

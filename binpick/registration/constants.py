@@ -29,6 +29,10 @@ SCENE_CLUSTERS_PER_INSTANCE = 3
 # Non-maximum suppression by support: a pose is dropped when more than this share of its
 # supporting scene points is explained by a better pose already.
 MAX_SHARED_SUPPORT = 0.3
+# Whole-scene matching after poses are known votes only from the points they leave unexplained,
+# and not at all when those are fewer than this share of the model's points on the voting grid
+# (less than a fifth of a part's surface: edges and noise, no part the pass could fit).
+MIN_FREE_SHARE = 0.2
 # ICP stops when fitness and RMSE change by less than this, relative.
 ICP_RELATIVE_CHANGE = 1e-4
 

@@ -19,6 +19,7 @@ from binpick.registration.constants import (
     FINE_CLUSTERS,
     FINE_STRIDE,
     MAX_CLUSTER_CANDIDATES,
+    MIN_FREE_SHARE,
     SCENE_CLUSTERS_PER_INSTANCE,
     SCENE_REFS_PER_CHUNK,
     TOP_CLUSTERS,
@@ -84,8 +85,18 @@ def match_scene(
     if len(idx) < 3:
         return []
     pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
-    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
-    refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
+    free = np.arange(len(pts))
+    if len(known):
+        # Votes come only from what the known poses leave unexplained: the rest is found.
+        taken = np.zeros(len(pts), bool)
+        grid_tree = cKDTree(pts)
+        for T in known:
+            taken[explained_points(model, np.asarray(T), pts, grid_tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
+        free = np.flatnonzero(~taken)
+        if len(free) == 0 or len(free) < MIN_FREE_SHARE * len(model.points_m):
+            return []
+    n_refs = max(1, int(round(params.scene_ref_fraction * len(free))))
+    refs = np.sort(rng.choice(free, size=n_refs, replace=False))
     candidates: list[tuple[np.ndarray, float]] = []
     # In chunks: the accumulator holds (references x model points x angle bins) counts.
     for chunk in np.array_split(refs, int(np.ceil(len(refs) / SCENE_REFS_PER_CHUNK))):

@@ -21,6 +21,8 @@ import numpy as np
 # The z-buffer keeps the nearest measurement per cell of this many pixels across (a coarser
 # grid than the sensor's: robust to single-pixel gaps, cheap to keep in cloud.npz).
 CELL_PX = 4
+# Pixels the intrinsics of an organized frame are fitted to.
+INTRINSICS_SAMPLE = 20000
 
 
 @dataclass(frozen=True)
@@ -39,21 +41,35 @@ class DepthView:
     def is_empty(self) -> bool:
         return self.depth_m.size == 0
 
+    def points_m(self) -> np.ndarray:
+        """(n, 3) camera frame: each measured cell's nearest point, at the cell's centre ray."""
+        if self.is_empty:
+            return np.zeros((0, 3))
+        v, u = np.nonzero(np.isfinite(self.depth_m))
+        z = self.depth_m[v, u].astype(np.float64)
+        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
+        return np.column_stack([(u + 0.5 - cx) * z / fx, (v + 0.5 - cy) * z / fy, z])
+
 
 def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Pinhole K (3, 3) of an organized cloud, by least squares on u = fx x / z + cx (and v).
 
     xyz_m : (H * W, 3) camera frame, NaN where nothing was measured.
     """
-    H, W = shape
-    v, u = np.divmod(np.arange(H * W), W)
-    ok = np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0)
-    if ok.sum() < 10:
+    ok = np.flatnonzero(np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0))
+    return fit_intrinsics_at(xyz_m[ok], ok, shape[1])
+
+
+def fit_intrinsics_at(xyz_m: np.ndarray, pixel: np.ndarray, width: int) -> np.ndarray:
+    """Pinhole K (3, 3) from measured points (k, 3), camera frame, z > 0, and their row-major
+    pixel indices (k,) in a frame `width` pixels wide; least squares on u = fx x / z + cx (and v)."""
+    if len(pixel) < 10:
         raise ValueError("too few measured pixels to fit intrinsics")
-    x = xyz_m[ok, 0] / xyz_m[ok, 2]
-    y = xyz_m[ok, 1] / xyz_m[ok, 2]
-    fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u[ok], rcond=None)[0]
-    fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v[ok], rcond=None)[0]
+    v, u = np.divmod(np.asarray(pixel, dtype=np.int64), width)
+    xyz = np.asarray(xyz_m, dtype=np.float64)
+    x, y = xyz[:, 0] / xyz[:, 2], xyz[:, 1] / xyz[:, 2]
+    fx, cx = np.linalg.lstsq(np.column_stack([x, np.ones_like(x)]), u, rcond=None)[0]
+    fy, cy = np.linalg.lstsq(np.column_stack([y, np.ones_like(y)]), v, rcond=None)[0]
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
@@ -70,23 +86,33 @@ def _zbuffer(points: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> np.nd
     return depth.reshape(h, w)
 
 
-def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: float) -> DepthView:
+def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: float, finite: np.ndarray | None = None) -> DepthView:
     """The z-buffer of everything a capture measured (before any cleaning).
 
     Organized frames (H * W, 3): the sensor's own pixel grid at 1/CELL_PX, intrinsics fitted to
     the frame. Other clouds: a virtual pinhole at the origin whose cell is about `voxel_m` wide
-    at the median depth, over the cloud's field of view.
+    at the median depth, over the cloud's field of view. finite: (n,) bool, the points without
+    NaN or inf when the caller knows them already.
     """
-    xyz = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
-    valid = np.all(np.isfinite(xyz), axis=1) & (xyz[:, 2] > 1e-6)
+    xyz = np.asarray(xyz_m).reshape(-1, 3)
+    valid = (np.all(np.isfinite(xyz), axis=1) if finite is None else finite) & (xyz[:, 2] > 1e-6)
     if valid.sum() < 10:
         return DepthView.empty()
     if frame_shape is not None and frame_shape[0] * frame_shape[1] == len(xyz):
-        K = fit_intrinsics(xyz, frame_shape)
+        H, W = frame_shape
+        # A pinhole fitted to a spread sample of the pixels is the frame's own to well below a
+        # cell (and costs milliseconds instead of a fit over millions of points).
+        picked = np.flatnonzero(valid)
+        picked = picked[:: max(1, len(picked) // INTRINSICS_SAMPLE)]
+        K = fit_intrinsics_at(xyz[picked], picked, W)
         cell = np.diag([1.0 / CELL_PX, 1.0 / CELL_PX, 1.0]) @ K
-        shape = (int(np.ceil(frame_shape[0] / CELL_PX)), int(np.ceil(frame_shape[1] / CELL_PX)))
-        return DepthView(_zbuffer(xyz[valid], cell, shape), cell)
-    pts = xyz[valid]
+        # Each cell's nearest measurement is the least depth over its block of pixels: the
+        # points of an organized frame are where their pixels are.
+        h, w = int(np.ceil(H / CELL_PX)), int(np.ceil(W / CELL_PX))
+        z = np.full((h * CELL_PX, w * CELL_PX), np.inf, np.float32)
+        z[:H, :W] = np.where(valid, xyz[:, 2], np.inf).reshape(H, W)
+        return DepthView(z.reshape(h, CELL_PX, w, CELL_PX).min(axis=(1, 3)), cell)
+    pts = xyz[valid].astype(np.float64)
     f = float(np.median(pts[:, 2])) / max(voxel_m, 1e-4)
     x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
     lo_x, lo_y = float(x.min()), float(y.min())

@@ -1,0 +1,237 @@
+"""Bin-clearing benchmark: bins of a part settled by the physics mode, emptied one pick at a time
+through the real scene path, every pick checked against the simulator's true state.
+
+Per bin: 10-20 parts dropped and settled (pybullet). Then, until the bin is empty or 3 picks in a
+row failed: render what the camera sees (the project's camera, full resolution, sensor noise),
+write it as a Zivid SDK 1.x file, read it back and run import, segmentation (when the part has a
+trained network), registration and picks in process; take the first pick and check it:
+- it touches a real part: suction: the cup's contact within TOUCH_M of a true part's surface,
+  its approach within TOUCH_DEG of that surface's inward normal; jaws: both contacts within
+  TOUCH_M of the same true part's surface;
+- its path is free: the gripper swept along the approach reaches no deeper than PENETRATION_M
+  into the true meshes of the other parts or the bin (nor deeper than TOUCH_M into its target).
+A good pick removes that part and the rest settle again; a failed one is counted and the bin is
+captured again (new sensor noise). Keys per part: pick_success_rate (good picks / attempts),
+clearance_rate (parts removed / parts settled in the bins), wrong_part_picks (picks that touch no
+part), collisions (picks on a part whose path hits something), cycle_s_median (reading the
+capture file to the ordered picks, on this machine), n_bins, n_attempts.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from binpick.bench import machine
+from binpick.bench.clutter import scaled_settings
+from binpick.errors import BinpickError
+from binpick.generation.bin import bin_meshes
+from binpick.generation.physics import SettleSettings, settle
+from binpick.generation.placement import place_objects
+from binpick.generation.scene import render_scene, settle_in_bin
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
+from binpick.gripper import gripper_primitives, signed_distance, swept
+from binpick.io.capture import ImportOptions, load_capture
+from binpick.io.part_model import PartModel
+from binpick.io.zdf import save_zdf_v1
+from binpick.params import Params
+from binpick.registration.model import train_ppf
+from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.seeding import derive_seed
+from binpick.view import ViewParams
+
+log = logging.getLogger(__name__)
+
+DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe")
+TOUCH_M = 0.002
+TOUCH_DEG = 10.0
+PENETRATION_M = 0.0005
+MAX_FAILURES_IN_A_ROW = 3
+BIN_SAMPLE_SPACING_M = 0.002
+
+
+@dataclass
+class Tally:
+    attempts: int = 0
+    good: int = 0
+    wrong_part: int = 0
+    collisions: int = 0
+    no_pick: int = 0
+    settled: int = 0
+    removed: int = 0
+    lost: int = 0
+
+    def add(self, other: Tally) -> None:
+        for k in vars(self):
+            setattr(self, k, getattr(self, k) + getattr(other, k))
+
+
+def picking_settings(settings: Params, part: PartModel) -> Params:
+    """The clutter benchmark's bin, camera and grids for the part's size, without distractors
+    or tilt (a plain bin of one part), the physics mode, and room for 20 parts."""
+    p = scaled_settings(settings, part)
+    g = p.generate
+    generate = g.model_copy(update={
+        "clutter": g.clutter.off(),
+        "placement": g.placement.model_copy(update={"mode": "physics", "max_pile_height_m": max(g.placement.max_pile_height_m, 0.6 * part.diameter_m)}),
+    })
+    return p.model_copy(update={"generate": generate, "camera": p.camera.model_copy(update={"downscale": 1})})
+
+
+def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, query: trimesh.proximity.ProximityQuery, mesh: trimesh.Trimesh) -> int | None:
+    """Index of the true object the pick touches as a grasp should, or None."""
+    T = pick.T_cam_from_grasp
+    if kind == "suction":
+        contacts = T[:3, 3][None]
+    else:
+        half = T[:3, 0] * pick.width_m / 2.0
+        contacts = np.stack([T[:3, 3] - half, T[:3, 3] + half])
+    best = None
+    for k, T_obj in enumerate(T_cam_from_objects):
+        local = transform_points(invert_T(T_obj), contacts)
+        closest, dist, tri = query.on_surface(local)
+        if np.any(dist > TOUCH_M):
+            continue
+        if kind == "suction":
+            inward = -(T_obj[:3, :3] @ mesh.face_normals[tri[0]])
+            if np.degrees(np.arccos(np.clip(inward @ T[:3, 2], -1, 1))) > TOUCH_DEG:
+                continue
+        if best is None or dist.max() < best[1]:
+            best = (k, float(dist.max()))
+    return None if best is None else best[0]
+
+
+def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects: np.ndarray, part: PartModel, bin_points_cam: np.ndarray) -> bool:
+    """True when the swept gripper enters the true meshes of the others or the bin (or its target too deep)."""
+    body = swept(gripper_primitives(params.pick, kind, pick.width_m), max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m))
+    to_tool = invert_T(pick.T_cam_from_grasp)
+    if len(bin_points_cam) and signed_distance(transform_points(to_tool, bin_points_cam), body).min() < -PENETRATION_M:
+        return True
+    for k, T_obj in enumerate(T_cam_from_objects):
+        depth = signed_distance(transform_points(to_tool @ T_obj, part.points_m), body).min()
+        if depth < (-TOUCH_M if k == target else -PENETRATION_M):
+            return True
+    return False
+
+
+def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_parts: int, seed: np.random.SeedSequence, folder: Path,
+               cycles: list[float]) -> Tally:
+    rng = np.random.default_rng(seed)
+    g = p.generate
+    placed = place_objects(part.points_m, n_parts, g.bin, g.placement, rng)
+    T_bin = settle_in_bin(part, placed.T_bin_from_model, g, rng)
+    tally = Tally(settled=len(T_bin))
+    query = trimesh.proximity.ProximityQuery(mesh := trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False))
+    boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
+    bin_points = np.concatenate([trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0] for m in bin_meshes(g.bin)])
+    half = (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0)
+    view = ViewParams.of_import(p.import_capture)
+    failures = 0
+    capture = folder / "capture.zdf"
+    while len(T_bin) and failures < MAX_FAILURES_IN_A_ROW:
+        scene = render_scene(part, T_bin, g, p.camera, view, rng)
+        H, W = scene.labels.shape
+        save_zdf_v1(capture, scene.xyz_m * 1000.0)
+        t0 = time.perf_counter()
+        frame = load_capture(capture, ImportOptions("mm"))
+        try:
+            result = process(frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of(0, f"picking-{tally.attempts}"))
+            plan = result.picks
+        except BinpickError as exc:
+            log.warning("%s: the scene path refused the capture: %s", part.name, exc)
+            plan = None
+        cycles.append(time.perf_counter() - t0)
+        tally.attempts += 1
+        T_cam = scene.T_cam_from_model
+        if plan is None or not plan.picks:
+            tally.no_pick += 1
+            failures += 1
+            continue
+        first = plan.picks[0]
+        target = _true_touch(first, kind, T_cam, query, mesh)
+        if target is None:
+            tally.wrong_part += 1
+            failures += 1
+            continue
+        if _path_hits(first, kind, p, target, T_cam, part, transform_points(scene.T_cam_from_bin, bin_points)):
+            tally.collisions += 1
+            failures += 1
+            continue
+        tally.good += 1
+        tally.removed += 1
+        failures = 0
+        rest = np.delete(T_bin, target, axis=0)
+        if len(rest):
+            rest, inside = settle(part.mesh_vertices_m, part.mesh_faces, rest, boxes, SettleSettings(max_time_s=g.placement.settle_max_s, drop_gap_m=0.0), half)
+            tally.lost += int((~inside).sum())
+            rest = rest[inside]
+        T_bin = rest
+    return tally
+
+
+def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_per_bin: tuple[int, int], checkpoints: dict[str, Path],
+                  gripper: str | None = None, seed: int = 0) -> dict[str, object]:
+    """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
+    without one are registered over the whole scene); gripper: overrides pick.gripper."""
+    from binpick.bench.parts import bench_parts
+
+    parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
+    kind = gripper or settings.pick.gripper
+    per_part: dict[str, dict[str, float]] = {}
+    out: dict[str, object] = {"machine": machine(), "gripper": kind, "parts_per_bin": list(parts_per_bin),
+                              "touch_m": TOUCH_M, "touch_deg": TOUCH_DEG, "penetration_m": PENETRATION_M, "parts": per_part}
+    total = Tally()
+    all_cycles: list[float] = []
+    for part in parts:
+        p = picking_settings(settings, part)
+        p = p.model_copy(update={"pick": p.pick.model_copy(update={"gripper": kind})})
+        ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
+        segmenter = None
+        if part.name in checkpoints and checkpoints[part.name].is_file():
+            from binpick.network.infer import load_segmenter
+
+            segmenter = load_segmenter(checkpoints[part.name], p.segment)
+        mode = p.registration.mode if segmenter is not None else "whole_scene"
+        grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
+        models = PartModels(part, ppf, segmenter, p.import_capture,
+                            with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None),
+                            grasps, p.pick)
+        tally = Tally()
+        cycles: list[float] = []
+        with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
+            for b in range(n_bins):
+                bin_seed = derive_seed(seed, "bench-picking", part.name, b)
+                n = int(np.random.default_rng(bin_seed).integers(parts_per_bin[0], parts_per_bin[1] + 1))
+                one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles)
+                log.info("%s bin %d: %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
+                         part.name, b, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
+                tally.add(one)
+        per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if segmenter is not None else 0.0,
+                                   "diameter_mm": 1000.0 * part.diameter_m}
+        total.add(tally)
+        all_cycles += cycles
+    out.update(_keys(total, all_cycles, n_bins * len(parts)))
+    return out
+
+
+def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:
+    return {
+        "pick_success_rate": t.good / t.attempts if t.attempts else 0.0,
+        "clearance_rate": t.removed / t.settled if t.settled else 0.0,
+        "wrong_part_picks": float(t.wrong_part),
+        "collisions": float(t.collisions),
+        "cycle_s_median": float(np.median(cycles)) if cycles else 0.0,
+        "n_bins": float(n_bins),
+        "n_attempts": float(t.attempts),
+        "attempts_without_a_pick": float(t.no_pick),
+        "parts_settled": float(t.settled),
+        "parts_lost_by_physics": float(t.lost),
+    }

@@ -1,0 +1,202 @@
+"""Grasps generated from a part's CAD model, in its model frame (metres), for a suction cup and a
+parallel-jaw gripper, and their expansion by the part's symmetry.
+
+Suction: a surface point is a grasp when the cup's lip finds a seal there: the dense surface
+sample within the cup's radius lies within max_deviation_m of the tangent plane, its normals
+within max_normal_deg of the point's normal, and it covers the lip all around (no edge or hole
+under the cup); the approach is the inward normal, and the cup and tool, coming along it, meet no
+other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
+its inward normal leaves it at the opposite contact, whose normal must lie within friction_deg of
+the line between them; the width must fit the opening; approach directions around the closing
+axis are kept where fingers, palm and tool clear the part. Both rank grasps by the distance of the
+TCP from the centre of mass (nearest first: the least torque on a held part), keeping grasps at
+least a spacing apart so the few kept cover the part.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
+
+from binpick.gripper import gripper_primitives, signed_distance, swept
+from binpick.io.grasps import GraspSet, tool_frame
+from binpick.io.part_model import PartModel
+from binpick.params import PickParams
+
+log = logging.getLogger(__name__)
+
+# Sectors around the cup's lip that must each hold surface points (no edge under the cup).
+LIP_SECTORS = 8
+# Candidate surface points tried: about this many, spread over the part.
+N_CANDIDATES = 1500
+# The part's own surface points checked against the gripper (every k-th of the dense sample).
+SELF_CHECK_POINTS = 6000
+# Approach directions tried around a jaw grasp's closing axis.
+JAW_APPROACHES = 8
+# Symmetric duplicates: grasps this close (TCP, metres; axes, degrees) are one.
+SAME_POSITION_M = 0.001
+SAME_AXIS_DEG = 5.0
+# A revolution symmetry expands grasps by this many rotations.
+REVOLUTION_GRASP_STEPS = 24
+
+
+def centre_of_mass(part: PartModel) -> np.ndarray:
+    """(3,) model frame: the solid's centre of mass when the mesh is closed, else the surface's."""
+    mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
+    if part.watertight and mesh.volume > 0:
+        return np.asarray(mesh.center_mass, dtype=np.float64)
+    return np.asarray(part.points_m, dtype=np.float64).mean(axis=0)
+
+
+def _candidates(points: np.ndarray, n: int) -> np.ndarray:
+    """Indices of about n points spread evenly over the sample (every k-th of a voxel-sorted order)."""
+    step = max(1, len(points) // n)
+    return np.arange(0, len(points), step)
+
+
+def _spread(order: np.ndarray, positions: np.ndarray, spacing_m: float, limit: int) -> list[int]:
+    """Greedy: walk `order` best first, keep a position at least spacing_m from every kept one."""
+    kept: list[int] = []
+    for i in order:
+        if len(kept) >= limit:
+            break
+        if not kept or np.min(np.linalg.norm(positions[kept] - positions[i], axis=1)) >= spacing_m:
+            kept.append(int(i))
+    return kept
+
+
+def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
+    """Suction grasps on patches flat enough for the cup, best first (params.max_grasps at most)."""
+    s = params.suction
+    pts = np.asarray(part.points_m, dtype=np.float64)
+    nrm = np.asarray(part.normals, dtype=np.float64)
+    tree = cKDTree(pts)
+    cos_max = np.cos(np.radians(s.max_normal_deg))
+    body = swept(gripper_primitives(params, "suction"), params.pregrasp_distance_m)
+    com = centre_of_mass(part)
+    good: list[int] = []
+    for i in _candidates(pts, N_CANDIDATES):
+        c, n = pts[i], nrm[i]
+        near = np.asarray(tree.query_ball_point(c, s.cup_radius_m))
+        # The patch under the cup is the surface facing it: a thin wall's far side is not.
+        near = near[nrm[near] @ n > 0.0] if len(near) else near
+        if len(near) < 3 * LIP_SECTORS:
+            continue
+        q, qn = pts[near] - c, nrm[near]
+        if np.max(np.abs(q @ n)) > s.max_deviation_m or np.min(qn @ n) < cos_max:
+            continue
+        # The lip all around: points in every sector of the outer ring of the disc.
+        across = q - np.outer(q @ n, n)
+        r = np.linalg.norm(across, axis=1)
+        ring = r > 0.6 * s.cup_radius_m
+        if ring.sum() < LIP_SECTORS:
+            continue
+        u = across[ring] / r[ring, None]
+        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        sector = ((np.arctan2(u @ e2, u @ e1) + np.pi) / (2 * np.pi) * LIP_SECTORS).astype(int) % LIP_SECTORS
+        if len(np.unique(sector)) < LIP_SECTORS:
+            continue
+        # Cup and tool coming along the inward normal meet no other part of the part: points
+        # behind the contact plane (toward the gripper) inside the swept volume.
+        T = tool_frame(c, -n)
+        local = (pts - c) @ T[:3, :3]
+        behind = local[:, 2] < -s.max_deviation_m
+        if behind.any() and np.min(signed_distance(local[behind], body)) < 0.0:
+            continue
+        good.append(int(i))
+    if not good:
+        return GraspSet.empty("suction")
+    good_arr = np.array(good)
+    order = good_arr[np.argsort(np.linalg.norm(pts[good_arr] - com, axis=1), kind="stable")]
+    kept = _spread(order, pts, s.cup_radius_m, params.max_grasps)
+    Ts = np.array([tool_frame(pts[i], -nrm[i]) for i in kept])
+    return GraspSet("suction", [f"s{k}" for k in range(len(kept))], Ts, np.zeros(len(kept)))
+
+
+def jaw_grasps(part: PartModel, params: PickParams) -> GraspSet:
+    """Antipodal parallel-jaw grasps within the opening range, best first (params.max_grasps at most)."""
+    j = params.jaw
+    mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
+    pts = np.asarray(part.points_m, dtype=np.float64)
+    nrm = np.asarray(part.normals, dtype=np.float64)
+    solid = pts[_candidates(pts, SELF_CHECK_POINTS)]
+    idx = _candidates(pts, N_CANDIDATES)
+    origins = pts[idx] - 1e-6 * nrm[idx]
+    # Every surface the ray crosses: across a hollow part (a pipe) the far contact is on the
+    # outside again, past the bore.
+    hits, rays, tris = mesh.ray.intersects_location(origins, -nrm[idx], multiple_hits=True)
+    cos_f = np.cos(np.radians(j.friction_deg))
+    face_normals = mesh.face_normals
+    pairs: list[tuple[np.ndarray, np.ndarray]] = []
+    for hit, ray, tri in zip(hits, rays, tris, strict=True):
+        p, n = pts[idx[ray]], nrm[idx[ray]]
+        width = float(np.linalg.norm(hit - p))
+        # The opening must close on it (at least opening_min_m) and open past it; the far
+        # contact faces away from the near one, within the friction cone.
+        if not max(j.opening_min_m, 1e-4) <= width < j.opening_max_m or float(face_normals[tri] @ n) > -cos_f:
+            continue
+        pairs.append((p, hit))
+    if not pairs:
+        return GraspSet.empty("jaw")
+    centres = np.array([(a + b) / 2.0 for a, b in pairs])
+    com = centre_of_mass(part)
+    order = np.argsort(np.linalg.norm(centres - com, axis=1), kind="stable")
+    spacing = max(0.05 * part.diameter_m, 0.002)
+    Ts: list[np.ndarray] = []
+    widths: list[float] = []
+    for i in _spread(order, centres, spacing, 4 * params.max_grasps):
+        a, b = pairs[i]
+        closing = (b - a) / np.linalg.norm(b - a)
+        width = float(np.linalg.norm(b - a))
+        body = swept(gripper_primitives(params, "jaw", width), params.pregrasp_distance_m)
+        helper = np.array([1.0, 0.0, 0.0]) if abs(closing[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        u = np.cross(closing, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(closing, u)
+        for k in range(JAW_APPROACHES):
+            angle = 2 * np.pi * k / JAW_APPROACHES
+            T = tool_frame(centres[i], np.cos(angle) * u + np.sin(angle) * v, closing)
+            local = (solid - centres[i]) @ T[:3, :3]
+            if np.min(signed_distance(local, body)) < 0.0:
+                continue
+            Ts.append(T)
+            widths.append(width)
+        if len(Ts) >= params.max_grasps:
+            break
+    Ts, widths = Ts[: params.max_grasps], widths[: params.max_grasps]
+    if not Ts:
+        return GraspSet.empty("jaw")
+    return GraspSet("jaw", [f"j{k}" for k in range(len(Ts))], np.array(Ts), np.array(widths))
+
+
+def generate_grasps(part: PartModel, params: PickParams) -> dict[str, GraspSet]:
+    """Both kinds, generated from the part model."""
+    return {"suction": suction_grasps(part, params), "jaw": jaw_grasps(part, params)}
+
+
+def expand_by_symmetry(grasps: GraspSet, symmetries: np.ndarray) -> GraspSet:
+    """Each grasp under every symmetry transform S (m, 4, 4), model frame (S @ T_model_from_tool),
+    near-duplicates dropped; the original order first, then the images of each grasp in turn.
+    Ids of images are '<id>@<k>' for the k-th transform."""
+    if len(grasps) == 0 or len(symmetries) <= 1:
+        return grasps
+    ids, Ts, widths = list(grasps.ids), list(grasps.T_model_from_tool), list(grasps.width_m)
+    cos_same = np.cos(np.radians(SAME_AXIS_DEG))
+    for gid, T, w in zip(grasps.ids, grasps.T_model_from_tool, grasps.width_m, strict=True):
+        for k, S in enumerate(symmetries[1:], start=1):
+            image = S @ T
+            stack = np.array(Ts)
+            same = (np.linalg.norm(stack[:, :3, 3] - image[:3, 3], axis=1) < SAME_POSITION_M) & (stack[:, :3, 2] @ image[:3, 2] > cos_same)
+            if grasps.kind == "jaw":  # a jaw grasp and its image with the fingers swapped are one grasp
+                same &= np.abs(stack[:, :3, 0] @ image[:3, 0]) > cos_same
+            if same.any():
+                continue
+            ids.append(f"{gid}@{k}")
+            Ts.append(image)
+            widths.append(w)
+    return GraspSet(grasps.kind, ids, np.array(Ts), np.array(widths))

@@ -1,0 +1,153 @@
+"""Gripper geometry: the tool as boxes and cylinders in its own frame, the volume it sweeps along
+its approach, and signed distances of obstacle points to it.
+
+The tool frame (every grasp and pick pose is a T_..._from_tool):
+- origin: the tool centre point (TCP). Suction: the centre of the cup's lip, where it touches the
+  part. Jaws: midway between the two finger pads' centres, where the part's contacts lie.
+- z: the approach direction, from the gripper toward the part (a suction cup's axis, pointing
+  into the surface).
+- x: the jaws' closing axis (for a suction cup any axis across z); y = z cross x.
+Everything the gripper is made of lies at z <= its fingertips, behind the TCP or around it.
+Lengths in metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from binpick.params import JawParams, PickParams, SuctionParams
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned in the tool frame: lo (3,), hi (3,) corners."""
+
+    lo: np.ndarray
+    hi: np.ndarray
+
+    def extended_back(self, back_m: float) -> Box:
+        lo = self.lo.copy()
+        lo[2] -= back_m
+        return Box(lo, self.hi)
+
+
+@dataclass(frozen=True)
+class Cylinder:
+    """Along the tool's z axis: radius, from z0 to z1 (z0 < z1)."""
+
+    radius: float
+    z0: float
+    z1: float
+
+    def extended_back(self, back_m: float) -> Cylinder:
+        return Cylinder(self.radius, self.z0 - back_m, self.z1)
+
+
+Primitive = Box | Cylinder
+
+
+def suction_primitives(s: SuctionParams) -> list[Primitive]:
+    """The cup (lip at z = 0) and the tool behind it."""
+    return [Cylinder(s.cup_radius_m, -s.cup_length_m, 0.0), Cylinder(s.tool_radius_m, -s.cup_length_m - s.tool_length_m, -s.cup_length_m)]
+
+
+def jaw_opening_m(j: JawParams, width_m: float) -> float:
+    """How far the fingers open to approach a grasp of this width."""
+    return float(min(j.opening_max_m, width_m + 2.0 * j.open_margin_m))
+
+
+def jaw_primitives(j: JawParams, opening_m: float) -> list[Primitive]:
+    """Two fingers with their inner faces opening_m apart, the palm behind them, the tool behind that."""
+    half_l, half_w = j.finger_length_m / 2.0, j.finger_width_m / 2.0
+    inner = opening_m / 2.0
+    outer = j.opening_max_m / 2.0 + j.finger_thickness_m
+    palm_top = -half_l - j.palm_depth_m
+    return [
+        Box(np.array([inner, -half_w, -half_l]), np.array([inner + j.finger_thickness_m, half_w, half_l])),
+        Box(np.array([-inner - j.finger_thickness_m, -half_w, -half_l]), np.array([-inner, half_w, half_l])),
+        Box(np.array([-outer, -j.palm_width_m / 2.0, palm_top]), np.array([outer, j.palm_width_m / 2.0, -half_l])),
+        Cylinder(j.tool_radius_m, palm_top - j.tool_length_m, palm_top),
+    ]
+
+
+def gripper_primitives(params: PickParams, kind: str, width_m: float = 0.0) -> list[Primitive]:
+    """The gripper of `kind` ('suction' or 'jaw', opened for a grasp of width_m) at its grasp pose."""
+    if kind == "suction":
+        return suction_primitives(params.suction)
+    return jaw_primitives(params.jaw, jaw_opening_m(params.jaw, width_m))
+
+
+def swept(primitives: list[Primitive], back_m: float) -> list[Primitive]:
+    """The volume the primitives sweep moving straight along z from back_m behind to where they are."""
+    return [p.extended_back(back_m) for p in primitives]
+
+
+def signed_distance(points_tool: np.ndarray, primitives: list[Primitive]) -> np.ndarray:
+    """(n,) signed distance of points (n, 3), tool frame, to the union of the primitives:
+    negative inside, metres."""
+    p = np.asarray(points_tool, dtype=np.float64)
+    best = np.full(len(p), np.inf)
+    for prim in primitives:
+        if isinstance(prim, Box):
+            centre, half = (prim.lo + prim.hi) / 2.0, (prim.hi - prim.lo) / 2.0
+            q = np.abs(p - centre) - half
+        else:
+            zc, hz = (prim.z0 + prim.z1) / 2.0, (prim.z1 - prim.z0) / 2.0
+            q = np.column_stack([np.hypot(p[:, 0], p[:, 1]) - prim.radius, np.abs(p[:, 2] - zc) - hz])
+        outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+        inside = np.minimum(q.max(axis=1), 0.0)
+        best = np.minimum(best, outside + inside)
+    return best
+
+
+def bounding_sphere(primitives: list[Primitive]) -> tuple[np.ndarray, float]:
+    """Centre (3,) in the tool frame and radius of a sphere holding every primitive."""
+    corners = []
+    for prim in primitives:
+        if isinstance(prim, Box):
+            corners += [prim.lo, prim.hi]
+        else:
+            corners += [np.array([-prim.radius, -prim.radius, prim.z0]), np.array([prim.radius, prim.radius, prim.z1])]
+    c = np.array(corners)
+    lo, hi = c.min(axis=0), c.max(axis=0)
+    return (lo + hi) / 2.0, float(np.linalg.norm(hi - lo) / 2.0)
+
+
+def lowest_height(primitives: list[Primitive], T_frame_from_tool: np.ndarray, plane: np.ndarray) -> float:
+    """The least signed height n . x + d of the primitives (placed by T_frame_from_tool) above a
+    plane (a, b, c, d) with unit normal n: negative where they reach below it."""
+    n, d = np.asarray(plane[:3], dtype=np.float64), float(plane[3])
+    R, t = T_frame_from_tool[:3, :3], T_frame_from_tool[:3, 3]
+    n_tool = R.T @ n  # the plane normal in the tool frame
+    base = float(n @ t + d)
+    low = np.inf
+    for prim in primitives:
+        if isinstance(prim, Box):
+            # The lowest corner: per axis, the end the normal points away from.
+            corner = np.where(n_tool > 0, prim.lo, prim.hi)
+            low = min(low, base + float(n_tool @ corner))
+        else:
+            across = float(np.hypot(n_tool[0], n_tool[1]))
+            low = min(low, base + min(n_tool[2] * prim.z0, n_tool[2] * prim.z1) - prim.radius * across)
+    return low
+
+
+def surface_samples(primitives: list[Primitive], spacing_m: float) -> np.ndarray:
+    """(m, 3) points on the primitives' surfaces about spacing_m apart, tool frame (for drawing)."""
+    out = []
+    for prim in primitives:
+        if isinstance(prim, Box):
+            axes = [np.linspace(lo, hi, max(2, int(np.ceil((hi - lo) / spacing_m)) + 1)) for lo, hi in zip(prim.lo, prim.hi, strict=True)]
+            g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+            on_face = np.any(np.isclose(g, prim.lo) | np.isclose(g, prim.hi), axis=1)
+            out.append(g[on_face])
+        else:
+            n_around = max(8, int(np.ceil(2 * np.pi * prim.radius / spacing_m)))
+            n_along = max(2, int(np.ceil((prim.z1 - prim.z0) / spacing_m)) + 1)
+            a = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+            z = np.linspace(prim.z0, prim.z1, n_along)
+            A, Z = np.meshgrid(a, z, indexing="ij")
+            out.append(np.column_stack([prim.radius * np.cos(A).ravel(), prim.radius * np.sin(A).ravel(), Z.ravel()]))
+    return np.concatenate(out) if out else np.zeros((0, 3))

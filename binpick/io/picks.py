@@ -1,0 +1,62 @@
+"""Pick lists (`picks.json`): the ordered picks of one capture, in the camera frame and the robot's
+base frame, and why the other parts have none. Spec: data/README.md#picks."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from binpick.errors import InputError
+from binpick.io.atomic import write_text
+from binpick.picking import PickPlan
+
+FORMAT = "binpick-picks"
+VERSION = 1
+
+
+def _T(T: np.ndarray) -> list[list[float]]:
+    return np.asarray(T, dtype=float).round(9).tolist()
+
+
+def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None) -> dict:
+    """The picks.json content (the service answers with the same)."""
+    T_base = np.eye(4) if T_base_from_cam is None else np.asarray(T_base_from_cam, dtype=float)
+
+    def poses(p) -> dict:
+        cam = {"pregrasp": p.T_cam_from_pregrasp, "grasp": p.T_cam_from_grasp, "postgrasp": p.T_cam_from_postgrasp}
+        return {"camera": {k: _T(v) for k, v in cam.items()}, "base": {k: _T(T_base @ v) for k, v in cam.items()}}
+
+    return {
+        "format": FORMAT, "version": VERSION, "capture": capture, "part": part, "gripper": gripper, "unit": "m",
+        "tool_frame": "origin at the tool centre point, z the approach, x the jaws' closing axis (binpick/gripper.py)",
+        "calibrated": T_base_from_cam is not None,
+        "T_base_from_cam": _T(T_base),
+        "up_cam": [round(float(x), 9) for x in plan.up_cam],
+        "picks": [
+            {"rank": k, "pose_index": p.pose_index, "grasp_id": p.grasp_id, "score": round(p.score, 6), "clearance_m": round(p.clearance_m, 6),
+             "height_m": round(p.height_m, 6), **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}), **poses(p)}
+            for k, p in enumerate(plan.picks)
+        ],
+        "unpicked": [{"pose_index": i, "reason": reason} for i, reason in plan.unpicked],
+        "counts": plan.counts(),
+    }
+
+
+def save_picks(path: str | Path, capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None) -> None:
+    write_text(path, json.dumps(picks_document(capture, part, gripper, plan, T_base_from_cam), indent=1) + "\n")
+
+
+def load_picks(path: str | Path) -> dict:
+    """The document as written (checked to be a pick list)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "pick list not found (run the pick stage first)")
+    try:
+        doc = json.loads(path.read_text())
+    except ValueError as exc:
+        raise InputError(path, f"not a JSON pick list ({exc})") from None
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("picks"), list):
+        raise InputError(path, f"not a binpick pick list (expected \"format\": \"{FORMAT}\")")
+    return doc

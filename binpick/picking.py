@@ -1,0 +1,268 @@
+"""Picks: for every detected part, a grasp the gripper can reach without hitting anything, and the
+order to take them in. Camera frame, metres; poses are T_cam_from_model, grasps T_model_from_tool
+(binpick/gripper.py has the tool frame).
+
+A grasp on a detected part is kept when
+- its approach lies within approach_cone_deg of straight down the bin's up axis (the support
+  plane's normal toward the camera; the camera's -z when there is none), and
+- the gripper, swept along its approach from the pre-grasp pose to the grasp and back to the
+  post-grasp pose, stays clearance_m away from: the captured points (everything the camera
+  measured, floor and walls included, except the target's own points: those within own_points_m
+  of its posed model), the bin (the support plane, and the given box's walls and floor when
+  the bin is given in params), and the other detected parts at their estimated poses (their
+  whole model surface, the sides the camera did not see included).
+A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
+max_candidates_per_part). Parts with a pick are ordered by the keys in `order`: `height` (of the
+part's centre above the support plane, in steps of height_tolerance_m, highest first), `score`
+(the pose's, highest first), `clearance` (of the swept gripper, largest first).
+A part without a pick says why: every grasp outside the approach cone, or what the grasps hit.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.geometry.transforms import invert_T, transform_points
+from binpick.gripper import bounding_sphere, gripper_primitives, lowest_height, signed_distance, swept
+from binpick.io.grasps import GraspSet
+from binpick.params import PickParams
+
+# Clearance is measured up to this far (a gripper in free space reports this).
+CLEARANCE_CAP_M = 0.05
+# Obstacle points are thinned to a grid of this share of the clearance (at least 1 mm): closer
+# points add nothing a gripper of millimetres could slip between.
+OBSTACLE_GRID_M = 0.001
+# Surface points of each detected part used as its obstacle.
+PART_OBSTACLE_POINTS = 1500
+# Obstacle sources in reasons and counts.
+CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
+
+
+@dataclass(frozen=True)
+class BinBoxObstacle:
+    """A bin given as a box: T_cam_from_bin (4, 4), z up from its floor; inner_min_m / inner_max_m
+    (3,) its inner corners in that frame. Its floor and four walls (up to inner_max_m z) are obstacles."""
+
+    T_cam_from_bin: np.ndarray
+    inner_min_m: np.ndarray
+    inner_max_m: np.ndarray
+
+    def surface_points(self, spacing_m: float) -> np.ndarray:
+        """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
+        lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
+        axes = [np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1)) for a, b in zip(lo, hi, strict=True)]
+        faces = []
+        for fixed in range(3):
+            others = [k for k in range(3) if k != fixed]
+            A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
+            for value in ((lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed])):  # no lid
+                f = np.empty((A.size, 3))
+                f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
+                faces.append(f)
+        return transform_points(self.T_cam_from_bin, np.concatenate(faces))
+
+
+@dataclass(frozen=True)
+class Pick:
+    """pose_index: the part (its index in the poses); T_cam_from_tool at pre-grasp, grasp and
+    post-grasp; clearance_m of the swept gripper (capped at CLEARANCE_CAP_M); height_m of the
+    part's centre above the support plane."""
+
+    pose_index: int
+    grasp_id: str
+    grasp_index: int
+    width_m: float
+    T_cam_from_pregrasp: np.ndarray
+    T_cam_from_grasp: np.ndarray
+    T_cam_from_postgrasp: np.ndarray
+    score: float
+    clearance_m: float
+    height_m: float
+
+
+@dataclass(frozen=True)
+class Rejected:
+    """A grasp tried and refused: its tool pose at the grasp and what it hit (or 'approach')."""
+
+    pose_index: int
+    grasp_id: str
+    T_cam_from_grasp: np.ndarray
+    reason: str
+
+
+@dataclass(frozen=True)
+class PickPlan:
+    """picks in the order to take them; unpicked: (pose_index, reason) of parts without a pick;
+    rejected: the grasps tried and refused; up_cam (3,) the bin's up axis."""
+
+    picks: list[Pick]
+    unpicked: list[tuple[int, str]]
+    rejected: list[Rejected]
+    up_cam: np.ndarray
+    n_candidates: int
+
+    def counts(self) -> dict[str, float]:
+        return {"n_parts": float(len(self.picks) + len(self.unpicked)), "n_picks": float(len(self.picks)),
+                "n_unpicked": float(len(self.unpicked)), "n_grasps_tried": float(self.n_candidates), "n_grasps_rejected": float(len(self.rejected))}
+
+
+def thin(points: np.ndarray, grid_m: float) -> np.ndarray:
+    """One point per occupied cell of a grid, (m, 3)."""
+    if len(points) == 0:
+        return points.reshape(0, 3)
+    return points[voxel_downsample_indices(points, grid_m)]
+
+
+def support_frame(floor_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    """up (3,) unit, camera frame, and the plane (4,) with that normal (None when there is no plane)."""
+    plane = np.asarray(floor_plane, dtype=np.float64)
+    if plane.shape == (4,) and np.all(np.isfinite(plane)):
+        n = plane[:3] / np.linalg.norm(plane[:3])
+        d = plane[3] / np.linalg.norm(plane[:3])
+        if d < 0:  # the normal toward the camera (origin): n . 0 + d > 0
+            n, d = -n, -d
+        return n, np.append(n, d)
+    return np.array([0.0, 0.0, -1.0]), None
+
+
+def plan_picks(
+    T_cam_from_model: np.ndarray,
+    scores: np.ndarray,
+    grasps: GraspSet,
+    part_points_m: np.ndarray,
+    centre_m: np.ndarray,
+    captured_m: np.ndarray,
+    floor_plane: np.ndarray,
+    params: PickParams,
+    bin_box: BinBoxObstacle | None = None,
+) -> PickPlan:
+    """Picks for the detected parts.
+
+    T_cam_from_model : (p, 4, 4) detected parts' poses; scores (p,)
+    grasps           : the part's grasps of the configured gripper, model frame, best first
+    part_points_m    : (m, 3) the part's surface sample, model frame; centre_m (3,) model frame
+    captured_m       : (n, 3) everything the camera measured, camera frame
+    floor_plane      : (4,) the support plane (NaN: none)
+    """
+    T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
+    n_parts = len(T_cam_from_model)
+    up, plane = support_frame(floor_plane)
+    cos_cone = np.cos(np.radians(params.approach_cone_deg))
+    back = max(params.pregrasp_distance_m, params.retreat_distance_m)
+    grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
+
+    step = max(1, len(part_points_m) // PART_OBSTACLE_POINTS)
+    model_sample = np.asarray(part_points_m, dtype=np.float64)[::step]
+    posed = [transform_points(T, model_sample) for T in T_cam_from_model]
+    captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
+    # Obstacle points with their source: -1 captured, -2 the given bin, k >= 0 detected part k.
+    chunks = [captured] + ([bin_box.surface_points(grid * 2)] if bin_box is not None else []) + posed
+    sources = [np.full(len(captured), -1)] + ([np.full(len(chunks[1]), -2)] if bin_box is not None else []) + [np.full(len(p), k) for k, p in enumerate(posed)]
+    obstacles = np.concatenate(chunks) if chunks else np.zeros((0, 3))
+    source = np.concatenate(sources) if sources else np.zeros(0, int)
+    tree = cKDTree(obstacles) if len(obstacles) else None
+    captured_tree = cKDTree(captured) if len(captured) else None
+    reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + params.own_points_m if len(model_sample) else 0.0
+
+    centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
+    heights = centres @ up + (plane[3] if plane is not None else 0.0)
+
+    picks: list[Pick] = []
+    unpicked: list[tuple[int, str]] = []
+    rejected: list[Rejected] = []
+    n_tried = 0
+    for i in range(n_parts):
+        T = T_cam_from_model[i]
+        # The target's own captured points: near its posed model surface (obstacle rows
+        # 0..len(captured) are the captured points).
+        own = np.zeros(len(obstacles), bool)
+        if captured_tree is not None:
+            near = np.asarray(captured_tree.query_ball_point(centres[i], reach), dtype=np.int64)
+            if len(near):
+                d, _ = cKDTree(posed[i]).query(captured[near], distance_upper_bound=params.own_points_m)
+                own[near[np.isfinite(d)]] = True
+        tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
+        in_cone = (tools[:, :3, 2] @ -up) >= cos_cone - 1e-12 if len(tools) else np.zeros(0, bool)
+        causes: Counter[str] = Counter()
+        n_out = int((~in_cone).sum())
+        found: Pick | None = None
+        for g in np.flatnonzero(in_cone)[: params.max_candidates_per_part]:
+            n_tried += 1
+            T_tool = tools[g]
+            body = swept(gripper_primitives(params, grasps.kind, float(grasps.width_m[g])), back)
+            hit, clearance = _collisions(body, T_tool, tree, obstacles, source, i, own, plane, params.clearance_m)
+            if hit:
+                causes.update(hit)
+                rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(hit))))
+                continue
+            approach = T_tool[:3, 2]
+            found = Pick(
+                i, grasps.ids[g], int(g), float(grasps.width_m[g]),
+                _moved(T_tool, -params.pregrasp_distance_m * approach), T_tool, _moved(T_tool, -params.retreat_distance_m * approach),
+                float(scores[i]), clearance, float(heights[i]),
+            )
+            break
+        if found is not None:
+            picks.append(found)
+            continue
+        if len(grasps) == 0:
+            unpicked.append((i, f"the part has no {grasps.kind} grasps"))
+        elif not causes:
+            unpicked.append((i, f"no reachable grasp: all {n_out} grasps approach outside the {params.approach_cone_deg:g} degree cone"))
+        else:
+            hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
+            unpicked.append((i, f"every grasp in reach collides: with {hits}" + (f"; {n_out} outside the approach cone" if n_out else "")))
+    picks.sort(key=lambda p: _rank_key(p, params))
+    return PickPlan(picks, unpicked, rejected, up, n_tried)
+
+
+def _name(cause: str) -> str:
+    return f"part {cause}" if cause.isdigit() else cause
+
+
+def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    out = T.copy()
+    out[:3, 3] += offset
+    return out
+
+
+def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
+    keys = []
+    for k in params.order:
+        if k == "height":
+            keys.append(-np.floor(pick.height_m / params.height_tolerance_m) if params.height_tolerance_m > 0 else -pick.height_m)
+        elif k == "score":
+            keys.append(-pick.score)
+        else:
+            keys.append(-pick.clearance_m)
+    return (*keys, pick.pose_index)
+
+
+def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m) -> tuple[set[str], float]:
+    """What the swept gripper comes within clearance_m of, and its clearance (capped)."""
+    hit: set[str] = set()
+    clearance = CLEARANCE_CAP_M
+    if plane is not None:
+        low = lowest_height(body, T_cam_from_tool, plane)
+        clearance = min(clearance, low)
+        if low < clearance_m:
+            hit.add(FLOOR)
+    if tree is not None:
+        centre, radius = bounding_sphere(body)
+        near = tree.query_ball_point(T_cam_from_tool[:3, :3] @ centre + T_cam_from_tool[:3, 3], radius + CLEARANCE_CAP_M)
+        if near:
+            near = np.asarray(near)
+            src = source[near]
+            keep = (src != target) & ~own[near]
+            near, src = near[keep], src[keep]
+            if len(near):
+                d = signed_distance(transform_points(invert_T(T_cam_from_tool), obstacles[near]), body)
+                clearance = min(clearance, float(d.min()))
+                for s in np.unique(src[d < clearance_m]):
+                    hit.add(CAPTURED if s == -1 else BIN if s == -2 else str(int(s)))
+    return hit, float(clearance)

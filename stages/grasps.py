@@ -1,0 +1,62 @@
+"""Stage `grasps`: the part's grasps for a suction cup and a parallel-jaw gripper, in its model
+frame: read from the grasp file its params entry names, or generated from the CAD model; either
+way expanded by the part's symmetry. Writes grasps.json and a rerun recording of the part with them."""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
+from binpick.io.atomic import atomic_paths
+from binpick.io.grasps import load_grasps, save_grasps
+from binpick.io.part_model import load_part_model
+from binpick.params import Params, load_params
+from stages.common import entry, log_timings, parser, start, write_metrics
+from stages.common.recording import write_grasp_recording
+
+log = logging.getLogger("binpick.stage.grasps")
+
+
+def run(params: Params, part_model_path: Path, out: Path, grasp_file: Path | None = None, metrics_path: Path | None = None,
+        rrd_path: Path | None = None) -> dict[str, float]:
+    part = load_part_model(part_model_path)
+    t0 = time.perf_counter()
+    sets = load_grasps(grasp_file) if grasp_file is not None else generate_grasps(part, params.pick)
+    symmetries = symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS)
+    sets = {kind: expand_by_symmetry(s, symmetries) for kind, s in sets.items()}
+    grasps_s = time.perf_counter() - t0
+    metrics = {"grasps_s": grasps_s, **{f"n_{kind}": float(len(s)) for kind, s in sets.items()}}
+    if len(sets[params.pick.gripper]) == 0:
+        log.warning("%s: no %s grasps (pick.gripper): its parts will have no picks", part.name, params.pick.gripper)
+    with atomic_paths(out, rrd_path, metrics_path) as (tmp_out, tmp_rrd, tmp_metrics):
+        save_grasps(tmp_out, part.name, sets, str(grasp_file) if grasp_file is not None else "generated")
+        if tmp_rrd is not None:
+            write_grasp_recording(tmp_rrd, part, sets, params.pick)
+        if tmp_metrics is not None:
+            write_metrics(tmp_metrics, metrics)
+            log_timings(f"part-{part.name}", f"grasps-{part.name}", params.tracking.mlflow_uri, f"grasps@{part.name}", metrics)
+    log.info("%s: %s in %.2f s", part.name, ", ".join(f"{len(s)} {k}" for k, s in sets.items()), grasps_s)
+    return metrics
+
+
+@entry
+def main(argv: Sequence[str] | None = None) -> int:
+    p = parser(__doc__)
+    p.add_argument("--part", required=True)
+    p.add_argument("--model", required=True, type=Path, help="part model (.npz)")
+    p.add_argument("--out", required=True, type=Path, help="grasps to write (.json)")
+    p.add_argument("--grasp-file", default="", help="the part's own grasp file ('' = generate from the model)")
+    p.add_argument("--metrics", type=Path)
+    p.add_argument("--rrd", type=Path, help="rerun recording of the part with its grasps")
+    args = p.parse_args(argv)
+    start(args)
+    run(load_params(args.params, args.part), args.model, args.out, Path(args.grasp_file) if args.grasp_file else None, args.metrics, args.rrd)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

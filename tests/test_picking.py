@@ -1,0 +1,226 @@
+"""Grasps and picks recover known answers: grasps on a box land on its faces, a grasp applied to
+a known pose lands where that pose puts it, a gripper placed into a wall or a neighbour is
+refused and one in free space is not, and parts come in the configured order."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from conftest import ROOT
+
+from binpick.errors import InputError
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
+from binpick.grasping import expand_by_symmetry, jaw_grasps, suction_grasps
+from binpick.gripper import Box, Cylinder, jaw_primitives, lowest_height, signed_distance, swept
+from binpick.io.grasps import GraspSet, load_grasps, save_grasps, tool_frame
+from binpick.io.picks import load_picks, save_picks
+from binpick.params import SymmetryParams, load_params
+from binpick.parts import make_part_model
+from binpick.picking import BIN, CAPTURED, BinBoxObstacle, plan_picks
+
+# A box part 40 x 30 x 20 mm, model frame at its centre.
+EXTENTS = np.array([0.04, 0.03, 0.02])
+FLOOR = np.array([0.0, 0.0, -1.0, 0.5])  # camera 0.5 m above the floor, looking down (+z)
+
+
+
+
+@pytest.fixture(scope="module")
+def settings(params):
+    return params.pick
+
+
+@pytest.fixture(scope="module")
+def box_part():
+    return make_part_model("box", trimesh.creation.box(extents=EXTENTS), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+
+
+def lying(x: float, y: float, yaw_deg: float = 0.0) -> np.ndarray:
+    """T_cam_from_model of the box lying on the floor (its z up toward the camera) at x, y."""
+    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(yaw_deg))
+    return make_T(R, np.array([x, y, 0.5 - EXTENTS[2] / 2]))
+
+
+def seen_surface(T: np.ndarray, part) -> np.ndarray:
+    """The posed part's points that face the camera (a stand-in for what it measured)."""
+    pts = transform_points(T, part.points_m)
+    nrm = part.normals @ T[:3, :3].T
+    return pts[np.einsum("ij,ij->i", nrm, -pts) > 0]
+
+
+def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    assert len(grasps) > 0
+    half = EXTENTS / 2
+    for T in grasps.T_model_from_tool:
+        p, z = T[:3, 3], T[:3, 2]
+        face = int(np.argmax(np.abs(p) / half))
+        assert abs(abs(p[face]) - half[face]) < 1e-4  # on a face ...
+        assert np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)  # ... approaching into it
+        # The cup's lip fits on the face: not within its radius of an edge.
+        others = [k for k in range(3) if k != face]
+        assert np.all(np.abs(p[others]) <= half[others] - 0.6 * settings.suction.cup_radius_m)
+    # Best first: the face centres of the two largest faces are nearest the centre of mass.
+    assert np.linalg.norm(grasps.T_model_from_tool[0][:3, 3]) < 0.011
+
+
+def test_jaw_grasps_close_across_the_box(box_part, settings):
+    grasps = jaw_grasps(box_part, settings)
+    assert len(grasps) > 0
+    for T, width in zip(grasps.T_model_from_tool, grasps.width_m, strict=True):
+        closing = np.abs(T[:3, 0])
+        axis = int(np.argmax(closing))
+        assert closing[axis] > 0.99
+        assert width == pytest.approx(EXTENTS[axis], abs=1e-4)
+        assert width < settings.jaw.opening_max_m
+        assert abs(T[:3, 2] @ T[:3, 0]) < 1e-9  # approach across the closing axis
+        # The fingers, opened to approach, clear the part.
+        local = (box_part.points_m - T[:3, 3]) @ T[:3, :3]
+        opening = min(settings.jaw.opening_max_m, width + 2 * settings.jaw.open_margin_m)
+        assert signed_distance(local, jaw_primitives(settings.jaw, opening)).min() > 0
+
+
+def test_signed_distance_and_floor_height_of_primitives():
+    box = Box(np.array([-0.01, -0.01, -0.02]), np.array([0.01, 0.01, 0.0]))
+    cyl = Cylinder(0.005, -0.05, -0.02)
+    pts = np.array([[0.0, 0.0, -0.01], [0.02, 0.0, -0.01], [0.0, 0.0, -0.06], [0.0, 0.0, 0.0]])
+    d = signed_distance(pts, [box, cyl])
+    assert d == pytest.approx([-0.01, 0.01, 0.01, 0.0])
+    assert signed_distance(pts[2:3], swept([cyl], 0.02))[0] == pytest.approx(-0.005)
+    # Tool pointing straight down (its z along -up) 0.1 m above a floor z = 0 (normal +z).
+    T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.1]))
+    assert lowest_height([box], T, np.array([0.0, 0.0, 1.0, 0.0])) == pytest.approx(0.1)
+    assert lowest_height([cyl], T, np.array([0.0, 0.0, 1.0, 0.0])) == pytest.approx(0.12)
+
+
+def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    T = lying(0.01, -0.02, yaw_deg=30.0)
+    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    assert len(plan.picks) == 1 and not plan.unpicked
+    pick = plan.picks[0]
+    grasp = grasps.T_model_from_tool[pick.grasp_index]
+    assert np.allclose(pick.T_cam_from_grasp, T @ grasp)
+    # The top face (model +z, toward the camera) is the one within the cone: contact on top,
+    # approach straight down the camera's view (+z), pre-grasp straight above it.
+    assert pick.T_cam_from_grasp[2, 3] == pytest.approx(0.5 - EXTENTS[2], abs=1e-4)
+    assert pick.T_cam_from_grasp[:3, 2] == pytest.approx([0.0, 0.0, 1.0], abs=1e-3)
+    assert pick.T_cam_from_pregrasp[:3, 3] == pytest.approx(pick.T_cam_from_grasp[:3, 3] - [0, 0, settings.pregrasp_distance_m], abs=1e-4)
+    assert pick.clearance_m > settings.clearance_m
+    assert pick.height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-4)
+
+
+def test_a_gripper_into_a_neighbour_is_refused(box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    target = lying(0.0, 0.0)
+    # A neighbour resting across the target's top, 25 mm above it: every top grasp's tool hits it.
+    above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))
+    T = np.stack([target, above])
+    captured = np.concatenate([seen_surface(above, box_part)])
+    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    assert [p.pose_index for p in plan.picks] == [1]  # the top one is free
+    (index, reason), = plan.unpicked
+    assert index == 0 and "part 1" in reason
+    assert any(r.pose_index == 0 and "1" in r.reason.split(", ") for r in plan.rejected)
+
+
+def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    T = lying(0.0, 0.0)
+    captured = seen_surface(T, box_part)
+    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    assert len(free.picks) == 1 and not free.rejected
+    # A measured wall (points of a vertical plane) through the space above the part.
+    ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.5, 60))
+    wall = np.column_stack([np.full(ys.size, 0.004), ys.ravel(), zs.ravel()])
+    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, settings)
+    assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
+    # A bin given in params whose wall stands at the part's side: the tool cannot come down there.
+    T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
+    box = BinBoxObstacle(T_cam_from_bin, np.array([0.003, -0.1, 0.0]), np.array([0.2, 0.1, 0.1]))
+    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings, box)
+    assert not walled.picks and BIN in walled.unpicked[0][1]
+
+
+def test_parts_come_highest_first_then_by_score(box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    low_good, low_bad = lying(-0.06, 0.0), lying(0.06, 0.0)
+    high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
+    T = np.stack([low_bad, low_good, high])
+    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    assert [p.pose_index for p in plan.picks] == [2, 1, 0]
+    by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR,
+                          settings.model_copy(update={"order": ["score", "height"]}))
+    assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
+
+
+def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, settings):
+    only_side = GraspSet("suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1))
+    T = lying(0.0, 0.0)
+    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    assert not plan.picks and "cone" in plan.unpicked[0][1]
+
+
+def test_symmetry_expands_grasps_and_drops_repeats(settings):
+    g = GraspSet("suction", ["a", "b"], np.stack([tool_frame(np.array([0.01, 0, 0.0]), np.array([0, 0, -1.0])),
+                                                  tool_frame(np.array([0.0, 0.0, 0.0]), np.array([0, 0, -1.0]))]), np.zeros(2))
+    sym = symmetry_transforms(SymmetryParams(kind="n_fold", axis=(0.0, 0.0, 1.0), order=4))
+    out = expand_by_symmetry(g, sym)
+    # 'a' has three new images about z; 'b' lies on the axis: its images are itself.
+    assert out.ids == ["a", "b", "a@1", "a@2", "a@3"]
+    assert out.T_model_from_tool[2][:3, 3] == pytest.approx([0.0, 0.01, 0.0], abs=1e-12)
+
+
+def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part, settings):
+    sets = {"suction": suction_grasps(box_part, settings), "jaw": jaw_grasps(box_part, settings)}
+    path = tmp_path / "grasps.json"
+    save_grasps(path, "box", sets, "generated")
+    back = load_grasps(path)
+    for kind in sets:
+        assert back[kind].ids == sets[kind].ids
+        assert np.allclose(back[kind].T_model_from_tool, sets[kind].T_model_from_tool, atol=1e-8)
+        assert np.allclose(back[kind].width_m, sets[kind].width_m)
+    cases = {
+        '{"suction": [{"point_m": [0, 0, 0]}]}': "missing 'approach'",
+        '{"suction": [{"point_m": [0, 0, 0], "approach": [0, 0, 0]}]}': "must not be zero",
+        '{"jaw": [{"centre_m": [0, 0, 0], "approach": [0, 0, 1], "closing": [0, 1, 1], "width_m": 0.01}]}': "perpendicular",
+        '{"unit": "mm", "suction": []}': "metres",
+        '{"suction": [{"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}, {"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}]}': "used twice",
+        '[1, 2]': "not a binpick grasp file",
+    }
+    for text, words in cases.items():
+        path.write_text(text)
+        with pytest.raises(InputError, match=words) as info:
+            load_grasps(path)
+        assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, settings):
+    grasps = suction_grasps(box_part, settings)
+    T = lying(0.0, 0.0)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    T_base_from_cam = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 1.1), np.array([0.4, -0.1, 0.8]))
+    path = tmp_path / "picks.json"
+    save_picks(path, "c", "box", "suction", plan, T_base_from_cam)
+    doc = load_picks(path)
+    first = doc["picks"][0]
+    assert np.allclose(np.array(first["base"]["grasp"]), T_base_from_cam @ np.array(first["camera"]["grasp"]), atol=1e-8)
+    assert doc["calibrated"] is True
+    path.write_text(json.dumps({"format": "something else"}))
+    with pytest.raises(InputError, match="not a binpick pick list"):
+        load_picks(path)
+
+
+def test_pick_settings_refuse_a_non_rigid_base_transform(tmp_path):
+    from binpick.errors import ParamsError
+
+    text = (ROOT / "params.yaml").read_text().replace("T_base_from_cam: null", "T_base_from_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
+    path = tmp_path / "params.yaml"
+    path.write_text(text)
+    with pytest.raises(ParamsError, match="rigid"):
+        load_params(path)

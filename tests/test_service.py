@@ -1,0 +1,207 @@
+"""The pick service answers over HTTP and the TCP line protocol with the poses and picks of a
+rendered bin (known poses), refuses bad requests with a clear answer and keeps running, keeps
+each request for review within its retention limit, and a kept request joins the batch pipeline."""
+
+from __future__ import annotations
+
+import base64
+import json
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+from conftest import copy_project
+
+from binpick.generation.scene import generate_scene
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
+from binpick.io.grasps import save_grasps
+from binpick.io.part_model import save_part_model
+from binpick.io.ppf_model import save_ppf_model
+from binpick.io.zdf import save_zdf_v1
+from binpick.metrics.pose import scene_pose_metrics
+from binpick.params import load_params
+from binpick.registration.model import train_ppf
+from binpick.view import ViewParams
+
+httpx = pytest.importorskip("httpx")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory, t_joint):
+    """A project with the built-in part's models built (no network) and a rendered capture."""
+    root = copy_project(tmp_path_factory.mktemp("service"))
+    text = (root / "params.yaml").read_text().replace("keep_requests: 500", "keep_requests: 3")
+    (root / "params.yaml").write_text(text)
+    p = load_params(root / "params.yaml", "t_joint")
+    folder = root / "data" / "models" / "t_joint"
+    folder.mkdir(parents=True)
+    save_part_model(folder / "part.npz", t_joint)
+    save_ppf_model(folder / "ppf.npz", train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), p.registration))
+    grasps = {k: expand_by_symmetry(g, symmetry_transforms(t_joint.symmetry, REVOLUTION_GRASP_STEPS)) for k, g in generate_grasps(t_joint, p.pick).items()}
+    save_grasps(folder / "grasps.json", "t_joint", grasps, "generated")
+    generate = p.generate.model_copy(update={"clutter": p.generate.clutter.off()})
+    scene = generate_scene(t_joint, generate, p.camera.model_copy(update={"downscale": 2}), ViewParams.of_import(p.import_capture), 5, n_objects=4)
+    H, W = scene.labels.shape
+    capture = root / "data" / "captures" / "bin.zdf"
+    capture.parent.mkdir(parents=True)
+    save_zdf_v1(capture, scene.xyz_m.reshape(H, W, 3) * 1000.0)
+    return root, scene, capture
+
+
+@pytest.fixture(scope="module")
+def server(project):
+    """The service on free loopback ports, in this process; stopped after the module."""
+    import uvicorn
+
+    from flows.service import PickService, http_app
+
+    root, _, _ = project
+    service = PickService(root, root / "params.yaml", keep_mlflow=False)
+    service.settings = service.settings.model_copy(update={"http_port": _free_port(), "tcp_port": _free_port()})
+    config = uvicorn.Config(http_app(service), host="127.0.0.1", port=service.settings.http_port, log_level="warning")
+    web = uvicorn.Server(config)
+    thread = threading.Thread(target=web.run, daemon=True)
+    thread.start()
+    for _ in range(200):
+        if web.started:
+            break
+        time.sleep(0.05)
+    yield service, f"http://127.0.0.1:{service.settings.http_port}"
+    web.should_exit = True
+    thread.join(timeout=10)
+    service.close()
+
+
+def _check_poses(answer: dict, scene, t_joint) -> None:
+    T = np.array([p["T_cam_from_model"] for p in answer["poses"]]).reshape(-1, 4, 4)
+    summary, _ = scene_pose_metrics(T, scene.T_cam_from_model, scene.visible_fraction, t_joint.points_m, symmetry_transforms(t_joint.symmetry), t_joint.diameter_m)
+    assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 0.75, summary
+
+
+def test_http_answers_picks_for_an_upload_and_a_named_file(server, project, t_joint):
+    service, url = server
+    root, scene, capture = project
+    assert httpx.get(f"{url}/health").json()["parts"] == ["t_joint"]
+    upload = httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "zdf"}, content=capture.read_bytes(),
+                        headers={"content-type": "application/octet-stream"}, timeout=120)
+    assert upload.status_code == 200, upload.text
+    answer = upload.json()
+    assert answer["format"] == "binpick-picks" and answer["picks"], answer.get("unpicked")
+    _check_poses(answer, scene, t_joint)
+    for step in ("read_s", "clean_s", "register_s", "pick_s", "pipeline_s"):
+        assert answer["timings_s"][step] >= 0
+    # The first pick's grasp lies on the pose it names (the grasp applied to that pose).
+    first = answer["picks"][0]
+    assert np.allclose(first["camera"]["grasp"], first["base"]["grasp"])
+    named = httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture.relative_to(root))}, timeout=120).json()
+    # The same capture, the same answer.
+    assert [(p["pose_index"], p["grasp_id"]) for p in named["picks"]] == [(p["pose_index"], p["grasp_id"]) for p in answer["picks"]]
+    assert np.allclose([p["T_cam_from_model"] for p in named["poses"]], [p["T_cam_from_model"] for p in answer["poses"]], atol=1e-6)
+
+
+def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
+    service, url = server
+    root, _, capture = project
+    cases = [
+        (httpx.post(f"{url}/picks", json={"part": "gizmo", "path": "x.ply"}), 404, "unknown part 'gizmo'"),
+        (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "unit": "furlong"}), 400, "unit 'furlong'"),
+        (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "/etc/passwd"}), 400, "outside the project"),
+        (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "data/none.ply"}), 400, "not found"),
+        (httpx.post(f"{url}/picks", json={"part": "t_joint"}), 400, "names a capture"),
+        (httpx.post(f"{url}/picks", params={"part": "t_joint"}, content=b"x" * 100), 400, "needs its format"),
+        (httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "ply"}, content=b"ply\nformat nonsense\n"), 400, "capture"),
+        (httpx.post(f"{url}/picks", content=b"{not json", headers={"content-type": "application/json"}), 400, "not JSON"),
+    ]
+    for response, status, words in cases:
+        assert response.status_code == status, response.text
+        assert words in response.json()["error"]
+    limits = service.settings
+    service.settings = limits.model_copy(update={"max_request_mb": 0.001})
+    try:
+        big = httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "zdf"}, content=capture.read_bytes()[:10000])
+        assert big.status_code == 413 and "max_request_mb" in big.json()["error"]
+    finally:
+        service.settings = limits
+    assert httpx.get(f"{url}/health").json()["status"] == "ok"
+
+
+def test_the_line_protocol_answers_one_json_line_per_request(server, project, t_joint):
+    service, _ = server
+    root, scene, capture = project
+    with socket.create_connection(("127.0.0.1", service.settings.tcp_port), timeout=120) as s:
+        stream = s.makefile("rwb")
+
+        def ask(obj) -> dict:
+            stream.write((obj if isinstance(obj, bytes) else json.dumps(obj).encode()) + b"\n")
+            stream.flush()
+            return json.loads(stream.readline())
+
+        assert ask({"health": True})["parts"] == ["t_joint"]
+        assert "not JSON" in ask(b"{oops")["error"]
+        answer = ask({"part": "t_joint", "data_b64": base64.b64encode(capture.read_bytes()).decode(), "format": "zdf"})
+        assert answer["picks"], answer
+        _check_poses(answer, scene, t_joint)
+        assert ask({"part": "t_joint", "path": str(capture)})["picks"][0]["grasp_id"] == answer["picks"][0]["grasp_id"]
+
+
+def test_a_token_is_required_once_set(server):
+    service, url = server
+    service.token = "s3cret"
+    try:
+        assert httpx.get(f"{url}/health").status_code == 401
+        assert httpx.get(f"{url}/health", headers={"authorization": "Bearer s3cret"}).status_code == 200
+    finally:
+        service.token = None
+
+
+def test_requests_are_kept_within_the_limit_and_one_joins_the_pipeline(server, project):
+    import subprocess
+    import sys
+
+    from flows.service import list_requests
+
+    service, url = server
+    root, _, capture = project
+    for _ in range(2):
+        assert httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code == 200
+    deadline = time.time() + 60
+    while service._keeper._jobs.unfinished_tasks and time.time() < deadline:  # the keeper works after the answer
+        time.sleep(0.1)
+    time.sleep(0.5)
+    kept = list_requests(root / "data" / "service" / "requests")
+    assert len(kept) == 3  # service.keep_requests
+    newest = kept[0]
+    for name in ("capture.zdf", "picks.json", "poses.json", "request.json", "scene.rrd"):
+        assert (newest / name).is_file(), name
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", "requests", "--add", "latest"], cwd=root, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    entry = next(c for n, c in load_params(root / "params.yaml").captures.items() if n != "demo")
+    assert entry.part == "t_joint" and (root / entry.file).read_bytes() == capture.read_bytes()
+    listing = subprocess.run([sys.executable, "-m", "flows.cli", "requests"], cwd=root, capture_output=True, text=True, timeout=120)
+    assert listing.returncode == 0 and newest.name in listing.stdout
+
+
+def test_the_command_refuses_a_port_in_use_and_an_open_bind_without_token(project):
+    import subprocess
+    import sys
+
+    root, _, _ = project
+    with socket.socket() as held:
+        held.bind(("127.0.0.1", 0))
+        held.listen()
+        port = held.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--http-port", str(port)], cwd=root, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "cannot listen" in proc.stderr and "Traceback" not in proc.stderr
+    env = {k: v for k, v in __import__("os").environ.items() if k != "BINPICK_TOKEN"}
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--host", "0.0.0.0", "--http-port", str(_free_port()), "--tcp-port", "0"],
+                          cwd=root, capture_output=True, text=True, timeout=120, env=env)
+    assert proc.returncode == 2 and "needs a token" in proc.stderr
