@@ -11,7 +11,9 @@ A grasp on a detected part is kept when
   of its posed model), the bin (the support plane, and the given box's walls and floor when
   the bin is given in params), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
-A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
+and its contact is where the camera measured a surface: under a suction cup the captured points
+lie on the contact plane (within the seal tolerance), between a jaw's pads there are captured
+points. A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
 max_candidates_per_part). Parts with a pick are ordered by the keys in `order`: `height` (of the
 part's centre above the support plane, in steps of height_tolerance_m, highest first), `score`
 (the pose's, highest first), `clearance` (of the swept gripper, largest first).
@@ -41,6 +43,14 @@ OBSTACLE_GRID_M = 0.001
 PART_OBSTACLE_POINTS = 1500
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
+UNSEEN = "contact not where the camera measured the part"
+# A grasp's contact must be measured: at least this many captured points under the suction cup
+# (or between the jaw's pads), this share of the cup's within its seal tolerance (plus the noise
+# allowance below) of the contact plane. A pose off by a rotation the camera cannot tell (a pipe
+# turned about its axis, its branch hidden) otherwise places grasps in the air.
+SEEN_MIN_POINTS = 5
+SEEN_SHARE = 0.7
+SEEN_NOISE_M = 0.001
 
 
 @dataclass(frozen=True)
@@ -194,6 +204,10 @@ def plan_picks(
         for g in np.flatnonzero(in_cone)[: params.max_candidates_per_part]:
             n_tried += 1
             T_tool = tools[g]
+            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, captured_tree, params):
+                causes[UNSEEN] += 1
+                rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
+                continue
             body = swept(gripper_primitives(params, grasps.kind, float(grasps.width_m[g])), back)
             hit, clearance = _collisions(body, T_tool, tree, obstacles, source, i, own, plane, params.clearance_m)
             if hit:
@@ -241,6 +255,25 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
         else:
             keys.append(-pick.clearance_m)
     return (*keys, pick.pose_index)
+
+
+def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, captured_tree: cKDTree | None, params: PickParams) -> bool:
+    """Whether the captured points show the surface the grasp's contact needs (see the module's docstring)."""
+    if captured_tree is None:
+        return False
+    c = T_cam_from_tool[:3, 3]
+    if kind == "suction":
+        reach = params.suction.cup_radius_m
+    else:
+        reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
+    near = captured_tree.query_ball_point(c, reach)
+    if len(near) < SEEN_MIN_POINTS:
+        return False
+    local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
+    if kind == "suction":
+        return bool(np.mean(np.abs(local[:, 2]) <= params.suction.max_deviation_m + SEEN_NOISE_M) >= SEEN_SHARE)
+    between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
+    return int(between.sum()) >= SEEN_MIN_POINTS
 
 
 def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m) -> tuple[set[str], float]:

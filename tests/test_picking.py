@@ -120,7 +120,7 @@ def test_a_gripper_into_a_neighbour_is_refused(box_part, settings):
     # A neighbour resting across the target's top, 25 mm above it: every top grasp's tool hits it.
     above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))
     T = np.stack([target, above])
-    captured = np.concatenate([seen_surface(above, box_part)])
+    captured = np.concatenate([seen_surface(target, box_part), seen_surface(above, box_part)])
     plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
     assert [p.pose_index for p in plan.picks] == [1]  # the top one is free
     (index, reason), = plan.unpicked
@@ -157,6 +157,16 @@ def test_parts_come_highest_first_then_by_score(box_part, settings):
     by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR,
                           settings.model_copy(update={"order": ["score", "height"]}))
     assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
+
+
+def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, settings):
+    """A pose turned so that its grasp lies in the air (nothing measured there) gets no pick."""
+    grasps = suction_grasps(box_part, settings)
+    T = lying(0.0, 0.0)
+    measured = seen_surface(T, box_part)
+    # The part measured 15 mm lower than its pose says: the pose's top face is in the air.
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, settings)
+    assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
 def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, settings):

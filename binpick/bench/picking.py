@@ -14,7 +14,9 @@ A good pick removes that part and the rest settle again; a failed one is counted
 captured again (new sensor noise). Keys per part: pick_success_rate (good picks / attempts),
 clearance_rate (parts removed / parts settled in the bins), wrong_part_picks (picks that touch no
 part), collisions (picks on a part whose path hits something), cycle_s_median (reading the
-capture file to the ordered picks, on this machine), n_bins, n_attempts.
+capture file to the ordered picks, on this machine), n_bins, n_attempts; besides them
+attempts_without_a_pick (captures where no part had a reachable, collision-free grasp: failures)
+and executed_pick_success_rate (good picks / picks made).
 """
 
 from __future__ import annotations
@@ -154,6 +156,8 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
         if plan is None or not plan.picks:
             tally.no_pick += 1
             failures += 1
+            log.info("%s: no pick for %d parts left (%d poses; %s)", part.name, len(T_bin), len(plan.unpicked) if plan else 0,
+                     "; ".join(f"part {i}: {why}" for i, why in plan.unpicked) if plan else "refused")
             continue
         first = plan.picks[0]
         target = _true_touch(first, kind, T_cam, query, mesh)
@@ -232,6 +236,8 @@ def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:
         "n_bins": float(n_bins),
         "n_attempts": float(t.attempts),
         "attempts_without_a_pick": float(t.no_pick),
+        # Of the picks the pipeline made (attempts without a pick are failures above, not here).
+        "executed_pick_success_rate": t.good / (t.attempts - t.no_pick) if t.attempts > t.no_pick else 0.0,
         "parts_settled": float(t.settled),
         "parts_lost_by_physics": float(t.lost),
     }
