@@ -28,6 +28,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
@@ -116,13 +117,16 @@ class ServiceProject:
                 shutil.copyfile(checkpoints[name], root / "data" / "fpcc" / name / "model.pt")
         self.http_port, self.tcp_port = _free_port(), _free_port()
         self.process: subprocess.Popen | None = None
+        self.log_file: IO[str] | None = None
 
     def start(self) -> float:
         """Start the service; returns the moment it was started (time.perf_counter())."""
         env = {**os.environ, "BINPICK_TOKEN": ""}
+        # Its log goes to a file: a pipe nobody reads fills up and stops the service at a log line.
+        self.log_file = open(self.root / "service.log", "w")  # noqa: SIM115 - closed in stop()
         t0 = time.perf_counter()
         self.process = subprocess.Popen([sys.executable, "-m", "flows.cli", "service", "--http-port", str(self.http_port), "--tcp-port", str(self.tcp_port)],
-                                        cwd=self.root, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                                        cwd=self.root, env=env, stdout=self.log_file, stderr=subprocess.STDOUT, text=True)
         return t0
 
     def wait_until_up(self) -> None:
@@ -132,7 +136,8 @@ class ServiceProject:
         while time.perf_counter() < deadline:
             assert self.process is not None
             if self.process.poll() is not None:
-                raise BinpickError(f"the service exited: {self.process.stderr.read().strip().splitlines()[-1:]}")  # type: ignore[union-attr]
+                last = (self.root / "service.log").read_text().strip().splitlines()[-1:]
+                raise BinpickError(f"the service exited: {' '.join(last) or 'no message'}")
             try:
                 httpx.get(f"http://127.0.0.1:{self.http_port}/health", timeout=1.0)
                 return
@@ -159,6 +164,8 @@ class ServiceProject:
                 self.process.wait(timeout=30)
             except subprocess.TimeoutExpired:
                 self.process.kill()
+        if self.log_file is not None:
+            self.log_file.close()
 
 
 class LineClient:
