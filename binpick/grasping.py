@@ -28,8 +28,11 @@ from binpick.params import PickParams
 
 log = logging.getLogger(__name__)
 
-# Sectors around the cup's lip that must each hold surface points (no edge under the cup).
-LIP_SECTORS = 8
+# Sectors around the cup's lip that must each hold surface points beyond LIP_RING of its radius
+# (no edge under the cup: the contact lies at least LIP_RING cos(180 / LIP_SECTORS degrees),
+# 0.69 radii, from any edge, whichever way the edge runs).
+LIP_SECTORS = 12
+LIP_RING = 0.8
 # Candidate surface points tried: about this many, spread over the part.
 N_CANDIDATES = 1500
 # The part's own surface points checked against the gripper (every k-th of the dense sample).
@@ -91,7 +94,7 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         # The lip all around: points in every sector of the outer ring of the disc.
         across = q - np.outer(q @ n, n)
         r = np.linalg.norm(across, axis=1)
-        ring = r > 0.6 * s.cup_radius_m
+        ring = r > LIP_RING * s.cup_radius_m
         if ring.sum() < LIP_SECTORS:
             continue
         u = across[ring] / r[ring, None]

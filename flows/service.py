@@ -239,6 +239,7 @@ class Keeper:
         self.mlflow_uri = mlflow_uri
         self.log_mlflow = log_mlflow
         self._jobs: queue.Queue[tuple | None] = queue.Queue()
+        self._stream = None  # one rerun stream for every recording (a stream per file leaks threads)
         self._thread = threading.Thread(target=self._run, name="binpick-keeper", daemon=True)
         self._thread.start()
 
@@ -278,8 +279,12 @@ class Keeper:
         save_poses(folder / "poses.json", part.name, result.poses)
         (folder / "request.json").write_text(json.dumps({"request_id": doc["request_id"], "part": part.name, "timings_s": doc["timings_s"],
                                                          "counts": doc["counts"], "source": str(capture), "unit": unit}, indent=1) + "\n")
+        if self._stream is None:
+            import rerun as rr
+
+            self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
         write_pick_recording(folder / "scene.rrd", doc["request_id"], result.cloud, part, result.poses, result.picks, served.params.pick.gripper,
-                             served.params.pick)
+                             served.params.pick, self._stream)
         if self.log_mlflow:
             with mlflow_run("service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}):
                 import mlflow

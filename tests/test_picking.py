@@ -61,9 +61,10 @@ def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, setting
         face = int(np.argmax(np.abs(p) / half))
         assert abs(abs(p[face]) - half[face]) < 1e-4  # on a face ...
         assert np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)  # ... approaching into it
-        # The cup's lip fits on the face: not within its radius of an edge.
+        # The cup's lip fits on the face: its centre about its radius from every edge (the
+        # check samples the lip in 12 sectors: 0.69 radii at least).
         others = [k for k in range(3) if k != face]
-        assert np.all(np.abs(p[others]) <= half[others] - 0.6 * settings.suction.cup_radius_m)
+        assert np.all(np.abs(p[others]) <= half[others] - 0.65 * settings.suction.cup_radius_m)
     # Best first: the face centres of the two largest faces are nearest the centre of mass.
     assert np.linalg.norm(grasps.T_model_from_tool[0][:3, 3]) < 0.011
 
@@ -134,14 +135,16 @@ def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part,
     captured = seen_surface(T, box_part)
     free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
     assert len(free.picks) == 1 and not free.rejected
-    # A measured wall (points of a vertical plane) through the space above the part.
-    ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.5, 60))
-    wall = np.column_stack([np.full(ys.size, 0.004), ys.ravel(), zs.ravel()])
+    # Measured walls (points of two vertical planes) above the part, closer together than the
+    # tool is wide: no grasp on its top can be reached.
+    ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.47, 60))
+    wall = np.concatenate([np.column_stack([np.full(ys.size, x), ys.ravel(), zs.ravel()]) for x in (-0.01, 0.01)])
     blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, settings)
     assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
-    # A bin given in params whose wall stands at the part's side: the tool cannot come down there.
+    # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
+    # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
-    box = BinBoxObstacle(T_cam_from_bin, np.array([0.003, -0.1, 0.0]), np.array([0.2, 0.1, 0.1]))
+    box = BinBoxObstacle(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
     walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings, box)
     assert not walled.picks and BIN in walled.unpicked[0][1]
 

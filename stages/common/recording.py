@@ -203,16 +203,21 @@ def write_grasp_recording(path: Path, part: PartModel, sets: dict, params) -> No
         rec.disconnect()
 
 
-def write_pick_recording(path: Path, name: str, cloud: CleanCloud, part: PartModel, estimates: list[PartPose], plan, kind: str, params) -> None:
+def write_pick_recording(path: Path, name: str, cloud: CleanCloud, part: PartModel, estimates: list[PartPose], plan, kind: str, params,
+                         stream=None) -> None:
     """The scene with the parts at their poses, the gripper at the first picks (pre-grasp
-    arrow to grasp), the order as labels, and the refused grasps in their own entity."""
+    arrow to grasp), the order as labels, and the refused grasps in their own entity. stream: a
+    RecordingStream to reuse (a resident process writing many recordings: each new stream keeps
+    two threads alive); it is pointed at this file and left open."""
     import rerun as rr
 
     from binpick.gripper import gripper_primitives
 
-    rec = rr.RecordingStream("binpick", recording_id=f"picks-{name}")
+    rec = stream if stream is not None else rr.RecordingStream("binpick", recording_id=f"picks-{name}")
     with atomic_path(path) as tmp:
         rec.save(str(tmp))
+        if stream is not None:
+            rec.send_recording_name(f"picks-{name}")
         rec.log("camera", rr.ViewCoordinates.RDF, static=True)
         rec.log("camera/scene", rr.Points3D(cloud.points_m, colors=cloud.rgb, radii=0.0008), static=True)
         palette = instance_colours(max(len(estimates), 1))
@@ -234,4 +239,5 @@ def write_pick_recording(path: Path, name: str, cloud: CleanCloud, part: PartMod
         lines += [f"part {i}: {reason}" for i, reason in plan.unpicked]
         rec.log("picks", rr.TextDocument("\n".join(lines) or "no parts"), static=True)
         rec.flush()
-        rec.disconnect()
+        if stream is None:
+            rec.disconnect()
