@@ -39,6 +39,7 @@ import shutil
 import threading
 import time
 from collections import deque
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
@@ -110,7 +111,9 @@ class PickService:
         self.token = os.environ.get(self.settings.token_env) or None
         self.started = time.monotonic()
         self.answered = 0
-        self._work = threading.Lock()  # one request at a time
+        # One request at a time, always on the same thread: numerics on ever new threads grow
+        # the allocator's per-thread arenas and the thread pools of torch and Open3D.
+        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="binpick-answer")
         self._waiting = 0
         self._count = threading.Lock()
         self._recent: deque[float] = deque()
@@ -155,8 +158,7 @@ class PickService:
                 raise RequestError(503, f"busy: {self._waiting} requests in progress or waiting")
             self._waiting += 1
         try:
-            with self._work:
-                return self._answer(part, unit, request, payload)
+            return self._worker.submit(self._answer, part, unit, request, payload).result()
         finally:
             with self._count:
                 self._waiting -= 1
@@ -225,6 +227,7 @@ class PickService:
         return doc
 
     def close(self) -> None:
+        self._worker.shutdown(wait=True)
         self._keeper.close()
 
 
