@@ -544,6 +544,11 @@ def overlay(
     typer.echo(f"wrote {target}")
 
 
+def _checkpoints(root: Path, names: list[str]) -> dict[str, Path]:
+    """Where each part's trained network lives (the benchmarks use those that exist)."""
+    return {n: root / "data" / "fpcc" / n / "model.pt" for n in names}
+
+
 def _write_json(out: Path, result: dict) -> None:
     import json
 
@@ -597,7 +602,7 @@ def bench_clutter_cmd(
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_clutter(load_params(params), names, scenes, {n: root / "data" / "fpcc" / n / "model.pt" for n in names})
+        result = bench_clutter(load_params(params), names, scenes, _checkpoints(root, names))
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)
@@ -625,7 +630,7 @@ def bench_picking_cmd(
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), {n: root / "data" / "fpcc" / n / "model.pt" for n in names}, gripper)
+        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), _checkpoints(root, names), gripper)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)
@@ -645,7 +650,7 @@ def bench_scene_cmd(
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_scene(load_params(params), params.read_text(), names, {n: root / "data" / "fpcc" / n / "model.pt" for n in names})
+        result = bench_scene(load_params(params), params.read_text(), names, _checkpoints(root, names))
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)
@@ -664,7 +669,7 @@ def bench_soak_cmd(
     from binpick.bench.scene import bench_soak
     from binpick.params import load_params
 
-    checkpoint = project_root() / "data" / "fpcc" / "t_joint" / "model.pt"
+    checkpoint = _checkpoints(project_root(), ["t_joint"])["t_joint"]
     try:
         result = bench_soak(load_params(params), params.read_text(), requests, clients, per_client, checkpoint if checkpoint.is_file() else None)
     except (BinpickError, ValueError) as exc:

@@ -52,7 +52,7 @@ from starlette.concurrency import run_in_threadpool
 
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
-from binpick.io.picks import picks_document
+from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.poses import save_poses
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene_path import PartModels, SceneSeeds, process
@@ -163,7 +163,7 @@ class PickService:
             with self._count:
                 self._waiting -= 1
 
-    def _capture_file(self, request: dict[str, Any], payload: bytes | None, folder: Path) -> tuple[Path, bytes | None]:
+    def _capture_file(self, request: dict[str, Any], payload: bytes | None, folder: Path) -> Path:
         """The capture as a file: the upload written into the request's folder, a named file, or a camera frame."""
         if payload is not None:
             fmt = str(request.get("format", "")).lower().lstrip(".")
@@ -171,7 +171,7 @@ class PickService:
                 raise RequestError(400, f"an uploaded capture needs its format: one of {', '.join(s.lstrip('.') for s in CAPTURE_SUFFIXES)}")
             path = folder / f"capture.{fmt}"
             path.write_bytes(payload)
-            return path, payload
+            return path
         if request.get("path"):
             path = Path(str(request["path"]))
             path = path if path.is_absolute() else self.root / path
@@ -180,7 +180,7 @@ class PickService:
                 raise RequestError(400, f"{path}: outside the project and service.capture_folders")
             if not path.is_file():
                 raise RequestError(400, f"{path}: capture file not found")
-            return path, None
+            return path
         if request.get("camera"):
             from binpick.zivid_camera import grab_to_file
 
@@ -189,7 +189,7 @@ class PickService:
                 grab_to_file(path, self.params.zivid_camera)
             except BinpickError as exc:
                 raise RequestError(400, f"camera: {exc}") from None
-            return path, None
+            return path
         raise RequestError(400, "a request names a capture: an upload (with its format), a \"path\" or \"camera\": true")
 
     def _answer(self, part: str, unit: str, request: dict[str, Any], payload: bytes | None) -> dict[str, Any]:
@@ -199,14 +199,18 @@ class PickService:
         request_id = f"{stamp:%Y%m%dT%H%M%S%f}-{part}"
         folder = self._keeper.folder(stamp, request_id)
         try:
-            path, data = self._capture_file(request, payload, folder)
+            path = self._capture_file(request, payload, folder)
             t_read = time.perf_counter()
             try:
                 frame = load_capture(path, ImportOptions(unit))
             except BinpickError as exc:
                 raise RequestError(400, str(exc)) from None
-            # The same capture gets the same seeds, so the same answer.
-            digest = hashlib.sha256(data if data is not None else path.read_bytes()).hexdigest()[:16]
+            # The same capture gets the same seeds, so the same answer (hashed as read: the file
+            # is not read twice).
+            h = hashlib.sha256(np.ascontiguousarray(frame.xyz_m).tobytes())
+            if frame.rgb is not None:
+                h.update(np.ascontiguousarray(frame.rgb).tobytes())
+            digest = h.hexdigest()[:16]
             t1 = time.perf_counter()
             try:
                 result = process(frame.xyz_m, frame.rgb, frame.shape, served.models, SceneSeeds.of(served.params.seed, digest))
@@ -278,7 +282,7 @@ class Keeper:
             except OSError:
                 shutil.copyfile(capture, target)
         part = served.models.part
-        (folder / "picks.json").write_text(json.dumps({k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")}, indent=1) + "\n")
+        write_picks_document(folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")})
         save_poses(folder / "poses.json", part.name, result.poses)
         (folder / "request.json").write_text(json.dumps({"request_id": doc["request_id"], "part": part.name, "timings_s": doc["timings_s"],
                                                          "counts": doc["counts"], "source": str(capture), "unit": unit}, indent=1) + "\n")

@@ -88,6 +88,22 @@ def picking_settings(settings: Params, part: PartModel) -> Params:
     return p.model_copy(update={"generate": generate, "camera": p.camera.model_copy(update={"downscale": 1})})
 
 
+def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartModels:
+    """The part's models built in memory for a benchmark: its PPF model, its network when the
+    checkpoint exists (else registration over the whole scene) and its grasps for p.pick.gripper."""
+    ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
+    segmenter = None
+    if checkpoint is not None and checkpoint.is_file():
+        from binpick.network.infer import load_segmenter
+
+        segmenter = load_segmenter(checkpoint, p.segment)
+    mode = p.registration.mode if segmenter is not None else "whole_scene"
+    kind = p.pick.gripper
+    grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
+    return PartModels(part, ppf, segmenter, p.import_capture,
+                      with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None), grasps, p.pick)
+
+
 def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, query: trimesh.proximity.ProximityQuery, mesh: trimesh.Trimesh) -> int | None:
     """Index of the true object the pick touches as a grasp should, or None."""
     T = pick.T_cam_from_grasp
@@ -197,17 +213,9 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
     for part in parts:
         p = picking_settings(settings, part)
         p = p.model_copy(update={"pick": p.pick.model_copy(update={"gripper": kind})})
-        ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
-        segmenter = None
-        if part.name in checkpoints and checkpoints[part.name].is_file():
-            from binpick.network.infer import load_segmenter
-
-            segmenter = load_segmenter(checkpoints[part.name], p.segment)
-        mode = p.registration.mode if segmenter is not None else "whole_scene"
-        grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
-        models = PartModels(part, ppf, segmenter, p.import_capture,
-                            with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None),
-                            grasps, p.pick)
+        models = bench_models(part, p, checkpoints.get(part.name))
+        assert models.grasps is not None
+        grasps = models.grasps
         tally = Tally()
         cycles: list[float] = []
         with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
@@ -218,7 +226,7 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
                 log.info("%s bin %d: %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
                          part.name, b, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
                 tally.add(one)
-        per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if segmenter is not None else 0.0,
+        per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if models.segmenter is not None else 0.0,
                                    "diameter_mm": 1000.0 * part.diameter_m}
         total.add(tally)
         all_cycles += cycles

@@ -33,11 +33,9 @@ from typing import IO
 import numpy as np
 
 from binpick.bench import machine
-from binpick.bench.picking import picking_settings
+from binpick.bench.picking import bench_models, picking_settings
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
-from binpick.geometry.symmetry import symmetry_transforms
-from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.grasps import save_grasps
 from binpick.io.part_model import PartModel, save_part_model
@@ -46,8 +44,7 @@ from binpick.io.scene import SyntheticScene
 from binpick.io.zdf import save_zdf_v1
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params
-from binpick.registration.model import train_ppf
-from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.scene_path import PartModels, SceneSeeds, process
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
@@ -64,20 +61,6 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def _models(part: PartModel, p: Params, checkpoint: Path | None) -> PartModels:
-    ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
-    segmenter = None
-    if checkpoint is not None and checkpoint.is_file():
-        from binpick.network.infer import load_segmenter
-
-        segmenter = load_segmenter(checkpoint, p.segment)
-    mode = p.registration.mode if segmenter is not None else "whole_scene"
-    kind = p.pick.gripper
-    grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
-    return PartModels(part, ppf, segmenter, p.import_capture,
-                      with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None), grasps, p.pick)
 
 
 def _overrides(p: Params) -> dict:
@@ -218,7 +201,7 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
         cases: dict[tuple[str, int], list[tuple[Path, SyntheticScene]]] = {}
         for part in parts:
             p = picking_settings(settings, part)
-            models[part.name] = _models(part, p, checkpoints.get(part.name))
+            models[part.name] = bench_models(part, p, checkpoints.get(part.name))
             entries[part.name] = {"mesh": f"data/parts/{part.name}.stl", "unit": "m", **_overrides(p)}
             for n in BIN_SIZES:
                 cases[(part.name, n)] = _captures(part, p, n, CAPTURES_PER_CASE, root / "data" / "captures", seed)
@@ -302,7 +285,7 @@ def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients:
 
     part = bench_parts(["t_joint"], n_points=settings.ingest.n_surface_points)[0]
     p = picking_settings(settings, part)
-    models = _models(part, p, checkpoint)
+    models = bench_models(part, p, checkpoint)
     with tempfile.TemporaryDirectory(prefix="binpick-soak-") as tmp:
         root = Path(tmp)
         (root / "data" / "captures").mkdir(parents=True)

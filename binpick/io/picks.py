@@ -45,7 +45,12 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
 
 
 def save_picks(path: str | Path, capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None) -> None:
-    write_text(path, json.dumps(picks_document(capture, part, gripper, plan, T_base_from_cam), indent=1) + "\n")
+    write_picks_document(path, picks_document(capture, part, gripper, plan, T_base_from_cam))
+
+
+def write_picks_document(path: str | Path, doc: dict) -> None:
+    """Write a document picks_document made (the service keeps its answers with this)."""
+    write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
 def load_picks(path: str | Path) -> dict:
