@@ -49,21 +49,23 @@ def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float) -> np.ndar
 @njit(cache=True)
 def _voxel_keys(points, inv_size):  # pragma: no cover - numba
     """Flat voxel index of each point (x varies fastest, so neighbouring pixels of a frame fall in
-    neighbouring cells) and the number of cells of the occupied box."""
+    neighbouring cells) and the number of cells of the occupied box. Two passes that recompute
+    the cell of each point, instead of an (n, 3) array of them: memory traffic is the cost."""
     n = len(points)
-    keys = np.empty((n, 3), np.int64)
     lo = np.full(3, np.iinfo(np.int64).max)
     hi = np.full(3, np.iinfo(np.int64).min)
     for i in range(n):
         for a in range(3):
             k = np.int64(np.floor(points[i, a] * inv_size))
-            keys[i, a] = k
             lo[a] = min(lo[a], k)
             hi[a] = max(hi[a], k)
     span = hi - lo + 1
     flat = np.empty(n, np.int64)
     for i in range(n):
-        flat[i] = ((keys[i, 2] - lo[2]) * span[1] + keys[i, 1] - lo[1]) * span[0] + keys[i, 0] - lo[0]
+        kx = np.int64(np.floor(points[i, 0] * inv_size)) - lo[0]
+        ky = np.int64(np.floor(points[i, 1] * inv_size)) - lo[1]
+        kz = np.int64(np.floor(points[i, 2] * inv_size)) - lo[2]
+        flat[i] = (kz * span[1] + ky) * span[0] + kx
     return flat, span[0] * span[1] * span[2]
 
 

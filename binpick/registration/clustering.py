@@ -94,3 +94,10 @@ def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: 
 def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
     """Whether two poses of the part agree within the thresholds, up to the part's symmetries."""
     return bool(_near(T_a[None] @ model.symmetries, T_b, rotation_deg, translation_m).any())
+
+
+def repeats_any(model: PPFModel, T: np.ndarray, poses: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
+    """Whether pose T (4, 4) agrees with any of the poses (n, 4, 4) within the thresholds, up to the part's symmetries."""
+    if len(poses) == 0:
+        return False
+    return bool(_close(T[None] @ model.symmetries, poses, rotation_deg, translation_m).any())

@@ -13,7 +13,7 @@ from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel
 from binpick.params import RegisterParams
-from binpick.registration.clustering import cluster_poses, same_pose
+from binpick.registration.clustering import cluster_poses, repeats_any, same_pose
 from binpick.registration.constants import (
     COARSE_STRIDE,
     FINE_CLUSTERS,
@@ -86,14 +86,19 @@ def match_scene(
         return []
     pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
     free = np.arange(len(pts))
+    grid_tree = cKDTree(pts)
+    taken = np.zeros(len(pts), bool)  # voting-grid points a known or found pose explains
+    min_free = MIN_FREE_SHARE * len(model.points_m)
+
+    def take(T: np.ndarray) -> None:
+        taken[explained_points(model, np.asarray(T), pts, grid_tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
+
     if len(known):
         # Votes come only from what the known poses leave unexplained: the rest is found.
-        taken = np.zeros(len(pts), bool)
-        grid_tree = cKDTree(pts)
         for T in known:
-            taken[explained_points(model, np.asarray(T), pts, grid_tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
+            take(T)
         free = np.flatnonzero(~taken)
-        if len(free) == 0 or len(free) < MIN_FREE_SHARE * len(model.points_m):
+        if len(free) == 0 or len(free) < min_free:
             return []
     n_refs = max(1, int(round(params.scene_ref_fraction * len(free))))
     refs = np.sort(rng.choice(free, size=n_refs, replace=False))
@@ -112,6 +117,8 @@ def match_scene(
     def explained(T: np.ndarray) -> np.ndarray:
         return explained_points(model, T, fine, tree, inlier, reach)
 
+    settled = np.asarray(known, dtype=np.float64).reshape(-1, 4, 4)  # poses a coarse fit may repeat
+
     for T, _ in cluster_poses(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
         # ICP and support only see the scene around the pose: the rest cannot match this part.
         near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
@@ -119,11 +126,22 @@ def match_scene(
             continue
         local = fine[near]
         T = refine_icp(model, T, local, scales.coarse_icp_m, params.icp_iterations, COARSE_STRIDE)
+        # Most clusters of a cluttered scene slide, under coarse ICP, onto a part already known
+        # or already estimated here: the fine fit would repeat that pose and suppression by
+        # support would drop it. Only poses new after the coarse fit are refined and scored.
+        if repeats_any(model, T, settled, params.cluster_rotation_deg, scales.cluster_translation_m):
+            continue
         T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
         if score >= params.min_score:
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))
+            settled = np.concatenate([settled, T[None]])
+            # Done when what is left unexplained could no longer hold a part (the test that
+            # starts the pass after known poses).
+            take(T)
+            if (~taken).sum() < min_free:
+                break
     claimed = np.zeros(len(fine), bool)
     for T in known:
         claimed[explained(np.asarray(T))] = True
