@@ -102,17 +102,28 @@ def signed_distance(points_tool: np.ndarray, primitives: list[Primitive]) -> np.
     return best
 
 
-def bounding_sphere(primitives: list[Primitive]) -> tuple[np.ndarray, float]:
-    """Centre (3,) in the tool frame and radius of a sphere holding every primitive."""
-    corners = []
+def covering_spheres(primitives: list[Primitive], margin_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Spheres (centres (k, 3), tool frame; radii (k,)) whose union holds every point within
+    margin_m of the primitives: a row of spheres along each primitive's z axis. For a long, thin
+    tool they hold a fraction of what one bounding sphere would, so fewer obstacle points need
+    an exact distance."""
+    centres, radii = [], []
     for prim in primitives:
         if isinstance(prim, Box):
-            corners += [prim.lo, prim.hi]
+            xy = (prim.lo[:2] + prim.hi[:2]) / 2.0
+            r = float(np.linalg.norm(prim.hi[:2] - prim.lo[:2]) / 2.0)
+            z0, z1 = float(prim.lo[2]), float(prim.hi[2])
         else:
-            corners += [np.array([-prim.radius, -prim.radius, prim.z0]), np.array([prim.radius, prim.radius, prim.z1])]
-    c = np.array(corners)
-    lo, hi = c.min(axis=0), c.max(axis=0)
-    return (lo + hi) / 2.0, float(np.linalg.norm(hi - lo) / 2.0)
+            xy, r, z0, z1 = np.zeros(2), prim.radius, prim.z0, prim.z1
+        across = r + margin_m
+        length = z1 - z0 + 2.0 * margin_m
+        n = max(1, int(np.ceil(length / across)))
+        step = length / n
+        # A point within `across` of the axis and step / 2 of a centre along it is inside.
+        for k in range(n):
+            centres.append([xy[0], xy[1], z0 - margin_m + (k + 0.5) * step])
+            radii.append(float(np.hypot(across, step / 2.0)))
+    return np.array(centres, dtype=np.float64).reshape(-1, 3), np.array(radii, dtype=np.float64)
 
 
 def lowest_height(primitives: list[Primitive], T_frame_from_tool: np.ndarray, plane: np.ndarray) -> float:

@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
-from binpick.gripper import bounding_sphere, gripper_primitives, lowest_height, signed_distance, swept
+from binpick.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
 from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 
@@ -176,7 +176,6 @@ def plan_picks(
     obstacles = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     source = np.concatenate(sources) if sources else np.zeros(0, int)
     tree = cKDTree(obstacles) if len(obstacles) else None
-    captured_tree = cKDTree(captured) if len(captured) else None
     reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + params.own_points_m if len(model_sample) else 0.0
 
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
@@ -191,8 +190,8 @@ def plan_picks(
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
         own = np.zeros(len(obstacles), bool)
-        if captured_tree is not None:
-            near = np.asarray(captured_tree.query_ball_point(centres[i], reach), dtype=np.int64)
+        if len(captured):
+            near = _captured_near(tree, len(captured), centres[i], reach)
             if len(near):
                 d, _ = cKDTree(posed[i]).query(captured[near], distance_upper_bound=params.own_points_m)
                 own[near[np.isfinite(d)]] = True
@@ -204,7 +203,7 @@ def plan_picks(
         for g in np.flatnonzero(in_cone)[: params.max_candidates_per_part]:
             n_tried += 1
             T_tool = tools[g]
-            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, captured_tree, params):
+            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
@@ -257,16 +256,22 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
     return (*keys, pick.pose_index)
 
 
-def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, captured_tree: cKDTree | None, params: PickParams) -> bool:
+def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:
+    """Indices of the captured points within radius_m of `at`: the obstacle tree's first n_captured rows."""
+    near = np.asarray(tree.query_ball_point(at, radius_m), dtype=np.int64)
+    return near[near < n_captured]
+
+
+def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams) -> bool:
     """Whether the captured points show the surface the grasp's contact needs (see the module's docstring)."""
-    if captured_tree is None:
+    if tree is None or len(captured) == 0:
         return False
     c = T_cam_from_tool[:3, 3]
     if kind == "suction":
         reach = params.suction.cup_radius_m
     else:
         reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
-    near = captured_tree.query_ball_point(c, reach)
+    near = _captured_near(tree, len(captured), c, reach)
     if len(near) < SEEN_MIN_POINTS:
         return False
     local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
@@ -277,7 +282,8 @@ def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captur
 
 
 def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m) -> tuple[set[str], float]:
-    """What the swept gripper comes within clearance_m of, and its clearance (capped)."""
+    """What the swept gripper comes within clearance_m of, and its clearance (capped; only
+    computed when nothing is hit: a refused grasp's clearance is never used)."""
     hit: set[str] = set()
     clearance = CLEARANCE_CAP_M
     if plane is not None:
@@ -286,16 +292,30 @@ def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, pla
         if low < clearance_m:
             hit.add(FLOOR)
     if tree is not None:
-        centre, radius = bounding_sphere(body)
-        near = tree.query_ball_point(T_cam_from_tool[:3, :3] @ centre + T_cam_from_tool[:3, 3], radius + CLEARANCE_CAP_M)
-        if near:
-            near = np.asarray(near)
-            src = source[near]
-            keep = (src != target) & ~own[near]
-            near, src = near[keep], src[keep]
-            if len(near):
-                d = signed_distance(transform_points(invert_T(T_cam_from_tool), obstacles[near]), body)
+        # Hits first, from the few points within clearance_m of the body; the clearance, which
+        # looks CLEARANCE_CAP_M far (tens of thousands of points), only for a grasp that passes.
+        d, src = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, clearance_m)
+        for s in np.unique(src[d < clearance_m]):
+            hit.add(CAPTURED if s == -1 else BIN if s == -2 else str(int(s)))
+        if not hit:
+            d, _ = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, CLEARANCE_CAP_M)
+            if len(d):
                 clearance = min(clearance, float(d.min()))
-                for s in np.unique(src[d < clearance_m]):
-                    hit.add(CAPTURED if s == -1 else BIN if s == -2 else str(int(s)))
     return hit, float(clearance)
+
+
+def _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, margin_m) -> tuple[np.ndarray, np.ndarray]:
+    """Signed distances (k,) to the placed body of the obstacle points that may lie within
+    margin_m of it (all of those, and some farther), with their sources (k,); the target's own
+    points and its own model excluded."""
+    centres, radii = covering_spheres(body, margin_m)
+    mark = np.zeros(len(obstacles), bool)  # the union of the spheres' points
+    for n in tree.query_ball_point(transform_points(T_cam_from_tool, centres), radii):
+        mark[n] = True
+    near = np.flatnonzero(mark)
+    src = source[near]
+    keep = (src != target) & ~own[near]
+    near, src = near[keep], src[keep]
+    if len(near) == 0:
+        return np.zeros(0), src
+    return signed_distance(transform_points(invert_T(T_cam_from_tool), obstacles[near]), body), src

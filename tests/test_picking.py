@@ -15,7 +15,7 @@ from binpick.errors import InputError
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.grasping import expand_by_symmetry, jaw_grasps, suction_grasps
-from binpick.gripper import Box, Cylinder, jaw_primitives, lowest_height, signed_distance, swept
+from binpick.gripper import Box, Cylinder, covering_spheres, jaw_primitives, lowest_height, signed_distance, swept
 from binpick.io.grasps import GraspSet, load_grasps, save_grasps, tool_frame
 from binpick.io.picks import load_picks, save_picks
 from binpick.params import SymmetryParams, load_params
@@ -96,6 +96,19 @@ def test_signed_distance_and_floor_height_of_primitives():
     T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.1]))
     assert lowest_height([box], T, np.array([0.0, 0.0, 1.0, 0.0])) == pytest.approx(0.1)
     assert lowest_height([cyl], T, np.array([0.0, 0.0, 1.0, 0.0])) == pytest.approx(0.12)
+
+
+def test_covering_spheres_hold_every_point_near_the_gripper(settings):
+    """The collision check measures only points inside the covering spheres: every point within
+    the margin of the swept gripper (by the exact signed distance) must lie in one of them."""
+    rng = np.random.default_rng(3)
+    for body in (swept(jaw_primitives(settings.jaw, 0.03), 0.05), swept([Cylinder(0.005, -0.02, 0.0), Cylinder(0.015, -0.17, -0.02)], 0.05)):
+        for margin in (0.002, 0.05):
+            points = rng.uniform([-0.15, -0.15, -0.35], [0.15, 0.15, 0.1], size=(200000, 3))
+            near = points[signed_distance(points, body) <= margin]
+            centres, radii = covering_spheres(body, margin)
+            inside = (np.linalg.norm(near[:, None, :] - centres[None], axis=2) <= radii[None]).any(axis=1)
+            assert len(near) > 100 and inside.all()
 
 
 def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, settings):
