@@ -429,6 +429,9 @@ class PickParams(_Strict):
     jaw: JawParams
     max_grasps: int = Field(ge=1, description="generated grasps per part, before the symmetry expands them")
     approach_cone_deg: float = Field(ge=0, le=90, description="approach at most this far from straight down the bin's up axis")
+    fallback_cone_deg: float | None = Field(
+        ge=0, le=90, description="a part with no collision-free grasp within approach_cone_deg may be taken from up to this far (null: never)"
+    )
     pregrasp_distance_m: float = Field(ge=0, description="the pre-grasp pose: this far back along the approach")
     retreat_distance_m: float = Field(ge=0, description="the post-grasp pose: this far back along the approach")
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
@@ -444,6 +447,12 @@ class PickParams(_Strict):
         if len(set(order)) != len(order):
             raise ValueError(f"pick.order repeats a key: {order}")
         return order
+
+    @model_validator(mode="after")
+    def _fallback_wider(self) -> PickParams:
+        if self.fallback_cone_deg is not None and self.fallback_cone_deg < self.approach_cone_deg:
+            raise ValueError(f"pick.fallback_cone_deg ({self.fallback_cone_deg:g}) is narrower than pick.approach_cone_deg ({self.approach_cone_deg:g})")
+        return self
 
     @field_validator("T_base_from_cam")
     @classmethod

@@ -4,7 +4,8 @@ order to take them in. Camera frame, metres; poses are T_cam_from_model, grasps 
 
 A grasp on a detected part is kept when
 - its approach lies within approach_cone_deg of straight down the bin's up axis (the support
-  plane's normal toward the camera; the camera's -z when there is none), and
+  plane's normal toward the camera; the camera's -z when there is none), or, for a part none of
+  whose grasps within that cone is kept, within fallback_cone_deg (tried after them), and
 - the gripper, swept along its approach from the pre-grasp pose to the grasp and back to the
   post-grasp pose, stays clearance_m away from: the captured points (everything the camera
   measured, floor and walls included, except the target's own points: those within own_points_m
@@ -163,6 +164,8 @@ def plan_picks(
     n_parts = len(T_cam_from_model)
     up, plane = support_frame(floor_plane)
     cos_cone = np.cos(np.radians(params.approach_cone_deg))
+    widest_deg = params.approach_cone_deg if params.fallback_cone_deg is None else params.fallback_cone_deg
+    cos_widest = np.cos(np.radians(widest_deg))
     back = max(params.pregrasp_distance_m, params.retreat_distance_m)
     grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
 
@@ -196,11 +199,16 @@ def plan_picks(
                 d, _ = cKDTree(posed[i]).query(captured[near], distance_upper_bound=params.own_points_m)
                 own[near[np.isfinite(d)]] = True
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
-        in_cone = (tools[:, :3, 2] @ -up) >= cos_cone - 1e-12 if len(tools) else np.zeros(0, bool)
+        cos_approach = tools[:, :3, 2] @ -up if len(tools) else np.zeros(0)
+        in_cone = cos_approach >= cos_cone - 1e-12
+        # Beyond the cone, only when nothing within it is free (a part leaning on a wall, whose
+        # upward faces the straight-down tool cannot reach): tilted grasps are the second choice.
+        fallback = (cos_approach >= cos_widest - 1e-12) & ~in_cone
         causes: Counter[str] = Counter()
-        n_out = int((~in_cone).sum())
+        n_out = int((~(in_cone | fallback)).sum())
         found: Pick | None = None
-        for g in np.flatnonzero(in_cone)[: params.max_candidates_per_part]:
+        tiers = [np.flatnonzero(in_cone)[: params.max_candidates_per_part], np.flatnonzero(fallback)[: params.max_candidates_per_part]]
+        for g in np.concatenate(tiers).astype(np.int64):
             n_tried += 1
             T_tool = tools[g]
             if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params):
@@ -226,7 +234,7 @@ def plan_picks(
         if len(grasps) == 0:
             unpicked.append((i, f"the part has no {grasps.kind} grasps"))
         elif not causes:
-            unpicked.append((i, f"no reachable grasp: all {n_out} grasps approach outside the {params.approach_cone_deg:g} degree cone"))
+            unpicked.append((i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone"))
         else:
             hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
             unpicked.append((i, f"every grasp in reach collides: with {hits}" + (f"; {n_out} outside the approach cone" if n_out else "")))

@@ -192,6 +192,36 @@ def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, set
     assert not plan.picks and "cone" in plan.unpicked[0][1]
 
 
+def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_nothing(box_part, settings):
+    """A box leaning 50 degrees about its long axis (against a wall, say): one face approaches 40
+    degrees from straight down, another 50. Measured points hovering over the 40-degree face
+    block it, so only the fallback cone reaches the part, along the 50-degree face's inward
+    normal; without a fallback cone it has no pick."""
+    T = lying(0.0, 0.0)
+    T = make_T(T[:3, :3] @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(50.0)), T[:3, 3] - [0.0, 0.0, 0.01])
+    up = np.array([0.0, 0.0, -1.0])
+    faces = [T[:3, :3] @ n for n in ([0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, -1.0, 0.0])]
+    at_50 = next(n for n in faces if abs(np.degrees(np.arccos(n @ up)) - 50.0) < 1e-6)
+    at_40 = next(n for n in faces if abs(np.degrees(np.arccos(n @ up)) - 40.0) < 1e-6)
+    # A lid of measured points 3 cm over the 40-degree face (8 x 5 cm across its normal).
+    across = np.cross(at_40, [1.0, 0.0, 0.0])
+    a, b = np.meshgrid(np.linspace(-0.04, 0.04, 60), np.linspace(-0.025, 0.025, 40))
+    centre_40 = T[:3, 3] + at_40 * EXTENTS[1] / 2
+    lid = centre_40 + 0.03 * at_40 + a.reshape(-1, 1) * [1.0, 0.0, 0.0] + b.reshape(-1, 1) * across
+    captured = np.concatenate([seen_surface(T, box_part), lid])
+    grasps = suction_grasps(box_part, settings)
+
+    def plan(fallback_deg):
+        cones = settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
+        return plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, cones)
+
+    (pick,) = plan(60.0).picks
+    assert pick.T_cam_from_grasp[:3, 2] == pytest.approx(-at_50, abs=1e-6)
+    assert any(CAPTURED in r.reason for r in plan(60.0).rejected)  # the 40-degree face, tried first
+    narrow = plan(None)
+    assert not narrow.picks and CAPTURED in narrow.unpicked[0][1]
+
+
 def test_symmetry_expands_grasps_and_drops_repeats(settings):
     g = GraspSet("suction", ["a", "b"], np.stack([tool_frame(np.array([0.01, 0, 0.0]), np.array([0, 0, -1.0])),
                                                   tool_frame(np.array([0.0, 0.0, 0.0]), np.array([0, 0, -1.0]))]), np.zeros(2))
@@ -249,4 +279,15 @@ def test_pick_settings_refuse_a_non_rigid_base_transform(tmp_path):
     path = tmp_path / "params.yaml"
     path.write_text(text)
     with pytest.raises(ParamsError, match="rigid"):
+        load_params(path)
+
+
+def test_pick_settings_refuse_a_fallback_cone_narrower_than_the_cone(tmp_path):
+    from binpick.errors import ParamsError
+
+    text = (ROOT / "params.yaml").read_text()
+    assert "fallback_cone_deg: 65.0" in text
+    path = tmp_path / "params.yaml"
+    path.write_text(text.replace("fallback_cone_deg: 65.0", "fallback_cone_deg: 30.0"))
+    with pytest.raises(ParamsError, match="fallback_cone_deg"):
         load_params(path)
