@@ -13,8 +13,8 @@ A grasp on a detected part is kept when
   the bin is given in params), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
 and its contact is where the camera measured a surface: under a suction cup the captured points
-lie on the contact plane (within the seal tolerance), between a jaw's pads there are captured
-points. A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
+lie on the contact plane (within the seal tolerance) and the plane they span faces the cup,
+between a jaw's pads there are captured points. A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
 max_candidates_per_part). Parts with a pick are ordered by the keys in `order`: `height` (of the
 part's centre above the support plane, in steps of height_tolerance_m, highest first), `score`
 (the pose's, highest first), `clearance` (of the swept gripper, largest first).
@@ -52,6 +52,11 @@ UNSEEN = "contact not where the camera measured the part"
 SEEN_MIN_POINTS = 5
 SEEN_SHARE = 0.7
 SEEN_NOISE_M = 0.001
+# ... and the plane fitted to those points must face the cup: its normal within this of the
+# approach. Over a cup's few millimetres the share test alone passes a contact tilted by 30
+# degrees (a pose turned the wrong way about an edge), where no cup seals; the fitted normal of
+# a measured patch is a few degrees off at the sensor's noise.
+SEEN_MAX_TILT_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -284,7 +289,11 @@ def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captur
         return False
     local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
     if kind == "suction":
-        return bool(np.mean(np.abs(local[:, 2]) <= params.suction.max_deviation_m + SEEN_NOISE_M) >= SEEN_SHARE)
+        if np.mean(np.abs(local[:, 2]) <= params.suction.max_deviation_m + SEEN_NOISE_M) < SEEN_SHARE:
+            return False
+        # The normal of the measured patch: the direction of least spread of its points.
+        normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
+        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG)))
     between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
     return int(between.sum()) >= SEEN_MIN_POINTS
 

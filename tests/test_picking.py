@@ -185,6 +185,26 @@ def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, s
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
+def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, settings):
+    """Measured points on the cup's contact plane within its seal tolerance are not enough: a
+    patch tilted 30 degrees from the approach (a pose turned the wrong way about an edge) has
+    three quarters of the cup's points that close to the plane, and no cup seals on it."""
+    top = GraspSet("suction", ["top"], tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1))
+    T = lying(0.0, 0.0)
+    contact = transform_points(T, np.array([[0.0, 0.0, EXTENTS[2] / 2]]))[0]
+    a, b = np.meshgrid(np.linspace(-0.008, 0.008, 33), np.linspace(-0.008, 0.008, 33))
+
+    def patch(tilt_deg):
+        R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg))
+        return contact + np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T
+
+    for tilt_deg, picked in ((0.0, True), (8.0, True), (30.0, False)):
+        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.centre_m, patch(tilt_deg), FLOOR, settings)
+        assert bool(plan.picks) == picked, tilt_deg
+        if not picked:
+            assert "not where the camera measured" in plan.unpicked[0][1]
+
+
 def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, settings):
     only_side = GraspSet("suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1))
     T = lying(0.0, 0.0)
