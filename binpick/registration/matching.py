@@ -7,6 +7,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
@@ -137,15 +139,26 @@ def match_scene(
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))
             settled = np.concatenate([settled, T[None]])
-            # Done when what is left unexplained could no longer hold a part (the test that
-            # starts the pass after known poses).
+            # Done when what is left unexplained could no longer hold a part: no connected
+            # patch of it holds min_free points (the pass's entry test, per patch: the edges
+            # and slivers that poses leave unexplained hold no part).
             take(T)
-            if (~taken).sum() < min_free:
+            if _largest_patch(pts[~taken], 2.0 * scales.sample_step_m) < min_free:
                 break
     claimed = np.zeros(len(fine), bool)
     for T in known:
         claimed[explained(np.asarray(T))] = True
     return [estimates[k] for k in suppress_by_support([e.score for e in estimates], support, claimed)][:max_instances]
+
+
+def _largest_patch(points: np.ndarray, link_m: float) -> int:
+    """Points (n, 3) in the largest connected patch, points closer than link_m linked."""
+    if len(points) < 2:
+        return len(points)
+    pairs = cKDTree(points).query_pairs(link_m, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
+    _, label = connected_components(graph, directed=False)
+    return int(np.bincount(label).max())
 
 
 def suppress_duplicates(
