@@ -86,14 +86,9 @@ def _close(A: np.ndarray, B: np.ndarray, rotation_deg: float, translation_m: flo
     return close_t & (cos > np.cos(np.radians(rotation_deg)))
 
 
-def _near(poses: np.ndarray, T: np.ndarray, rotation_deg: float, translation_m: float) -> np.ndarray:
-    """(n,) mask of the poses (n, 4, 4) within translation_m AND rotation_deg of T."""
-    return _close(poses, T[None], rotation_deg, translation_m)[:, 0]
-
-
 def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
     """Whether two poses of the part agree within the thresholds, up to the part's symmetries."""
-    return bool(_near(T_a[None] @ model.symmetries, T_b, rotation_deg, translation_m).any())
+    return repeats_any(model, T_a, T_b[None], rotation_deg, translation_m)
 
 
 def repeats_any(model: PPFModel, T: np.ndarray, poses: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
