@@ -7,14 +7,15 @@ from __future__ import annotations
 import logging
 
 import numpy as np
+from numba import njit
 
 from binpick.errors import BinpickError
-from binpick.geometry.pointcloud import fit_plane_ransac, statistical_outliers
-from binpick.geometry.transforms import invert_T, transform_points
+from binpick.geometry.pointcloud import first_in_each_voxel, fit_plane_ransac, statistical_outliers
+from binpick.geometry.transforms import invert_T
 from binpick.io.cloud import CleanCloud
 from binpick.params import ImportCaptureParams
 from binpick.registration.visibility import depth_view
-from binpick.view import ViewParams, view_grid, view_normals
+from binpick.view import ViewParams, view_normals
 
 log = logging.getLogger(__name__)
 
@@ -81,19 +82,20 @@ def clean_capture(
     xyz = np.asarray(xyz_m)
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"expected xyz (n, 3), got {xyz.shape}")
-    # Work on valid pixels only from here: a Zivid frame is millions of pixels, many empty. (A
-    # coordinate's NaN or inf makes the sum NaN or inf: one test instead of three; the columns
-    # are added one by one because numpy's reductions along the short axis of an (n, 3) array
-    # are several times slower.)
-    valid = np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2])
-    index = np.flatnonzero(valid)
-    if len(index) == 0:
+    # One pass over the frame (millions of pixels, many empty, most of the rest on the floor)
+    # tests every point and keeps the first in range and region of each cell of the view grid:
+    # the rest of the cleaning sees thousands of points. Numpy took six passes and four copies.
+    view = ViewParams.of_import(params)
+    roi = params.roi_min_m is not None and params.roi_max_m is not None
+    T_roi_from_cam = invert_T(np.asarray(params.T_cam_from_roi, dtype=np.float64)) if params.T_cam_from_roi is not None else np.eye(4)
+    screen = _screen(
+        xyz, params.min_range_m**2, params.max_range_m**2, roi, np.ascontiguousarray(T_roi_from_cam[:3, :3]), T_roi_from_cam[:3, 3].copy(),
+        np.asarray(params.roi_min_m if roi else (0.0, 0.0, 0.0), np.float64), np.asarray(params.roi_max_m if roi else (0.0, 0.0, 0.0), np.float64),
+        1.0 / view.voxel_size_m,
+    )
+    valid, keep, lo, hi, key_lo, key_hi, n_valid_px, n_keep = screen
+    if n_valid_px == 0:
         raise BinpickError("the capture holds no valid point (all NaN or empty)")
-    # Single precision until the voxel grid: the range and region tests and the grid need no
-    # more than a float32's 0.1 um at a few metres, and half the memory traffic.
-    xyz = xyz[index].astype(np.float32, copy=False)
-    lo = np.array([xyz[:, a].min() for a in range(3)], dtype=np.float64)  # per column: see above
-    hi = np.array([xyz[:, a].max() for a in range(3)], dtype=np.float64)
     extent = float(np.max(hi - lo))
     if extent > params.max_scene_extent_m:
         raise BinpickError(
@@ -102,22 +104,17 @@ def clean_capture(
         )
     # What the camera saw, before anything is removed: registration checks poses against it.
     seen = depth_view(xyz_m, frame_shape, params.voxel_size_m, valid)
-    range2 = np.einsum("ij,ij->i", xyz, xyz)
-    keep = (range2 >= params.min_range_m**2) & (range2 <= params.max_range_m**2)
-    if params.roi_min_m is not None and params.roi_max_m is not None:
-        in_roi = xyz
-        if params.T_cam_from_roi is not None:
-            in_roi = transform_points(invert_T(np.asarray(params.T_cam_from_roi, dtype=np.float64)), xyz.astype(np.float64))
-        keep &= np.all((in_roi >= params.roi_min_m) & (in_roi <= params.roi_max_m), axis=1)
-    if int(keep.sum()) < MIN_POINTS:
-        raise BinpickError(f"only {int(keep.sum())} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
-    pts, idx = xyz[keep], index[keep]
-    del xyz
+    if n_keep < MIN_POINTS:
+        raise BinpickError(f"only {n_keep} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
     # The voxel grid comes first: planes are fitted at the density the segmentation works at,
     # shares are shares of that, and RANSAC runs on thousands instead of millions of points.
-    view = ViewParams.of_import(params)
-    sub = view_grid(pts, view)
-    pts, idx = pts[sub].astype(np.float64), idx[sub]
+    # It is view_grid's grid (the first point of each voxel) over the kept points.
+    span = key_hi - key_lo + 1
+    kept, flat = _kept_voxel_keys(xyz, keep, n_keep, key_lo, span, 1.0 / view.voxel_size_m)
+    idx = kept[first_in_each_voxel(flat, int(np.prod(span)))]
+    # Single precision up to here, as the range and region tests and the grid work (a float32's
+    # 0.1 um at a few metres is plenty); double from here on.
+    pts = xyz[idx].astype(np.float32).astype(np.float64)
     n_valid = len(pts)
     if n_valid < MIN_POINTS:
         # Identical or nearly identical points (a stuck sensor, an export of one point) collapse
@@ -195,3 +192,67 @@ def clean_capture(
         seen_depth_m=seen.depth_m,
         seen_K=seen.K,
     )
+
+
+@njit(cache=True)
+def _screen(xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam, roi_min, roi_max, inv_voxel):  # pragma: no cover - numba
+    """One pass over a capture's points (n, 3), camera frame, metres: valid (n,) bool (all three
+    coordinates finite); keep (n,) bool (valid, range squared within [range2_min, range2_max]
+    and, with use_roi, inside the box [roi_min, roi_max] of the ROI frame); the extent of the
+    valid points (lo, hi per axis); the voxel key bounds (per axis) of the kept points; the
+    number of valid and kept points. Tests and keys in single precision (see clean_capture)."""
+    n = len(xyz)
+    valid = np.zeros(n, np.bool_)
+    keep = np.zeros(n, np.bool_)
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    key_lo = np.full(3, np.iinfo(np.int64).max)
+    key_hi = np.full(3, np.iinfo(np.int64).min)
+    n_valid = 0
+    n_keep = 0
+    p = np.empty(3, np.float32)
+    for i in range(n):
+        if not np.isfinite(xyz[i, 0] + xyz[i, 1] + xyz[i, 2]):
+            continue
+        valid[i] = True
+        n_valid += 1
+        for a in range(3):
+            p[a] = np.float32(xyz[i, a])
+            lo[a] = min(lo[a], np.float64(p[a]))
+            hi[a] = max(hi[a], np.float64(p[a]))
+        range2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+        if range2 < range2_min or range2 > range2_max:
+            continue
+        if use_roi:
+            inside = True
+            for a in range(3):
+                v = R_roi_from_cam[a, 0] * np.float64(p[0]) + R_roi_from_cam[a, 1] * np.float64(p[1]) + R_roi_from_cam[a, 2] * np.float64(p[2]) + t_roi_from_cam[a]
+                if v < roi_min[a] or v > roi_max[a]:
+                    inside = False
+            if not inside:
+                continue
+        keep[i] = True
+        n_keep += 1
+        for a in range(3):
+            k = np.int64(np.floor(np.float64(p[a]) * inv_voxel))
+            key_lo[a] = min(key_lo[a], k)
+            key_hi[a] = max(key_hi[a], k)
+    return valid, keep, lo, hi, key_lo, key_hi, n_valid, n_keep
+
+
+@njit(cache=True)
+def _kept_voxel_keys(xyz, keep, n_keep, key_lo, span, inv_voxel):  # pragma: no cover - numba
+    """The indices (n_keep,) of the kept points and their flat voxel keys (x fastest), as
+    geometry.pointcloud keys them, from the single-precision coordinates."""
+    kept = np.empty(n_keep, np.int64)
+    flat = np.empty(n_keep, np.int64)
+    m = 0
+    for i in range(len(xyz)):
+        if keep[i]:
+            kx = np.int64(np.floor(np.float64(np.float32(xyz[i, 0])) * inv_voxel)) - key_lo[0]
+            ky = np.int64(np.floor(np.float64(np.float32(xyz[i, 1])) * inv_voxel)) - key_lo[1]
+            kz = np.int64(np.floor(np.float64(np.float32(xyz[i, 2])) * inv_voxel)) - key_lo[2]
+            kept[m] = i
+            flat[m] = (kz * span[1] + ky) * span[0] + kx
+            m += 1
+    return kept, flat

@@ -150,3 +150,36 @@ def test_points_outside_the_bin_walls_are_dropped():
     assert (kept == 0).sum() > 50 and (kept == 1).sum() == 0  # the part stays, the carton goes
     uncropped = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(params, crop_to_walls=False), 0)
     assert (frame.labels.reshape(-1)[uncropped.pixel_index] == 1).sum() > 50  # it was there to drop
+
+
+def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region():
+    """The fused pass of clean_capture against its definition in plain numpy: valid points,
+    range within [min, max], inside the ROI box of the bin frame, then view_grid's first point
+    per voxel. The same pixels, in the same order."""
+    from binpick.cleaning import _kept_voxel_keys, _screen
+    from binpick.geometry.pointcloud import first_in_each_voxel
+    from binpick.geometry.transforms import invert_T, transform_points
+    from binpick.view import ViewParams, view_grid
+
+    xyz, _ = _bin_frame()
+    xyz[::7] *= 5.0  # some pixels out of range (2.5 m)
+    T_roi_from_cam = invert_T(np.array([[0.8, -0.6, 0, 0.01], [0.6, 0.8, 0, -0.02], [0, 0, 1, 0.45], [0, 0, 0, 1.0]]))
+    lo, hi = np.array([-0.04, -0.03, -0.01]), np.array([0.05, 0.02, 0.2])
+    params = PARAMS.import_capture
+    voxel = ViewParams.of_import(params).voxel_size_m
+
+    valid = np.isfinite(xyz).all(axis=1)
+    r = np.linalg.norm(xyz.astype(np.float64), axis=1)
+    in_box = np.all((transform_points(T_roi_from_cam, xyz.astype(np.float64)) >= lo) & (transform_points(T_roi_from_cam, xyz.astype(np.float64)) <= hi), axis=1)
+    keep = valid & (r >= params.min_range_m) & (r <= params.max_range_m) & in_box
+    expected = np.flatnonzero(keep)[view_grid(xyz[keep], ViewParams.of_import(params))]
+
+    got_valid, got_keep, lo_xyz, hi_xyz, key_lo, key_hi, n_valid, n_keep = _screen(
+        xyz, params.min_range_m**2, params.max_range_m**2, True, np.ascontiguousarray(T_roi_from_cam[:3, :3]), T_roi_from_cam[:3, 3].copy(), lo, hi, 1.0 / voxel
+    )
+    assert np.array_equal(got_valid, valid) and np.array_equal(got_keep, keep) and n_valid == valid.sum() and n_keep == keep.sum()
+    assert np.allclose(lo_xyz, np.nanmin(xyz, axis=0)) and np.allclose(hi_xyz, np.nanmax(xyz, axis=0))
+    span = key_hi - key_lo + 1
+    kept, flat = _kept_voxel_keys(xyz, got_keep, n_keep, key_lo, span, 1.0 / voxel)
+    assert 100 < len(expected) < keep.sum()
+    assert np.array_equal(kept[first_in_each_voxel(flat, int(np.prod(span)))], expected)

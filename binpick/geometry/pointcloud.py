@@ -39,7 +39,11 @@ def voxel_downsample_indices(points: np.ndarray, voxel_size_m: float) -> np.ndar
     points = _check_points(points)
     if voxel_size_m <= 0 or len(points) == 0:
         return np.arange(len(points))
-    flat, n_cells = _voxel_keys(points, 1.0 / voxel_size_m)
+    return first_in_each_voxel(*_voxel_keys(points, 1.0 / voxel_size_m))
+
+
+def first_in_each_voxel(flat: np.ndarray, n_cells: int) -> np.ndarray:
+    """Indices (m,), sorted, of the first entry of each distinct flat voxel key (n,) int64 in [0, n_cells)."""
     if n_cells <= DENSE_VOXEL_CELLS:
         return _first_in_cell(flat, n_cells)
     _, first = np.unique(flat, return_index=True)
