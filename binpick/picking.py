@@ -37,6 +37,8 @@ from binpick.params import PickParams
 
 # Clearance is measured up to this far (a gripper in free space reports this).
 CLEARANCE_CAP_M = 0.05
+# ... by searches this wide first (then up to the cap), the nearest found in the first that finds one.
+CLEARANCE_SEARCH_M = (0.01, 0.02)
 # Obstacle points are thinned to a grid of this share of the clearance (at least 1 mm): closer
 # points add nothing a gripper of millimetres could slip between.
 OBSTACLE_GRID_M = 0.001
@@ -310,14 +312,22 @@ def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, pla
             hit.add(FLOOR)
     if tree is not None:
         # Hits first, from the few points within clearance_m of the body; the clearance, which
-        # looks CLEARANCE_CAP_M far (tens of thousands of points), only for a grasp that passes.
+        # may look CLEARANCE_CAP_M far (tens of thousands of points), only for a grasp that passes.
         d, src = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, clearance_m)
         for s in np.unique(src[d < clearance_m]):
             hit.add(CAPTURED if s == -1 else BIN if s == -2 else str(int(s)))
+        # The clearance by widening searches: a nearest point found within a search's margin is
+        # the nearest of all (every point within the margin is gathered), so the wide, costly
+        # search runs only for a grasp with nothing near it, and none beyond the floor's distance.
         if not hit:
-            d, _ = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, CLEARANCE_CAP_M)
-            if len(d):
-                clearance = min(clearance, float(d.min()))
+            for margin in (*CLEARANCE_SEARCH_M, clearance):
+                margin = min(margin, clearance)
+                d, _ = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, margin)
+                if len(d) and float(d.min()) <= margin:
+                    clearance = float(d.min())
+                    break
+                if margin >= clearance:
+                    break
     return hit, float(clearance)
 
 

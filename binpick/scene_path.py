@@ -30,7 +30,7 @@ from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
 from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
 from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
-from binpick.registration.matching import match_scene, match_segment, suppress_duplicates
+from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.verification import seen_through
 from binpick.registration.visibility import DepthView
 from binpick.seeding import derive_int, derive_seed
@@ -99,9 +99,10 @@ class SceneSeeds:
 
 @dataclass(frozen=True)
 class Registration:
-    """poses: best first within each source (segments, then whole scene); n_segments: segments
-    matched; n_duplicates_suppressed: segment poses dropped as repeats; per_instance_ms: matching
-    time per segment (whole-scene time shared among its poses)."""
+    """poses: best first within each source (segments, then whole scene); n_segments: segments;
+    n_duplicates_suppressed: segment poses dropped as repeats, and segments not matched because
+    a pose found already explains them; per_instance_ms: matching time per segment matched
+    (whole-scene time shared among its poses)."""
 
     poses: list[PartPose]
     n_segments: int
@@ -154,8 +155,16 @@ def register(
         if labels is None:
             raise ValueError(f"registration mode {mode!r} needs segment labels")
         found: list[PartPose] = []
-        for seg in range(n_segments):
+        # Largest segments first: a part split in two is then found on its larger piece, and the
+        # smaller one, which the pose explains, is not matched again (it would repeat the pose,
+        # and suppression would drop it).
+        sizes = np.bincount(labels[labels >= 0], minlength=n_segments)
+        n_explained = 0
+        for seg in np.argsort(-sizes, kind="stable").tolist():
             mask = labels == seg
+            if found and explained_by(ppf, cloud.points_m[mask], params, [f.T_cam_from_model for f in found]):
+                n_explained += 1
+                continue
             t = time.perf_counter()
             est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params, rng)
             per_instance_ms.append(1000.0 * (time.perf_counter() - t))
@@ -163,7 +172,7 @@ def register(
                 found.append(replace(est, segment=seg))
         kept = suppress_duplicates(ppf, found, params, cloud.points_m)
         poses = [found[k] for k in kept]
-        n_duplicates = len(found) - len(kept)
+        n_duplicates = len(found) - len(kept) + n_explained
     if mode in ("whole_scene", "segments_then_scene"):
         t = time.perf_counter()
         more = match_scene(ppf, cloud.points_m, cloud.normals, params, rng, params.max_instances, known=[p.T_cam_from_model for p in poses])

@@ -128,6 +128,24 @@ def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, 
     assert pick.height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-4)
 
 
+def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, settings):
+    """One obstacle point beside the tool, 60 mm above the grasp, at a known distance from the
+    tool's cylinder (radius tool_radius_m): the pick reports that distance as its clearance, in
+    each range the widening search covers, and the cap when nothing is near (no floor given)."""
+    grasps = suction_grasps(box_part, settings)
+    T = lying(0.0, 0.0)
+    seen = seen_surface(T, box_part)
+    no_floor = np.full(4, np.nan)
+    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, seen, no_floor, settings).picks[0]
+    assert alone.clearance_m == pytest.approx(0.05)  # the cap
+    G = alone.T_cam_from_grasp
+    for gap in (0.006, 0.015, 0.035):
+        point = G[:3, 3] - 0.06 * G[:3, 2] + (settings.suction.tool_radius_m + gap) * G[:3, 0]
+        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, np.vstack([seen, point]), no_floor, settings)
+        assert plan.picks[0].grasp_id == alone.grasp_id
+        assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
+
+
 def test_a_gripper_into_a_neighbour_is_refused(box_part, settings):
     grasps = suction_grasps(box_part, settings)
     target = lying(0.0, 0.0)

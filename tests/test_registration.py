@@ -137,3 +137,22 @@ def test_scene_pairs_match_the_training_features():
     assert len(keys) == len(second) > 1000
     assert np.array_equal(keys, _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), step, bins))
     assert np.allclose(alpha, _alpha(T[first], pts[second]), atol=1e-9)
+
+
+def test_a_segment_a_found_pose_explains_is_a_fragment_and_one_holding_another_part_is_not(t_joint, ppf):
+    """Segments cut from a rendered scene by its true labels: a part's own points are explained
+    by its true pose, not by a pose turned away or by another part's; its points together with a
+    second part's are not explained by the first part's pose alone."""
+    from binpick.registration.matching import explained_by
+
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4)
+    xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
+    a, b = np.argsort(-scene.visible_fraction)[:2]
+    part_a = xyz[(labels == a) & np.isfinite(xyz[:, 2])].astype(np.float64)
+    part_b = xyz[(labels == b) & np.isfinite(xyz[:, 2])].astype(np.float64)
+    T_a, T_b = scene.T_cam_from_model[a], scene.T_cam_from_model[b]
+    turned = T_a @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(40)), np.zeros(3))
+    reg = PARAMS.registration
+    assert explained_by(ppf, part_a, reg, [T_a]) and explained_by(ppf, part_a, reg, [T_b, T_a])
+    assert not explained_by(ppf, part_a, reg, []) and not explained_by(ppf, part_a, reg, [turned]) and not explained_by(ppf, part_a, reg, [T_b])
+    assert not explained_by(ppf, np.concatenate([part_a, part_b]), reg, [T_a])

@@ -33,6 +33,9 @@ MAX_SHARED_SUPPORT = 0.3
 # and not at all when those are fewer than this share of the model's points on the voting grid
 # (less than a fifth of a part's surface: edges and noise, no part the pass could fit).
 MIN_FREE_SHARE = 0.2
+# A segment this share of whose points (voting grid) poses found on larger segments explain is
+# a fragment of those parts and is not matched (the rest of it could not hold a part either).
+SEGMENT_EXPLAINED_SHARE = 0.8
 # ICP stops when fitness and RMSE change by less than this, relative.
 ICP_RELATIVE_CHANGE = 1e-4
 

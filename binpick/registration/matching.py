@@ -24,6 +24,7 @@ from binpick.registration.constants import (
     MIN_FREE_SHARE,
     SCENE_CLUSTERS_PER_INSTANCE,
     SCENE_REFS_PER_CHUNK,
+    SEGMENT_EXPLAINED_SHARE,
     TOP_CLUSTERS,
     Scales,
 )
@@ -54,7 +55,9 @@ def match_segment(
     scene_tree = cKDTree(scene_points)
     # Each strong cluster is refined by coarse ICP (on a subsample of the model) and scored;
     # comparing clusters only after ICP keeps a pose slid along a long part from winning. The
-    # FINE_CLUSTERS best get the fine ICP and are scored again.
+    # FINE_CLUSTERS best get the fine ICP and are scored again. (Two clusters that coarse ICP
+    # brings within the clustering tolerance both get it: dropping the second cost accuracy,
+    # median translation error 0.16 -> 0.19 mm in bench ppf.)
     coarse: list[tuple[float, np.ndarray]] = []
     for T, _ in cluster_poses(candidates, model, params, MAX_CLUSTER_CANDIDATES)[:TOP_CLUSTERS]:
         T = refine_icp(model, T, scene_points, scales.coarse_icp_m, params.icp_iterations, COARSE_STRIDE)
@@ -66,6 +69,25 @@ def match_segment(
         if best is None or score > best.score:
             best = PartPose(T_cam_from_model=T, score=score)
     return best
+
+
+def explained_by(
+    model: PPFModel, scene_points: np.ndarray, params: RegisterParams, known: Sequence[np.ndarray]
+) -> bool:
+    """Whether the known poses T_cam_from_model explain the scene points (n, 3, camera frame):
+    on the voting grid, at least SEGMENT_EXPLAINED_SHARE of them lie within match_scene's take
+    distance of a known pose's surface, and what is left could not hold a part (fewer than
+    MIN_FREE_SHARE of the model's voting-grid points). A segment so explained is a fragment of a
+    part found already."""
+    if len(known) == 0:
+        return False
+    scales = Scales.of(model.diameter_m, params)
+    pts = scene_points[voxel_downsample_indices(scene_points, scales.sample_step_m)]
+    taken = np.zeros(len(pts), bool)
+    tree = cKDTree(pts)
+    for T in known:
+        taken[explained_points(model, np.asarray(T), pts, tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
+    return bool(taken.mean() >= SEGMENT_EXPLAINED_SHARE) and int((~taken).sum()) < MIN_FREE_SHARE * len(model.points_m)
 
 
 def match_scene(
