@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 LOCK := .ci/requirements.lock
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup sysdeps demo test lint lock repro clean-runs
+.PHONY: setup sysdeps demo test test-slow lint lock repro clean-runs
 
 setup: sysdeps $(STAMP)
 
@@ -27,8 +27,13 @@ $(STAMP): pyproject.toml $(LOCK)
 demo: setup
 	$(BIN)/binpick demo
 
+# The suite without the end-to-end runs (marker `slow`: Prefect flows driving DVC stage processes,
+# served schedules; about 12 minutes on 2 CPU cores), which test-slow runs and CI runs after it.
 test: lint
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -m "not slow"
+
+test-slow: setup
+	$(BIN)/python -m pytest -q -m slow
 
 # ruff (pyflakes, pycodestyle, import order, bugbear, no print) on everything; mypy on the library.
 lint: setup

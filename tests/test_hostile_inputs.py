@@ -137,6 +137,7 @@ def test_the_whole_settings_file_is_validated(project, case):
     assert not (project / "data/models/x").exists()
 
 
+@pytest.mark.slow
 def test_a_failing_capture_is_set_aside_and_blocks_nothing(project):
     """A capture whose import fails is set aside: reported with its stage's own error line, left out
     of the pipeline DVC sees, not retried until the file changes, and no traceback is shown."""

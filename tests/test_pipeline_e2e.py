@@ -108,6 +108,7 @@ def test_watcher_trains_a_new_part_and_skips_unchanged_ones(project):
     assert (project / "data/metrics/bracket_block/evaluate.json").is_file()
 
 
+@pytest.mark.slow
 def test_models_are_registered_and_the_accepted_alias_points_at_the_checkpoint(project):
     """After the runs above: every training registered a version of fpcc-<part>, and evaluation
     (thresholds 0 in the tiny profile) pointed the alias at the version of the current model.pt."""
