@@ -51,6 +51,14 @@ def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | N
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
     log.info("%s: %d scenes in %s, %.1f objects per scene", part.name, len(jobs), out, metrics["objects_per_scene_mean"])
+    if metrics["objects_per_scene_mean"] < g.placement.n_objects_min:
+        # The bin or the view is too small for the part: few scenes hold a part, some none.
+        log.warning(
+            "%s: only %.1f of the %d to %d objects per scene were placed (fewest %d): does the part (%.3f m across) fit the bin "
+            "(generate.bin) and the camera's view (camera.distance_m)? Give the part its own in its params entry.",
+            part.name, metrics["objects_per_scene_mean"], g.placement.n_objects_min, g.placement.n_objects_max, int(metrics["objects_per_scene_min"]),
+            part.diameter_m,
+        )
     return metrics
 
 

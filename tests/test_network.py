@@ -303,3 +303,28 @@ def test_segment_params_override_calibrated_thresholds():
     assert cluster_params(PARAMS.segment, 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults
     assert cluster_params(changed(PARAMS.segment, min_points=25), 0.1, None).min_points == 25
     assert cluster_params(changed(PARAMS.segment, min_instance_points=80), 0.1, calibrated).min_points == 80
+
+
+def test_scenes_that_show_no_part_are_left_out_of_training_and_none_at_all_is_refused(tmp_path, t_joint, caplog):
+    """A part too big for the bin gets scenes with no part in them: training leaves those out
+    (with a warning) instead of failing on an empty crop, and refuses a folder of only those."""
+    import dataclasses
+
+    from binpick.errors import InputError
+    from binpick.generation.scene import generate_scene
+    from binpick.io.scene import save_scene
+    from binpick.network.train import load_views
+    from binpick.view import ViewParams
+
+    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=8), ViewParams(0.002, 0.006), seed=3, n_objects=2)
+    empty = dataclasses.replace(scene, view_points_m=np.zeros((0, 3), np.float32), view_normals=np.zeros((0, 3), np.float32),
+                                view_labels=np.zeros(0, np.int16))
+    save_scene(tmp_path / "mixed" / "scene_000000.npz", scene, png=False)
+    save_scene(tmp_path / "mixed" / "scene_000001.npz", empty, png=False)
+    save_scene(tmp_path / "none" / "scene_000000.npz", empty, png=False)
+    with caplog.at_level("WARNING", logger="binpick.network.train"):
+        views = load_views(tmp_path / "mixed")
+    assert len(views) == 1 and len(views.points[0]) == len(scene.view_points_m) > 0
+    assert "1 of 2 scenes show no part" in caplog.text
+    with pytest.raises(InputError, match="no scene shows the part"):
+        load_views(tmp_path / "none")

@@ -60,6 +60,13 @@ def load_views(folder: Path) -> Views:
     scenes = [load_scene(p) for p in list_scenes(folder)]
     if not scenes:
         raise InputError(folder, "holds no scene_*.npz files (run the generate stage first)")
+    # A scene where no part is seen (none could be placed, or none is in view) has nothing to learn from.
+    seen = [s for s in scenes if len(s.view_points_m)]
+    if not seen:
+        raise InputError(folder, "no scene shows the part (does it fit the bin, generate.bin, and the camera's view, camera.distance_m?)")
+    if len(seen) < len(scenes):
+        log.warning("%s: %d of %d scenes show no part and are left out", folder, len(scenes) - len(seen), len(scenes))
+    scenes = seen
     return Views(
         points=[s.view_points_m for s in scenes],
         normals=[s.view_normals for s in scenes],
