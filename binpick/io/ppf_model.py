@@ -43,6 +43,13 @@ class PPFModel:
         """A k-d tree of dense_points_m (model frame), built on first use and kept with the model."""
         return cKDTree(self.dense_points_m)
 
+    @cached_property
+    def dense_normal_dot_point(self) -> np.ndarray:
+        """(D,) n . p of each dense point and its normal (model frame, metres), kept with the model:
+        at pose (R, t) a point faces the camera at the origin when n . p + n . (R^T t) < 0."""
+        n, p = self.dense_normals.astype(np.float64), self.dense_points_m.astype(np.float64)
+        return n[:, 0] * p[:, 0] + n[:, 1] * p[:, 1] + n[:, 2] * p[:, 2]
+
 
 def save_ppf_model(path: str | Path, model: PPFModel) -> None:
     save_fields(path, model, compressed=False)  # loaded on every registration: no inflating

@@ -55,10 +55,9 @@ def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView,
 def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:
     """Mask of the dense model points (every stride-th) whose normal faces the camera (at the
     origin) at this pose."""
-    pts, nrm = model.dense_points_m[::stride], model.dense_normals[::stride]
-    p = pts @ T_cam_from_model[:3, :3].T + T_cam_from_model[:3, 3]
-    n = nrm @ T_cam_from_model[:3, :3].T
-    return np.sum(n * p, axis=1) < 0
+    # (R n) . (R p + t) = n . p + n . (R^T t): one product per point instead of moving them all.
+    R, t = T_cam_from_model[:3, :3], T_cam_from_model[:3, 3]
+    return model.dense_normal_dot_point[::stride] + model.dense_normals[::stride] @ (R.T @ t) < 0
 
 
 def refine_icp(
