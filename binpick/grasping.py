@@ -25,6 +25,7 @@ from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.grasps import GraspSet, tool_frame
 from binpick.io.part_model import PartModel
 from binpick.params import PickParams
+from binpick.parts import sample_surface
 
 log = logging.getLogger(__name__)
 
@@ -35,6 +36,12 @@ LIP_SECTORS = 12
 LIP_RING = 0.8
 # Candidate surface points tried: about this many, spread over the part.
 N_CANDIDATES = 1500
+# The patch under the cup is read from a surface sample with about this many points per cup disc:
+# a large part's sample at the ingest's fixed count (20,000 points on the 0.44 m gear shaft: about
+# 11 per disc of a 5 mm cup) is too sparse to show the lip, and the patch search resamples the
+# mesh, up to MAX_PATCH_POINTS points.
+POINTS_PER_CUP = 6 * LIP_SECTORS
+MAX_PATCH_POINTS = 1_000_000
 # The part's own surface points checked against the gripper (every k-th of the dense sample).
 SELF_CHECK_POINTS = 6000
 # Approach directions tried around a jaw grasp's closing axis.
@@ -76,7 +83,8 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     s = params.suction
     pts = np.asarray(part.points_m, dtype=np.float64)
     nrm = np.asarray(part.normals, dtype=np.float64)
-    tree = cKDTree(pts)
+    patch_pts, patch_nrm = _patch_surface(part, s.cup_radius_m)
+    tree = cKDTree(patch_pts)
     cos_max = np.cos(np.radians(s.max_normal_deg))
     body = swept(gripper_primitives(params, "suction"), params.pregrasp_distance_m)
     com = centre_of_mass(part)
@@ -85,10 +93,10 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         c, n = pts[i], nrm[i]
         near = np.asarray(tree.query_ball_point(c, s.cup_radius_m))
         # The patch under the cup is the surface facing it: a thin wall's far side is not.
-        near = near[nrm[near] @ n > 0.0] if len(near) else near
+        near = near[patch_nrm[near] @ n > 0.0] if len(near) else near
         if len(near) < 3 * LIP_SECTORS:
             continue
-        q, qn = pts[near] - c, nrm[near]
+        q, qn = patch_pts[near] - c, patch_nrm[near]
         if np.max(np.abs(q @ n)) > s.max_deviation_m or np.min(qn @ n) < cos_max:
             continue
         # The lip all around: points in every sector of the outer ring of the disc.
@@ -119,6 +127,22 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     kept = _spread(order, pts, s.cup_radius_m, params.max_grasps)
     Ts = np.array([tool_frame(pts[i], -nrm[i]) for i in kept])
     return GraspSet("suction", [f"s{k}" for k in range(len(kept))], Ts, np.zeros(len(kept)))
+
+
+def _patch_surface(part: PartModel, cup_radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Surface points (n, 3) and unit normals (n, 3), model frame, dense enough to read the patch
+    under a cup of this radius: the part's own sample, or a sample of its mesh with about
+    POINTS_PER_CUP points per cup disc (a fixed seed: the grasps are a function of the part)."""
+    pts = np.asarray(part.points_m, dtype=np.float64)
+    nrm = np.asarray(part.normals, dtype=np.float64)
+    mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
+    needed = int(np.ceil(mesh.area * POINTS_PER_CUP / (np.pi * cup_radius_m**2)))
+    if needed <= len(pts):
+        return pts, nrm
+    n = min(needed, MAX_PATCH_POINTS)
+    log.info("%s: %d surface points for the suction patches (the part's sample holds %d)", part.name, n, len(pts))
+    dense, dense_nrm = sample_surface(part.mesh_vertices_m, part.mesh_faces, n, np.random.default_rng(0))
+    return dense.astype(np.float64), dense_nrm.astype(np.float64)
 
 
 def jaw_grasps(part: PartModel, params: PickParams) -> GraspSet:

@@ -69,6 +69,20 @@ def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, setting
     assert np.linalg.norm(grasps.T_model_from_tool[0][:3, 3]) < 0.011
 
 
+def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(settings):
+    """A 0.5 m box with the ingest's 20,000 points holds about 2 points per disc of a 5 mm cup,
+    too few to see its lip: the patches are read from a denser sample of the mesh, and the grasps
+    lie on the faces with the approach into them."""
+    extents = np.array([0.5, 0.3, 0.2])
+    big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    grasps = suction_grasps(big, settings)
+    assert len(grasps) >= 10
+    for T in grasps.T_model_from_tool:
+        p, z = T[:3, 3], T[:3, 2]
+        face = int(np.argmax(np.abs(p) / (extents / 2)))
+        assert abs(abs(p[face]) - extents[face] / 2) < 1e-4 and np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)
+
+
 def test_jaw_grasps_close_across_the_box(box_part, settings):
     grasps = jaw_grasps(box_part, settings)
     assert len(grasps) > 0
