@@ -28,7 +28,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
 import numpy as np
 
@@ -101,6 +101,7 @@ class ServiceProject:
         self.http_port, self.tcp_port = _free_port(), _free_port()
         self.process: subprocess.Popen | None = None
         self.log_file: IO[str] | None = None
+        self._client: Any = None  # httpx.Client, made on the first request
 
     def start(self) -> float:
         """Start the service; returns the moment it was started (time.perf_counter())."""
@@ -131,7 +132,12 @@ class ServiceProject:
     def http(self, part: str, capture: Path) -> dict:
         import httpx
 
-        return httpx.post(f"http://127.0.0.1:{self.http_port}/picks", json={"part": part, "path": str(capture)}, timeout=600).json()
+        # One client kept open, as a cell's controller keeps its connection (and as the line
+        # protocol's client does): a client per request spent 30 ms building its TLS context
+        # and opened a new connection each time.
+        if self._client is None:
+            self._client = httpx.Client(timeout=600)
+        return self._client.post(f"http://127.0.0.1:{self.http_port}/picks", json={"part": part, "path": str(capture)}).json()
 
     def rss_mb(self) -> float:
         assert self.process is not None
@@ -141,6 +147,8 @@ class ServiceProject:
         return float("nan")
 
     def stop(self) -> None:
+        if self._client is not None:
+            self._client.close()
         if self.process is not None and self.process.poll() is None:
             self.process.terminate()
             try:
