@@ -14,10 +14,11 @@ A grasp on a detected part is kept when
   whole model surface, the sides the camera did not see included).
 and its contact is where the camera measured a surface: under a suction cup the captured points
 lie on the contact plane (within the seal tolerance) and the plane they span faces the cup,
-between a jaw's pads there are captured points. A part's pick is its best-ranked grasp that is kept (grasps are tried best first, up to
-max_candidates_per_part). Parts with a pick are ordered by the keys in `order`: `height` (of the
-part's centre above the support plane, in steps of height_tolerance_m, highest first), `score`
-(the pose's, highest first), `clearance` (of the swept gripper, largest first).
+between a jaw's pads there are captured points. A part's pick is its best-ranked grasp that is
+kept (grasps are tried best first, up to max_candidates_per_part). Parts with a pick are ordered
+by the keys in `order`: `height` (of the part's centre above the support plane, in steps of
+height_tolerance_m, highest first), `score` (the pose's, highest first), `clearance` (of the
+swept gripper, largest first).
 A part without a pick says why: every grasp outside the approach cone, or what the grasps hit.
 """
 

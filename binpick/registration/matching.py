@@ -86,8 +86,14 @@ def explained_by(
     taken = np.zeros(len(pts), bool)
     tree = cKDTree(pts)
     for T in known:
-        taken[explained_points(model, np.asarray(T), pts, tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
+        _take(taken, model, T, pts, tree, scales)
     return bool(taken.mean() >= SEGMENT_EXPLAINED_SHARE) and int((~taken).sum()) < MIN_FREE_SHARE * len(model.points_m)
+
+
+def _take(taken: np.ndarray, model: PPFModel, T: np.ndarray, grid_points: np.ndarray, tree: cKDTree, scales: Scales) -> None:
+    """Mark in taken (n,) bool the voting-grid points (n, 3), in `tree`, that the pose T explains
+    (within 1.5 inlier distances of its surface: the grid is coarser than the refine grid)."""
+    taken[explained_points(model, np.asarray(T), grid_points, tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
 
 
 def match_scene(
@@ -114,13 +120,10 @@ def match_scene(
     taken = np.zeros(len(pts), bool)  # voting-grid points a known or found pose explains
     min_free = MIN_FREE_SHARE * len(model.points_m)
 
-    def take(T: np.ndarray) -> None:
-        taken[explained_points(model, np.asarray(T), pts, grid_tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
-
     if len(known):
         # Votes come only from what the known poses leave unexplained: the rest is found.
         for T in known:
-            take(T)
+            _take(taken, model, T, pts, grid_tree, scales)
         free = np.flatnonzero(~taken)
         if len(free) == 0 or len(free) < min_free:
             return []
@@ -164,7 +167,7 @@ def match_scene(
             # Done when what is left unexplained could no longer hold a part: no connected
             # patch of it holds min_free points (the pass's entry test, per patch: the edges
             # and slivers that poses leave unexplained hold no part).
-            take(T)
+            _take(taken, model, T, pts, grid_tree, scales)
             if _largest_patch(pts[~taken], 2.0 * scales.sample_step_m) < min_free:
                 break
     claimed = np.zeros(len(fine), bool)
