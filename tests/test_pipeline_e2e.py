@@ -176,8 +176,13 @@ def _completed_flow_runs(api_url):
 
     body = json.dumps({"flow_runs": {"state": {"type": {"any_": ["COMPLETED"]}}}, "limit": 200}).encode()
     request = urllib.request.Request(f"{api_url}/flow_runs/filter", data=body, headers={"Content-Type": "application/json"})
-    with urllib.request.urlopen(request, timeout=10) as response:
-        return json.loads(response.read())
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return json.loads(response.read())
+    except (TimeoutError, OSError):
+        # On two cores the server shares them with the training it scheduled and can be slow to
+        # answer; a late answer is asked again on the next poll, within the test's deadline.
+        return []
 
 
 @pytest.mark.slow
