@@ -57,6 +57,22 @@ def test_ransac_recovers_a_tilted_plane_among_outliers():
     assert inliers[:3000].mean() > 0.99 and inliers[3000:].mean() < 0.1
 
 
+def test_ransac_finds_the_largest_plane_the_same_way_every_time():
+    """A floor (60 % of the points) and a wall (40 %): the floor, and the very same plane for the
+    same seed (the hypotheses and the stopping point follow the seed, not the threads); the
+    wall's points are not its inliers."""
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-0.3, 0.3, 6000), rng.uniform(-0.3, 0.3, 6000), 0.8 + rng.normal(0, 0.0005, 6000)])
+    wall = np.column_stack([0.3 + rng.normal(0, 0.0005, 4000), rng.uniform(-0.3, 0.3, 4000), rng.uniform(0.5, 0.8, 4000)])
+    pts = np.vstack([floor, wall])
+    first, inliers = fit_plane_ransac(pts, 0.003, 1000, seed=7)
+    assert abs(abs(first[2]) - 1.0) < 1e-3 and abs(abs(first[3]) - 0.8) < 1e-3
+    assert inliers[:6000].mean() > 0.99 and inliers[6000:].mean() < 0.02
+    for _ in range(3):
+        again, again_inliers = fit_plane_ransac(pts, 0.003, 1000, seed=7)
+        assert np.array_equal(again, first) and np.array_equal(again_inliers, inliers)
+
+
 def test_voxel_downsample_keeps_one_point_per_voxel():
     pts = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002], [0.011, 0.0, 0.0], [0.0, 0.0, 0.025]])
     idx = voxel_downsample_indices(pts, 0.01)

@@ -103,25 +103,30 @@ def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray 
 
 # RANSAC scores its hypotheses on at most this many points; inliers and the final fit use all.
 RANSAC_MAX_POINTS = 5000
+# Hypotheses drawn and scored together (one (points x batch) distance matrix); the stopping rule
+# is checked after each batch.
+RANSAC_BATCH = 64
 
 
 def fit_plane_ransac(
     points: np.ndarray, threshold_m: float, iterations: int, seed: int, confidence: float = 0.9999
 ) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC plane (Open3D, stopping early once `confidence` is reached, on a random subset of
-    at most RANSAC_MAX_POINTS points), refined by least squares on its inliers among all points.
-    Returns (plane (4,) a, b, c, d with unit normal and a x + b y + c z + d = 0, inlier mask (n,))."""
+    """RANSAC plane on a random subset of at most RANSAC_MAX_POINTS points, stopping once
+    `confidence` is reached (at most `iterations` hypotheses), refined by least squares on its
+    inliers among all points. Returns (plane (4,) a, b, c, d with unit normal and
+    a x + b y + c z + d = 0, inlier mask (n,)).
+
+    Written here rather than taken from Open3D: its segment_plane scores hypotheses on parallel
+    threads and stops early when one thread's best says so, so the plane it returns depended on
+    the machine's load (the IC-BIN frame's floor came out as the desk on a busy machine). Here the
+    hypotheses, their order and the stopping point follow the seed alone.
+    """
     points = _check_points(points)
     if len(points) < 3:
         raise ValueError("a plane needs at least 3 points")
     rng = np.random.default_rng(seed)
     subset = points if len(points) <= RANSAC_MAX_POINTS else points[rng.choice(len(points), RANSAC_MAX_POINTS, replace=False)]
-    o3d.utility.random.seed(int(seed))
-    plane, _ = _o3d_cloud(subset).segment_plane(
-        distance_threshold=threshold_m, ransac_n=3, num_iterations=iterations, probability=confidence
-    )
-    plane = np.asarray(plane, dtype=np.float64)
-    plane /= np.linalg.norm(plane[:3])
+    plane = _ransac_plane(subset, threshold_m, iterations, confidence, rng)
     inl = np.asarray(points[np.abs(points @ plane[:3] + plane[3]) <= threshold_m], dtype=np.float64)
     if len(inl) >= 3:
         centre = inl.mean(axis=0)
@@ -130,6 +135,41 @@ def fit_plane_ransac(
         plane = np.append(normal, -normal @ centre)
     mask = np.abs(points @ plane[:3] + plane[3]) <= threshold_m
     return plane, mask
+
+
+def _ransac_plane(points: np.ndarray, threshold_m: float, iterations: int, confidence: float, rng: np.random.Generator) -> np.ndarray:
+    """The hypothesis (4,) with the most inliers among points (n, 3) (ties: the smaller inlier
+    error, then the earlier drawn), drawn RANSAC_BATCH at a time until `iterations` are drawn or
+    the standard bound says `confidence` is reached: log(1 - confidence) / log(1 - w^3) for the
+    best inlier share w so far."""
+    n = len(points)
+    best, best_count, best_err = np.array([0.0, 0.0, 1.0, 0.0]), -1, np.inf
+    needed, drawn = iterations, 0
+    while drawn < needed:
+        k = min(RANSAC_BATCH, needed - drawn)
+        a, b, c = (points[rng.integers(0, n, size=k)] for _ in range(3))
+        normal = np.cross(b - a, c - a)
+        length = np.linalg.norm(normal, axis=1)
+        drawn += k
+        ok = length > 1e-12  # three distinct, non-collinear points
+        if not ok.any():
+            continue
+        normal = normal[ok] / length[ok, None]
+        d = -np.einsum("ij,ij->i", normal, a[ok])
+        dist = np.abs(points @ normal.T + d)
+        inlier = dist <= threshold_m
+        count = inlier.sum(axis=0)
+        err = np.where(inlier, dist, 0.0).sum(axis=0) / np.maximum(count, 1)
+        j = int(np.lexsort((np.arange(len(count)), err, -count))[0])
+        if count[j] > best_count or (count[j] == best_count and err[j] < best_err):
+            best, best_count, best_err = np.append(normal[j], d[j]), int(count[j]), float(err[j])
+            share = best_count / n
+            if share >= 1.0:
+                break
+            if share**3 > 1e-12 and confidence < 1.0:
+                bound = np.log(1.0 - confidence) / np.log1p(-(share**3))
+                needed = min(iterations, max(drawn, int(np.ceil(bound))))
+    return best
 
 
 def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) -> np.ndarray:
