@@ -436,6 +436,9 @@ class PickParams(_Strict):
     retreat_distance_m: float = Field(ge=0, description="the post-grasp pose: this far back along the approach")
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
+    max_seen_through: float = Field(
+        ge=0, le=1, description="a pose with more of its camera-facing surface where the camera saw through it is not picked (tighter than register's)"
+    )
     order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
     height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")
     max_candidates_per_part: int = Field(ge=1, description="grasps tried per part, best-ranked first")

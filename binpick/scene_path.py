@@ -210,7 +210,8 @@ def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: Gras
         captured = cloud.points_m
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
-    return plan_picks(T, scores, grasps, part.points_m, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params))
+    shares = np.array([(p.extra or {}).get("seen_through", np.nan) for p in poses], dtype=np.float64)
+    return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params), shares)
 
 
 def process(

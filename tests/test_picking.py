@@ -128,7 +128,7 @@ def test_covering_spheres_hold_every_point_near_the_gripper(settings):
 def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, settings):
     grasps = suction_grasps(box_part, settings)
     T = lying(0.01, -0.02, yaw_deg=30.0)
-    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
     assert len(plan.picks) == 1 and not plan.unpicked
     pick = plan.picks[0]
     grasp = grasps.T_model_from_tool[pick.grasp_index]
@@ -150,12 +150,12 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, settings):
     T = lying(0.0, 0.0)
     seen = seen_surface(T, box_part)
     no_floor = np.full(4, np.nan)
-    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, seen, no_floor, settings).picks[0]
+    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen, no_floor, settings).picks[0]
     assert alone.clearance_m == pytest.approx(0.05)  # the cap
     G = alone.T_cam_from_grasp
     for gap in (0.006, 0.015, 0.035):
         point = G[:3, 3] - 0.06 * G[:3, 2] + (settings.suction.tool_radius_m + gap) * G[:3, 0]
-        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.centre_m, np.vstack([seen, point]), no_floor, settings)
+        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.vstack([seen, point]), no_floor, settings)
         assert plan.picks[0].grasp_id == alone.grasp_id
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
 
@@ -167,7 +167,7 @@ def test_a_gripper_into_a_neighbour_is_refused(box_part, settings):
     above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))
     T = np.stack([target, above])
     captured = np.concatenate([seen_surface(target, box_part), seen_surface(above, box_part)])
-    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
     assert [p.pose_index for p in plan.picks] == [1]  # the top one is free
     (index, reason), = plan.unpicked
     assert index == 0 and "part 1" in reason
@@ -178,20 +178,60 @@ def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part,
     grasps = suction_grasps(box_part, settings)
     T = lying(0.0, 0.0)
     captured = seen_surface(T, box_part)
-    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
     assert len(free.picks) == 1 and not free.rejected
     # Measured walls (points of two vertical planes) above the part, closer together than the
     # tool is wide: no grasp on its top can be reached.
     ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.47, 60))
     wall = np.concatenate([np.column_stack([np.full(ys.size, x), ys.ravel(), zs.ravel()]) for x in (-0.01, 0.01)])
-    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, settings)
+    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, settings)
     assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
     # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
     # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
     box = BinBoxObstacle(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
-    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings, box)
+    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings, box)
     assert not walled.picks and BIN in walled.unpicked[0][1]
+
+
+def test_a_large_parts_measured_surface_is_its_own_not_an_obstacle(settings):
+    """A 0.5 m box lying under the camera, its top face measured on a 1 mm grid with 0.3 mm of
+    noise: those points are the target's own, whatever its sample's density (20,000 points lie
+    5.6 mm apart on it, farther than own_points_m), and the cup comes down on the top face. A
+    point 10 mm above the face under the grasp is not its own: that grasp is refused."""
+    extents = np.array([0.5, 0.3, 0.2])
+    big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    grasps = suction_grasps(big, settings)
+    floor = np.array([0.0, 0.0, -1.0, 0.8])
+    T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.8 - extents[2] / 2]))
+    xs, ys = np.meshgrid(np.arange(-0.25, 0.25, 0.001), np.arange(-0.15, 0.15, 0.001))
+    top = np.column_stack([xs.ravel(), ys.ravel(), 0.6 + np.random.default_rng(1).normal(0.0, 0.0003, xs.size)])
+    plan = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, top, floor, settings)
+    assert len(plan.picks) == 1 and not plan.rejected
+    G = plan.picks[0].T_cam_from_grasp
+    assert G[2, 3] == pytest.approx(0.6, abs=1e-4)
+    above = G[:3, 3] - 0.01 * G[:3, 2]
+    again = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, np.vstack([top, above]), floor, settings)
+    assert again.picks[0].grasp_id != plan.picks[0].grasp_id
+    assert any(r.grasp_id == plan.picks[0].grasp_id and r.reason == CAPTURED for r in again.rejected)
+
+
+def test_a_pose_with_too_much_surface_seen_through_is_not_picked(box_part, settings):
+    """Two free parts side by side: the one whose pose has more of its surface where the camera
+    saw through it than pick.max_seen_through says so and gets no pick, however high it lies;
+    a pose without a measured share (verification off) is trusted."""
+    grasps = suction_grasps(box_part, settings)
+    T = np.stack([lying(-0.05, 0.0), lying(0.05, 0.0)])
+    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    limit = settings.max_seen_through
+    plan = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings,
+                      seen_through=np.array([limit + 0.01, limit - 0.01]))
+    assert [p.pose_index for p in plan.picks] == [1]
+    (index, reason), = plan.unpicked
+    assert index == 0 and "not trusted" in reason and "saw through" in reason
+    unknown = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings,
+                         seen_through=np.array([np.nan, np.nan]))
+    assert sorted(p.pose_index for p in unknown.picks) == [0, 1]
 
 
 def test_parts_come_highest_first_then_by_score(box_part, settings):
@@ -200,9 +240,9 @@ def test_parts_come_highest_first_then_by_score(box_part, settings):
     high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
     T = np.stack([low_bad, low_good, high])
     captured = np.concatenate([seen_surface(t, box_part) for t in T])
-    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, settings)
+    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
     assert [p.pose_index for p in plan.picks] == [2, 1, 0]
-    by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR,
+    by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR,
                           settings.model_copy(update={"order": ["score", "height"]}))
     assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
 
@@ -213,7 +253,7 @@ def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, s
     T = lying(0.0, 0.0)
     measured = seen_surface(T, box_part)
     # The part measured 15 mm lower than its pose says: the pose's top face is in the air.
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, settings)
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
@@ -231,7 +271,7 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, s
         return contact + np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T
 
     for tilt_deg, picked in ((0.0, True), (8.0, True), (30.0, False)):
-        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.centre_m, patch(tilt_deg), FLOOR, settings)
+        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.normals, box_part.centre_m, patch(tilt_deg), FLOOR, settings)
         assert bool(plan.picks) == picked, tilt_deg
         if not picked:
             assert "not where the camera measured" in plan.unpicked[0][1]
@@ -240,7 +280,7 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, s
 def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, settings):
     only_side = GraspSet("suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1))
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
     assert not plan.picks and "cone" in plan.unpicked[0][1]
 
 
@@ -265,7 +305,7 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
 
     def plan(fallback_deg):
         cones = settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
-        return plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, captured, FLOOR, cones)
+        return plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, cones)
 
     (pick,) = plan(60.0).picks
     assert pick.T_cam_from_grasp[:3, 2] == pytest.approx(-at_50, abs=1e-6)
@@ -311,7 +351,7 @@ def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part
 def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, settings):
     grasps = suction_grasps(box_part, settings)
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
     T_base_from_cam = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 1.1), np.array([0.4, -0.1, 0.8]))
     path = tmp_path / "picks.json"
     save_picks(path, "c", "box", "suction", plan, T_base_from_cam)
