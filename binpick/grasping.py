@@ -2,10 +2,10 @@
 parallel-jaw gripper, and their expansion by the part's symmetry.
 
 Suction: a surface point is a grasp when the cup's lip finds a seal there: the dense surface
-sample within the cup's radius lies within max_deviation_m of the plane through the point across
-the patch's mean normal, its normals within max_normal_deg of that mean, and it covers the lip all
-around (no edge or hole under the cup); the approach is the inward mean normal (the axis a cup
-settles to), and the cup and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
+sample within the cup's radius lies within max_deviation_m of the tangent plane, its normals
+within max_normal_deg of the point's normal and their mean within AXIS_MAX_DEG of it, and it
+covers the lip all around (no edge or hole under the cup); the approach is the inward normal, and
+the cup and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
 its inward normal leaves it at the opposite contact, whose normal must lie within friction_deg of
 the line between them; the width must fit the opening; approach directions around the closing
 axis are kept where fingers, palm and tool clear the part. Both rank grasps by the distance of the
@@ -34,6 +34,8 @@ log = logging.getLogger(__name__)
 # 0.69 radii, from any edge, whichever way the edge runs).
 LIP_SECTORS = 12
 LIP_RING = 0.8
+# The mean normal of the patch under the cup lies within this of the contact's normal.
+AXIS_MAX_DEG = 5.0
 # Candidate surface points tried: about this many, spread over the part.
 N_CANDIDATES = 1500
 # The patch under the cup is read from a surface sample with about this many points per cup disc:
@@ -86,10 +88,10 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     patch_pts, patch_nrm = _patch_surface(part, s.cup_radius_m)
     tree = cKDTree(patch_pts)
     cos_max = np.cos(np.radians(s.max_normal_deg))
+    cos_axis = np.cos(np.radians(AXIS_MAX_DEG))
     body = swept(gripper_primitives(params, "suction"), params.pregrasp_distance_m)
     com = centre_of_mass(part)
     good: list[int] = []
-    axis: dict[int, np.ndarray] = {}  # candidate -> the cup's axis (outward)
     for i in _candidates(pts, N_CANDIDATES):
         c, n = pts[i], nrm[i]
         near = np.asarray(tree.query_ball_point(c, s.cup_radius_m))
@@ -98,12 +100,14 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         if len(near) < 3 * LIP_SECTORS:
             continue
         q, qn = patch_pts[near] - c, patch_nrm[near]
-        # The cup's axis is the patch's mean normal (the samples are spread evenly by area): a
-        # cup settles onto the surface under it, not onto the one facet its centre touches. On a
-        # coarsely tessellated curve (the gear shaft's facets turn by 14 degrees) the facet's
-        # normal is half a facet's turn off the surface's, a whole turn one facet over.
-        n = qn.mean(axis=0)
-        n /= np.linalg.norm(n)
+        # The surface under the cup faces where its centre does: the patch's mean normal (the
+        # samples are spread evenly by area) within AXIS_MAX_DEG of the point's. On a coarsely
+        # tessellated curve (the gear shaft's facets turn by 14 degrees) this keeps contacts near
+        # the middle of a facet, where a pose a millimetre off still lands on it; a contact near
+        # a fold, or on a patch partly over another face, would meet the surface turned away.
+        mean = qn.mean(axis=0)
+        if mean @ n < cos_axis * np.linalg.norm(mean):
+            continue
         if np.max(np.abs(q @ n)) > s.max_deviation_m or np.min(qn @ n) < cos_max:
             continue
         # The lip all around: points in every sector of the outer ring of the disc.
@@ -127,13 +131,12 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         if behind.any() and np.min(signed_distance(local[behind], body)) < 0.0:
             continue
         good.append(int(i))
-        axis[int(i)] = n
     if not good:
         return GraspSet.empty("suction")
     good_arr = np.array(good)
     order = good_arr[np.argsort(np.linalg.norm(pts[good_arr] - com, axis=1), kind="stable")]
     kept = _spread(order, pts, s.cup_radius_m, params.max_grasps)
-    Ts = np.array([tool_frame(pts[i], -axis[i]) for i in kept])
+    Ts = np.array([tool_frame(pts[i], -nrm[i]) for i in kept])
     return GraspSet("suction", [f"s{k}" for k in range(len(kept))], Ts, np.zeros(len(kept)))
 
 

@@ -437,7 +437,7 @@ class PickParams(_Strict):
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(
-        ge=0, le=1, description="a pose with more of its camera-facing surface where the camera saw through it is not picked (tighter than register's)"
+        ge=0, le=1, description="a pose with more of its camera-facing surface where the camera saw through it is picked last (tighter than register's)"
     )
     order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
     height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")

@@ -19,13 +19,14 @@ kept (grasps are tried best first, up to max_candidates_per_part). Parts with a 
 by the keys in `order`: `height` (of the part's centre above the support plane, in steps of
 height_tolerance_m, highest first), `score` (the pose's, highest first), `clearance` (of the
 swept gripper, largest first).
-A part without a pick says why: every grasp outside the approach cone, or what the grasps hit,
-or that its pose is not trusted: more than max_seen_through of its camera-facing surface lies where
-the camera saw through it. Registration keeps poses up to its own, looser limit as detections (a
-pose within a tenth of the part's size counts a part); a cup needs the pose right to millimetres.
-On rendered bins of the T-joint and the gear shaft, poses within 5 degrees and 5 mm showed up to
-0.09, wrong ones that registration kept 0.13-0.34 (and a few below: the limit is not the only
-guard, the contact check is another).
+Picks from poses not trusted come after all others, whatever the keys say: a pose is trusted
+when at most max_seen_through of its camera-facing surface lies where the camera saw through it.
+Registration keeps poses up to its own, looser limit as detections (a pose within a tenth of the
+part's size counts a part); a cup needs the pose right to millimetres. On rendered bins of the
+T-joint and the gear shaft, poses within 5 degrees and 5 mm showed up to 0.09, wrong ones that
+registration kept 0.13-0.34. A part lying alone against a wall may show more and still be right:
+its pick is kept, last, rather than the bin left with a part in it.
+A part without a pick says why: every grasp outside the approach cone, or what the grasps hit.
 """
 
 from __future__ import annotations
@@ -112,6 +113,7 @@ class Pick:
     score: float
     clearance_m: float
     height_m: float
+    trusted: bool = True  # the pose's seen-through share within max_seen_through (or not measured)
 
 
 @dataclass(frozen=True)
@@ -215,10 +217,6 @@ def plan_picks(
     shares = np.full(n_parts, np.nan) if seen_through is None else np.asarray(seen_through, dtype=np.float64).reshape(n_parts)
     for i in range(n_parts):
         T = T_cam_from_model[i]
-        if shares[i] > params.max_seen_through:
-            unpicked.append((i, f"pose not trusted for a pick: {100 * shares[i]:.0f}% of its surface lies where the camera saw through it "
-                                f"(pick.max_seen_through {100 * params.max_seen_through:g}%)"))
-            continue
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
         own = np.zeros(len(obstacles), bool)
@@ -253,7 +251,7 @@ def plan_picks(
             found = Pick(
                 i, grasps.ids[g], int(g), float(grasps.width_m[g]),
                 _moved(T_tool, -params.pregrasp_distance_m * approach), T_tool, _moved(T_tool, -params.retreat_distance_m * approach),
-                float(scores[i]), clearance, float(heights[i]),
+                float(scores[i]), clearance, float(heights[i]), not shares[i] > params.max_seen_through,
             )
             break
         if found is not None:
@@ -319,7 +317,7 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
             keys.append(-pick.score)
         else:
             keys.append(-pick.clearance_m)
-    return (*keys, pick.pose_index)
+    return (0 if pick.trusted else 1, *keys, pick.pose_index)
 
 
 def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:

@@ -36,7 +36,7 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
         "up_cam": [round(float(x), 9) for x in plan.up_cam],
         "picks": [
             {"rank": k, "pose_index": p.pose_index, "grasp_id": p.grasp_id, "score": round(p.score, 6), "clearance_m": round(p.clearance_m, 6),
-             "height_m": round(p.height_m, 6), **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}), **poses(p)}
+             "height_m": round(p.height_m, 6), "trusted": p.trusted, **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}), **poses(p)}
             for k, p in enumerate(plan.picks)
         ],
         "unpicked": [{"pose_index": i, "reason": reason} for i, reason in plan.unpicked],
