@@ -2,6 +2,7 @@
 asserted (speed targets live in the benchmarks' JSON, not in tests)."""
 
 import numpy as np
+import pytest
 
 from binpick.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
 from binpick.bench.ppf import bench_ppf
@@ -67,7 +68,7 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     whose tool passes through a neighbour fails."""
     import trimesh
 
-    from binpick.bench.picking import _path_hits, _true_touch
+    from binpick.bench.picking import _nearest_surface, _path_hits, _true_touch
     from binpick.geometry.transforms import make_T
     from binpick.io.grasps import tool_frame
     from binpick.picking import Pick
@@ -87,6 +88,8 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     lifted = T_grasp.copy()
     lifted[2, 3] -= 0.005
     assert _true_touch(pick(lifted), "suction", T_obj[None], query, mesh) is None
+    distance, angle = _nearest_surface(lifted, T_obj[None], query, mesh)  # what the failed pick missed by
+    assert distance == pytest.approx(0.005, abs=1e-4) and angle < 10.0  # the approach the unlifted grasp passed with
     neighbour = make_T(np.eye(3), np.array([0.0, 0.0, 0.44]))  # a second part in the tool's way
     assert not _path_hits(pick(T_grasp), "suction", PARAMS, 0, T_obj[None], t_joint, np.zeros((0, 3)))
     assert _path_hits(pick(T_grasp), "suction", PARAMS, 0, np.stack([T_obj, neighbour]), t_joint, np.zeros((0, 3)))

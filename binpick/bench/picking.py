@@ -127,6 +127,19 @@ def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, query: trimesh.
     return None if best is None else best[0]
 
 
+def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray, query: trimesh.proximity.ProximityQuery,
+                     mesh: trimesh.Trimesh) -> tuple[float, float]:
+    """The distance (m) from the tool centre point to the nearest true part surface, and the angle
+    (degrees) between the approach and that surface's inward normal: what a failed pick missed by."""
+    best = (np.inf, 0.0)
+    for T_obj in T_cam_from_objects:
+        _, dist, tri = query.on_surface(transform_points(invert_T(T_obj), T_cam_from_tool[:3, 3][None]))
+        if dist[0] < best[0]:
+            inward = -(T_obj[:3, :3] @ mesh.face_normals[tri[0]])
+            best = (float(dist[0]), float(np.degrees(np.arccos(np.clip(inward @ T_cam_from_tool[:3, 2], -1, 1)))))
+    return best
+
+
 def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects: np.ndarray, part: PartModel, bin_points_cam: np.ndarray) -> bool:
     """True when the swept gripper enters the true meshes of the others or the bin (or its target too deep)."""
     body = swept(gripper_primitives(params.pick, kind, pick.width_m), max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m))
@@ -180,6 +193,10 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
         if target is None:
             tally.wrong_part += 1
             failures += 1
+            distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, T_cam, query, mesh)
+            log.info("%s: the first pick (part %d, grasp %s, pose score %.2f) touches no part as a grasp should: its contact lies %.1f mm from "
+                     "the nearest true surface, its approach %.0f degrees off that surface's inward normal", part.name, first.pose_index,
+                     first.grasp_id, first.score, 1000 * distance_m, angle_deg)
             continue
         if _path_hits(first, kind, p, target, T_cam, part, transform_points(scene.T_cam_from_bin, bin_points)):
             tally.collisions += 1
