@@ -278,12 +278,12 @@ class _OwnPoints:
 
     def __init__(self, points_m: np.ndarray, normals: np.ndarray, own_m: float) -> None:
         self.normals, self.own_m = normals, own_m
-        self.tree = cKDTree(points_m) if len(points_m) else None
-        self.points_m = points_m
+        tree = cKDTree(points_m) if len(points_m) else None
+        self.tree, self.points_m = tree, points_m
         spacing = 0.0
-        if len(points_m) > 1:
+        if tree is not None and len(points_m) > 1:
             probe = points_m[:: max(1, len(points_m) // OWN_SPACING_PROBES)]
-            spacing = float(np.median(self.tree.query(probe, k=2)[0][:, 1]))
+            spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))
         self.reach_m = own_m + 2.0 * spacing
 
     def __call__(self, points_m: np.ndarray) -> np.ndarray:
