@@ -4,8 +4,9 @@ parallel-jaw gripper, and their expansion by the part's symmetry.
 Suction: a surface point is a grasp when the cup's lip finds a seal there: the dense surface
 sample within the cup's radius lies within max_deviation_m of the tangent plane, its normals
 within max_normal_deg of the point's normal and their mean within AXIS_MAX_DEG of it, and it
-covers the lip all around (no edge or hole under the cup); the approach is the inward normal, and
-the cup and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
+covers the lip all around (no edge or hole under the cup); the approach is the inward normal (of
+a part declared a solid of revolution, the smooth surface's: see _revolution_normals), and the cup
+and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
 its inward normal leaves it at the opposite contact, whose normal must lie within friction_deg of
 the line between them; the width must fit the opening; approach directions around the closing
 axis are kept where fingers, palm and tool clear the part. Both rank grasps by the distance of the
@@ -21,6 +22,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from binpick.geometry.transforms import axis_angle_to_R
 from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.grasps import GraspSet, tool_frame
 from binpick.io.part_model import PartModel
@@ -36,6 +38,8 @@ LIP_SECTORS = 12
 LIP_RING = 0.8
 # The mean normal of the patch under the cup lies within this of the contact's normal.
 AXIS_MAX_DEG = 5.0
+# A solid of revolution's suction grasps are checked at this many turns about its axis.
+REVOLUTION_CHECK_TURNS = 12
 # Candidate surface points tried: about this many, spread over the part.
 N_CANDIDATES = 1500
 # The patch under the cup is read from a surface sample with about this many points per cup disc:
@@ -91,14 +95,18 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     cos_axis = np.cos(np.radians(AXIS_MAX_DEG))
     body = swept(gripper_primitives(params, "suction"), params.pregrasp_distance_m)
     com = centre_of_mass(part)
-    good: list[int] = []
-    for i in _candidates(pts, N_CANDIDATES):
-        c, n = pts[i], nrm[i]
+    revolution = part.symmetry.kind == "revolution"
+    smooth = _revolution_normals(part, nrm) if revolution else nrm
+    turns = _turns_about_axis(part) if revolution else []
+
+    def patch(c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """The patch under a cup at c (3,) with outward axis n (3,): its points relative to c and
+        their normals, or None when it is too small, faces away or is not flat enough."""
         near = np.asarray(tree.query_ball_point(c, s.cup_radius_m))
         # The patch under the cup is the surface facing it: a thin wall's far side is not.
         near = near[patch_nrm[near] @ n > 0.0] if len(near) else near
         if len(near) < 3 * LIP_SECTORS:
-            continue
+            return None
         q, qn = patch_pts[near] - c, patch_nrm[near]
         # The surface under the cup faces where its centre does: the patch's mean normal (the
         # samples are spread evenly by area) within AXIS_MAX_DEG of the point's. On a coarsely
@@ -107,9 +115,22 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         # a fold, or on a patch partly over another face, would meet the surface turned away.
         mean = qn.mean(axis=0)
         if mean @ n < cos_axis * np.linalg.norm(mean):
-            continue
+            return None
         if np.max(np.abs(q @ n)) > s.max_deviation_m or np.min(qn @ n) < cos_max:
+            return None
+        return q, qn
+
+    good: list[int] = []
+    for i in _candidates(pts, N_CANDIDATES):
+        c, n = pts[i], smooth[i]
+        found = patch(c, n)
+        if found is None:
             continue
+        # A solid of revolution's pose leaves its turn about the axis open: the grasp must hold
+        # wherever around the axis it lands (not on a gear tooth that only the CAD's turn has there).
+        if any(patch(R @ (c - o) + o, R @ n) is None for R, o in turns):
+            continue
+        q, qn = found
         # The lip all around: points in every sector of the outer ring of the disc.
         across = q - np.outer(q @ n, n)
         r = np.linalg.norm(across, axis=1)
@@ -136,8 +157,39 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     good_arr = np.array(good)
     order = good_arr[np.argsort(np.linalg.norm(pts[good_arr] - com, axis=1), kind="stable")]
     kept = _spread(order, pts, s.cup_radius_m, params.max_grasps)
-    Ts = np.array([tool_frame(pts[i], -nrm[i]) for i in kept])
+    Ts = np.array([tool_frame(pts[i], -smooth[i]) for i in kept])
     return GraspSet("suction", [f"s{k}" for k in range(len(kept))], Ts, np.zeros(len(kept)))
+
+
+def _revolution_normals(part: PartModel, normals: np.ndarray) -> np.ndarray:
+    """Unit normals (n, 3) of a part declared a solid of revolution: the facet normals (n, 3) at
+    its sample points with their component around the axis removed, the normals of the smooth
+    surface the facets approximate. A pose of such a part says nothing about its turn about the
+    axis, so a grasp lands anywhere around it on the real part: on the gear shaft's 14 degree
+    facets, an approach along its own facet's normal met the facet there up to 14 degrees off,
+    one along the smooth normal at most half that."""
+    axis = np.asarray(part.symmetry.axis, dtype=np.float64)
+    axis /= np.linalg.norm(axis)
+    radial = np.asarray(part.points_m, dtype=np.float64) - np.asarray(part.symmetry.origin_m, dtype=np.float64)
+    radial -= np.outer(radial @ axis, axis)
+    r = np.linalg.norm(radial, axis=1)
+    around = np.cross(axis, radial / np.maximum(r, 1e-12)[:, None])
+    out = normals - np.einsum("ij,ij->i", normals, around)[:, None] * around
+    length = np.linalg.norm(out, axis=1)
+    # On the axis (an end face's centre) the direction around is undefined: the facet's normal.
+    ok = (r > 1e-9) & (length > 1e-9)
+    out[ok] /= length[ok, None]
+    out[~ok] = normals[~ok]
+    return out
+
+
+def _turns_about_axis(part: PartModel) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(R (3, 3), origin (3,)) of REVOLUTION_CHECK_TURNS turns about the part's symmetry axis, the
+    identity left out."""
+    axis = np.asarray(part.symmetry.axis, dtype=np.float64)
+    origin = np.asarray(part.symmetry.origin_m, dtype=np.float64)
+    angles = 2.0 * np.pi * np.arange(1, REVOLUTION_CHECK_TURNS) / REVOLUTION_CHECK_TURNS
+    return [(axis_angle_to_R(axis / np.linalg.norm(axis), float(a)), origin) for a in angles]
 
 
 def _patch_surface(part: PartModel, cup_radius_m: float) -> tuple[np.ndarray, np.ndarray]:

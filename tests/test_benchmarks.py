@@ -66,9 +66,8 @@ def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
 def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     """The benchmark's own judge: a grasp placed on a true part passes, one 5 mm above it or
     whose tool passes through a neighbour fails."""
-    import trimesh
 
-    from binpick.bench.picking import _nearest_surface, _path_hits, _true_touch
+    from binpick.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch
     from binpick.geometry.transforms import make_T
     from binpick.io.grasps import tool_frame
     from binpick.picking import Pick
@@ -76,20 +75,48 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     T_obj = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
     # The camera looks along +z, so the part's top is its model -z side: a contact on the run's
     # outer surface there (radius 12 mm, 20 mm from the branch), approaching along +z.
-    mesh = trimesh.Trimesh(t_joint.mesh_vertices_m, t_joint.mesh_faces, process=False)
-    query = trimesh.proximity.ProximityQuery(mesh)
+    truth = TrueSurface(t_joint, PARAMS.pick.suction.cup_radius_m)
     contact = np.array([0.02, 0.0, -0.012])
     T_grasp = T_obj @ tool_frame(contact, np.array([0.0, 0.0, 1.0]))
 
     def pick(T):
         return Pick(0, "s", 0, 0.0, T, T, T, 1.0, 0.01, 0.0)
 
-    assert _true_touch(pick(T_grasp), "suction", T_obj[None], query, mesh) == 0
+    assert _true_touch(pick(T_grasp), "suction", T_obj[None], truth) == 0
     lifted = T_grasp.copy()
     lifted[2, 3] -= 0.005
-    assert _true_touch(pick(lifted), "suction", T_obj[None], query, mesh) is None
-    distance, angle = _nearest_surface(lifted, T_obj[None], query, mesh)  # what the failed pick missed by
+    assert _true_touch(pick(lifted), "suction", T_obj[None], truth) is None
+    distance, angle = _nearest_surface(lifted, T_obj[None], truth)  # what the failed pick missed by
     assert distance == pytest.approx(0.005, abs=1e-4) and angle < 10.0  # the approach the unlifted grasp passed with
     neighbour = make_T(np.eye(3), np.array([0.0, 0.0, 0.44]))  # a second part in the tool's way
     assert not _path_hits(pick(T_grasp), "suction", PARAMS, 0, T_obj[None], t_joint, np.zeros((0, 3)))
     assert _path_hits(pick(T_grasp), "suction", PARAMS, 0, np.stack([T_obj, neighbour]), t_joint, np.zeros((0, 3)))
+
+
+def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():
+    """A cylinder of 12 facets (30 degrees each): a cup on the fold between two facets,
+    approaching along the cylinder's own normal there, is 15 degrees off either facet and sits
+    square on the surface under it: it passes; one tilted 20 degrees from that normal fails."""
+    import trimesh
+
+    from binpick.bench.picking import TrueSurface, _true_touch
+    from binpick.geometry.transforms import axis_angle_to_R, make_T
+    from binpick.io.grasps import tool_frame
+    from binpick.params import SymmetryParams
+    from binpick.parts import make_part_model
+    from binpick.picking import Pick
+
+    cylinder = trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12)
+    part = make_part_model("rod", cylinder, SymmetryParams(kind="revolution"), 20000, np.random.default_rng(0), "m")
+    truth = TrueSurface(part, PARAMS.pick.suction.cup_radius_m)
+    T_obj = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
+    fold = np.array([0.02, 0.0, 0.0])  # a vertex of the 12-gon: where two facets meet
+    assert truth.query.on_surface(fold[None])[1][0] < 1e-9
+
+    def pick(approach):
+        T = T_obj @ tool_frame(fold, approach)
+        return Pick(0, "s", 0, 0.0, T, T, T, 1.0, 0.01, 0.0)
+
+    assert _true_touch(pick(np.array([-1.0, 0.0, 0.0])), "suction", T_obj[None], truth) == 0
+    tilted = axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(20.0)) @ np.array([-1.0, 0.0, 0.0])
+    assert _true_touch(pick(tilted), "suction", T_obj[None], truth) is None

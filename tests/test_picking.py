@@ -83,6 +83,20 @@ def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(settings):
         assert abs(abs(p[face]) - extents[face] / 2) < 1e-4 and np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)
 
 
+def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(settings):
+    """A rod of 12 facets declared a solid of revolution: its side grasps approach along the
+    cylinder's own normal (straight at the axis), not their facet's, which lies up to 15 degrees
+    around from it."""
+    rod = make_part_model("rod", trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12), SymmetryParams(kind="revolution"), 20000,
+                          np.random.default_rng(0), "m")
+    grasps = suction_grasps(rod, settings)
+    side = [T for T in grasps.T_model_from_tool if abs(T[2, 2]) < 0.5]
+    assert len(side) >= 5
+    for T in side:
+        radial = T[:3, 3] * [1.0, 1.0, 0.0]
+        assert np.degrees(np.arccos(np.clip(-T[:3, 2] @ (radial / np.linalg.norm(radial)), -1, 1))) < 1.0
+
+
 def test_jaw_grasps_close_across_the_box(box_part, settings):
     grasps = jaw_grasps(box_part, settings)
     assert len(grasps) > 0

@@ -6,7 +6,7 @@ row failed: render what the camera sees (the project's camera, full resolution, 
 write it as a Zivid SDK 1.x file, read it back and run import, segmentation (when the part has a
 trained network), registration and picks in process; take the first pick and check it:
 - it touches a real part: suction: the cup's contact within TOUCH_M of a true part's surface,
-  its approach within TOUCH_DEG of that surface's inward normal; jaws: both contacts within
+  its approach within TOUCH_DEG of that surface's inward normal under the cup (TrueSurface); jaws: both contacts within
   TOUCH_M of the same true part's surface;
 - its path is free: the gripper swept along the approach reaches no deeper than PENETRATION_M
   into the true meshes of the other parts or the bin (nor deeper than TOUCH_M into its target).
@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
 from binpick.bench import machine
 from binpick.bench.clutter import scaled_settings
@@ -45,6 +46,7 @@ from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.params import Params
+from binpick.parts import sample_surface
 from binpick.registration.model import train_ppf
 from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
 from binpick.seeding import derive_seed
@@ -58,6 +60,9 @@ TOUCH_DEG = 10.0
 PENETRATION_M = 0.0005
 MAX_FAILURES_IN_A_ROW = 3
 BIN_SAMPLE_SPACING_M = 0.002
+# The judge's sample of the true surface: about this many points per cup disc, at most this many.
+POINTS_PER_CUP = 72
+MAX_SURFACE_POINTS = 1_000_000
 
 
 @dataclass
@@ -104,7 +109,34 @@ def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartMod
                       with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None), grasps, p.pick)
 
 
-def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, query: trimesh.proximity.ProximityQuery, mesh: trimesh.Trimesh) -> int | None:
+class TrueSurface:
+    """The part's true mesh as the judge reads it (model frame): the closest point to a contact,
+    and the surface's inward normal under a suction cup there: the mean normal of an even,
+    dense sample of the mesh within the cup's radius (the faces facing the cup). On a flat face
+    that is the face's normal; on a coarsely faceted curve (the gear shaft's STL turns by up to
+    15 degrees within one facet) it is the curved surface's, not one facet's, which a pose that
+    leaves the part's turn about its axis open would meet anywhere across."""
+
+    def __init__(self, part: PartModel, cup_radius_m: float) -> None:
+        self.mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
+        self.query = trimesh.proximity.ProximityQuery(self.mesh)
+        n = int(min(MAX_SURFACE_POINTS, max(len(part.points_m), np.ceil(self.mesh.area * POINTS_PER_CUP / (np.pi * cup_radius_m**2)))))
+        self.points_m, self.normals = sample_surface(part.mesh_vertices_m, part.mesh_faces, n, np.random.default_rng(0))
+        self.tree = cKDTree(self.points_m)
+        self.cup_radius_m = cup_radius_m
+
+    def inward_under_cup(self, closest_m: np.ndarray, face: int, approach: np.ndarray) -> np.ndarray:
+        """Unit inward normal (3,), model frame, under a cup at closest_m (3,) approaching along
+        `approach` (3,): the mean over the sample within the cup's radius facing the cup, else
+        the face's own."""
+        near = np.asarray(self.tree.query_ball_point(closest_m, self.cup_radius_m), dtype=np.int64)
+        normals = self.normals[near]
+        normals = normals[normals @ -approach > 0.0] if len(near) else normals
+        mean = normals.sum(axis=0) if len(normals) else self.mesh.face_normals[face]
+        return -mean / np.linalg.norm(mean)
+
+
+def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, truth: TrueSurface) -> int | None:
     """Index of the true object the pick touches as a grasp should, or None."""
     T = pick.T_cam_from_grasp
     if kind == "suction":
@@ -115,28 +147,29 @@ def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, query: trimesh.
     best = None
     for k, T_obj in enumerate(T_cam_from_objects):
         local = transform_points(invert_T(T_obj), contacts)
-        closest, dist, tri = query.on_surface(local)
+        closest, dist, tri = truth.query.on_surface(local)
         if np.any(dist > TOUCH_M):
             continue
         if kind == "suction":
-            inward = -(T_obj[:3, :3] @ mesh.face_normals[tri[0]])
-            if np.degrees(np.arccos(np.clip(inward @ T[:3, 2], -1, 1))) > TOUCH_DEG:
+            approach = T_obj[:3, :3].T @ T[:3, 2]
+            if np.degrees(np.arccos(np.clip(truth.inward_under_cup(closest[0], int(tri[0]), approach) @ approach, -1, 1))) > TOUCH_DEG:
                 continue
         if best is None or dist.max() < best[1]:
             best = (k, float(dist.max()))
     return None if best is None else best[0]
 
 
-def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray, query: trimesh.proximity.ProximityQuery,
-                     mesh: trimesh.Trimesh) -> tuple[float, float]:
+def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray, truth: TrueSurface) -> tuple[float, float]:
     """The distance (m) from the tool centre point to the nearest true part surface, and the angle
-    (degrees) between the approach and that surface's inward normal: what a failed pick missed by."""
+    (degrees) between the approach and that surface's inward normal under the cup: what a failed
+    pick missed by."""
     best = (np.inf, 0.0)
     for T_obj in T_cam_from_objects:
-        _, dist, tri = query.on_surface(transform_points(invert_T(T_obj), T_cam_from_tool[:3, 3][None]))
+        closest, dist, tri = truth.query.on_surface(transform_points(invert_T(T_obj), T_cam_from_tool[:3, 3][None]))
         if dist[0] < best[0]:
-            inward = -(T_obj[:3, :3] @ mesh.face_normals[tri[0]])
-            best = (float(dist[0]), float(np.degrees(np.arccos(np.clip(inward @ T_cam_from_tool[:3, 2], -1, 1)))))
+            approach = T_obj[:3, :3].T @ T_cam_from_tool[:3, 2]
+            inward = truth.inward_under_cup(closest[0], int(tri[0]), approach)
+            best = (float(dist[0]), float(np.degrees(np.arccos(np.clip(inward @ approach, -1, 1)))))
     return best
 
 
@@ -160,7 +193,7 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
     placed = place_objects(part.points_m, n_parts, g.bin, g.placement, rng)
     T_bin = settle_in_bin(part, placed.T_bin_from_model, g, rng)
     tally = Tally(settled=len(T_bin))
-    query = trimesh.proximity.ProximityQuery(mesh := trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False))
+    truth = TrueSurface(part, p.pick.suction.cup_radius_m)
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
     bin_points = np.concatenate([trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0] for m in bin_meshes(g.bin)])
     half = (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0)
@@ -189,11 +222,11 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
                      "; ".join(f"part {i}: {why}" for i, why in plan.unpicked) if plan else "refused")
             continue
         first = plan.picks[0]
-        target = _true_touch(first, kind, T_cam, query, mesh)
+        target = _true_touch(first, kind, T_cam, truth)
         if target is None:
             tally.wrong_part += 1
             failures += 1
-            distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, T_cam, query, mesh)
+            distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, T_cam, truth)
             log.info("%s: the first pick (part %d, grasp %s, pose score %.2f) touches no part as a grasp should: its contact lies %.1f mm from "
                      "the nearest true surface, its approach %.0f degrees off that surface's inward normal", part.name, first.pose_index,
                      first.grasp_id, first.score, 1000 * distance_m, angle_deg)
