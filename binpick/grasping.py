@@ -5,9 +5,10 @@ Suction: a surface point is a grasp when the cup's lip finds a seal there: the d
 sample within the cup's radius lies within max_deviation_m of the tangent plane, its normals
 within max_normal_deg of the point's normal and their mean within AXIS_MAX_DEG of it, and it
 covers the lip all around (no edge or hole under the cup); the approach is the inward normal (of
-a part declared a solid of revolution, the smooth surface's: see _revolution_normals), and the cup
-and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into the part from a surface point along
-its inward normal leaves it at the opposite contact, whose normal must lie within friction_deg of
+a part declared a solid of revolution, the smooth surface's: see _revolution_normals), and the
+cup and tool, coming along it, meet no other part of the part. Jaws: antipodal pairs: a ray into
+the part from a surface point along its inward normal leaves it at the opposite contact, whose
+normal must lie within friction_deg of
 the line between them; the width must fit the opening; approach directions around the closing
 axis are kept where fingers, palm and tool clear the part. Both rank grasps by the distance of the
 TCP from the centre of mass (nearest first: the least torque on a held part), keeping grasps at
@@ -22,7 +23,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.geometry.transforms import axis_angle_to_R
+from binpick.geometry.symmetry import symmetry_transforms
 from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.grasps import GraspSet, tool_frame
 from binpick.io.part_model import PartModel
@@ -89,7 +90,7 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     s = params.suction
     pts = np.asarray(part.points_m, dtype=np.float64)
     nrm = np.asarray(part.normals, dtype=np.float64)
-    patch_pts, patch_nrm = _patch_surface(part, s.cup_radius_m)
+    patch_pts, patch_nrm = patch_surface(part, s.cup_radius_m)
     tree = cKDTree(patch_pts)
     cos_max = np.cos(np.radians(s.max_normal_deg))
     cos_axis = np.cos(np.radians(AXIS_MAX_DEG))
@@ -97,7 +98,8 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     com = centre_of_mass(part)
     revolution = part.symmetry.kind == "revolution"
     smooth = _revolution_normals(part, nrm) if revolution else nrm
-    turns = _turns_about_axis(part) if revolution else []
+    # The turns about the axis, identity left out (the rotations come before any flips).
+    turns = symmetry_transforms(part.symmetry, REVOLUTION_CHECK_TURNS)[1:REVOLUTION_CHECK_TURNS] if revolution else np.zeros((0, 4, 4))
 
     def patch(c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The patch under a cup at c (3,) with outward axis n (3,): its points relative to c and
@@ -128,7 +130,7 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
             continue
         # A solid of revolution's pose leaves its turn about the axis open: the grasp must hold
         # wherever around the axis it lands (not on a gear tooth that only the CAD's turn has there).
-        if any(patch(R @ (c - o) + o, R @ n) is None for R, o in turns):
+        if any(patch(S[:3, :3] @ c + S[:3, 3], S[:3, :3] @ n) is None for S in turns):
             continue
         q, qn = found
         # The lip all around: points in every sector of the outer ring of the disc.
@@ -183,16 +185,7 @@ def _revolution_normals(part: PartModel, normals: np.ndarray) -> np.ndarray:
     return out
 
 
-def _turns_about_axis(part: PartModel) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(R (3, 3), origin (3,)) of REVOLUTION_CHECK_TURNS turns about the part's symmetry axis, the
-    identity left out."""
-    axis = np.asarray(part.symmetry.axis, dtype=np.float64)
-    origin = np.asarray(part.symmetry.origin_m, dtype=np.float64)
-    angles = 2.0 * np.pi * np.arange(1, REVOLUTION_CHECK_TURNS) / REVOLUTION_CHECK_TURNS
-    return [(axis_angle_to_R(axis / np.linalg.norm(axis), float(a)), origin) for a in angles]
-
-
-def _patch_surface(part: PartModel, cup_radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+def patch_surface(part: PartModel, cup_radius_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Surface points (n, 3) and unit normals (n, 3), model frame, dense enough to read the patch
     under a cup of this radius: the part's own sample, or a sample of its mesh with about
     POINTS_PER_CUP points per cup disc (a fixed seed: the grasps are a function of the part)."""

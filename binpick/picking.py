@@ -272,10 +272,10 @@ def plan_picks(
 
 class _OwnPoints:
     """Which points (model frame) lie on the part's surface: within own_m of the tangent plane
-    of their nearest sample point, that point no farther than own_m plus the sample's spacing. Asked of the distance to the nearest sample point alone, the answer would
-    follow the sample's density: the ingest's 20,000 points lie 2 mm apart on the 0.44 m gear
-    shaft, and a thinned sample's 8 mm left most of a target's measured surface as obstacles
-    under the cup."""
+    of their nearest sample point, that point no farther than own_m plus the sample's spacing.
+    Asked of the distance to the nearest sample point alone, the answer would follow the sample's
+    density: the ingest's 20,000 points lie 2 mm apart on the 0.44 m gear shaft, and a thinned
+    sample's 8 mm left most of a target's measured surface as obstacles under the cup."""
 
     def __init__(self, points_m: np.ndarray, normals: np.ndarray, own_m: float) -> None:
         self.normals, self.own_m = normals, own_m

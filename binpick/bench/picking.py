@@ -6,8 +6,8 @@ row failed: render what the camera sees (the project's camera, full resolution, 
 write it as a Zivid SDK 1.x file, read it back and run import, segmentation (when the part has a
 trained network), registration and picks in process; take the first pick and check it:
 - it touches a real part: suction: the cup's contact within TOUCH_M of a true part's surface,
-  its approach within TOUCH_DEG of that surface's inward normal under the cup (TrueSurface); jaws: both contacts within
-  TOUCH_M of the same true part's surface;
+  its approach within TOUCH_DEG of that surface's inward normal under the cup (TrueSurface);
+  jaws: both contacts within TOUCH_M of the same true part's surface;
 - its path is free: the gripper swept along the approach reaches no deeper than PENETRATION_M
   into the true meshes of the other parts or the bin (nor deeper than TOUCH_M into its target).
 A good pick removes that part and the rest settle again; a failed one is counted and the bin is
@@ -40,13 +40,12 @@ from binpick.generation.placement import place_objects
 from binpick.generation.scene import render_scene, settle_in_bin
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
-from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
+from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
 from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.params import Params
-from binpick.parts import sample_surface
 from binpick.registration.model import train_ppf
 from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
 from binpick.seeding import derive_seed
@@ -60,9 +59,6 @@ TOUCH_DEG = 10.0
 PENETRATION_M = 0.0005
 MAX_FAILURES_IN_A_ROW = 3
 BIN_SAMPLE_SPACING_M = 0.002
-# The judge's sample of the true surface: about this many points per cup disc, at most this many.
-POINTS_PER_CUP = 72
-MAX_SURFACE_POINTS = 1_000_000
 
 
 @dataclass
@@ -115,25 +111,26 @@ class TrueSurface:
     dense sample of the mesh within the cup's radius (the faces facing the cup). On a flat face
     that is the face's normal; on a coarsely faceted curve (the gear shaft's STL turns by up to
     15 degrees within one facet) it is the curved surface's, not one facet's, which a pose that
-    leaves the part's turn about its axis open would meet anywhere across."""
+    leaves the part's turn about its axis open would meet anywhere across. The sample is the one
+    the suction grasps read their patches from (grasping.patch_surface). Built once per part."""
 
     def __init__(self, part: PartModel, cup_radius_m: float) -> None:
         self.mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
         self.query = trimesh.proximity.ProximityQuery(self.mesh)
-        n = int(min(MAX_SURFACE_POINTS, max(len(part.points_m), np.ceil(self.mesh.area * POINTS_PER_CUP / (np.pi * cup_radius_m**2)))))
-        self.points_m, self.normals = sample_surface(part.mesh_vertices_m, part.mesh_faces, n, np.random.default_rng(0))
+        self.points_m, self.normals = patch_surface(part, cup_radius_m)
         self.tree = cKDTree(self.points_m)
         self.cup_radius_m = cup_radius_m
 
-    def inward_under_cup(self, closest_m: np.ndarray, face: int, approach: np.ndarray) -> np.ndarray:
-        """Unit inward normal (3,), model frame, under a cup at closest_m (3,) approaching along
-        `approach` (3,): the mean over the sample within the cup's radius facing the cup, else
-        the face's own."""
+    def approach_off_deg(self, closest_m: np.ndarray, face: int, T_cam_from_object: np.ndarray, T_cam_from_tool: np.ndarray) -> float:
+        """Degrees between the tool's approach and the inward normal under a cup at closest_m (3,),
+        model frame (on `face`): the mean over the sample within the cup's radius facing the
+        cup, else the face's own."""
+        approach = T_cam_from_object[:3, :3].T @ T_cam_from_tool[:3, 2]
         near = np.asarray(self.tree.query_ball_point(closest_m, self.cup_radius_m), dtype=np.int64)
         normals = self.normals[near]
         normals = normals[normals @ -approach > 0.0] if len(near) else normals
         mean = normals.sum(axis=0) if len(normals) else self.mesh.face_normals[face]
-        return -mean / np.linalg.norm(mean)
+        return float(np.degrees(np.arccos(np.clip(-mean @ approach / np.linalg.norm(mean), -1, 1))))
 
 
 def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, truth: TrueSurface) -> int | None:
@@ -150,10 +147,8 @@ def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, truth: TrueSurf
         closest, dist, tri = truth.query.on_surface(local)
         if np.any(dist > TOUCH_M):
             continue
-        if kind == "suction":
-            approach = T_obj[:3, :3].T @ T[:3, 2]
-            if np.degrees(np.arccos(np.clip(truth.inward_under_cup(closest[0], int(tri[0]), approach) @ approach, -1, 1))) > TOUCH_DEG:
-                continue
+        if kind == "suction" and truth.approach_off_deg(closest[0], int(tri[0]), T_obj, T) > TOUCH_DEG:
+            continue
         if best is None or dist.max() < best[1]:
             best = (k, float(dist.max()))
     return None if best is None else best[0]
@@ -167,9 +162,7 @@ def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray
     for T_obj in T_cam_from_objects:
         closest, dist, tri = truth.query.on_surface(transform_points(invert_T(T_obj), T_cam_from_tool[:3, 3][None]))
         if dist[0] < best[0]:
-            approach = T_obj[:3, :3].T @ T_cam_from_tool[:3, 2]
-            inward = truth.inward_under_cup(closest[0], int(tri[0]), approach)
-            best = (float(dist[0]), float(np.degrees(np.arccos(np.clip(inward @ approach, -1, 1)))))
+            best = (float(dist[0]), truth.approach_off_deg(closest[0], int(tri[0]), T_obj, T_cam_from_tool))
     return best
 
 
@@ -187,13 +180,12 @@ def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects:
 
 
 def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_parts: int, seed: np.random.SeedSequence, folder: Path,
-               cycles: list[float]) -> Tally:
+               cycles: list[float], truth: TrueSurface) -> Tally:
     rng = np.random.default_rng(seed)
     g = p.generate
     placed = place_objects(part.points_m, n_parts, g.bin, g.placement, rng)
     T_bin = settle_in_bin(part, placed.T_bin_from_model, g, rng)
     tally = Tally(settled=len(T_bin))
-    truth = TrueSurface(part, p.pick.suction.cup_radius_m)
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
     bin_points = np.concatenate([trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0] for m in bin_meshes(g.bin)])
     half = (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0)
@@ -268,11 +260,12 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
         grasps = models.grasps
         tally = Tally()
         cycles: list[float] = []
+        truth = TrueSurface(part, p.pick.suction.cup_radius_m)
         with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
             for b in range(n_bins):
                 bin_seed = derive_seed(seed, "bench-picking", part.name, b)
                 n = int(np.random.default_rng(bin_seed).integers(parts_per_bin[0], parts_per_bin[1] + 1))
-                one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles)
+                one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles, truth)
                 log.info("%s bin %d: %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
                          part.name, b, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
                 tally.add(one)
