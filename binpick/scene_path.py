@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -36,6 +37,11 @@ from binpick.registration.visibility import DepthView
 from binpick.seeding import derive_int, derive_seed
 
 log = logging.getLogger(__name__)
+
+# Segments matched at once, on threads (the matcher's compiled and library kernels release the
+# interpreter): two, for the two cores the service is sized for. A constant, not the machine's
+# core count: which segments are matched, and so the poses, must not depend on the machine.
+SEGMENT_WAVE = 2
 
 
 @dataclass(frozen=True)
@@ -157,19 +163,32 @@ def register(
         found: list[PartPose] = []
         # Largest segments first: a part split in two is then found on its larger piece, and the
         # smaller one, which the pose explains, is not matched again (it would repeat the pose,
-        # and suppression would drop it).
+        # and suppression would drop it). Segments are matched SEGMENT_WAVE at a time, one per
+        # core: a segment is checked against the poses of the waves before its own. Each segment
+        # draws from its own generator, so the poses do not depend on the number of cores.
         sizes = np.bincount(labels[labels >= 0], minlength=n_segments)
+        segment_seeds = rng.integers(0, 2**63 - 1, size=n_segments)
         n_explained = 0
-        for seg in np.argsort(-sizes, kind="stable").tolist():
-            mask = labels == seg
-            if found and explained_by(ppf, cloud.points_m[mask], params, [f.T_cam_from_model for f in found]):
-                n_explained += 1
-                continue
+        order = np.argsort(-sizes, kind="stable").tolist()
+
+        def match(seg: int) -> tuple[PartPose | None, float]:
             t = time.perf_counter()
-            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params, rng)
-            per_instance_ms.append(1000.0 * (time.perf_counter() - t))
-            if est is not None and est.score >= params.min_score:
-                found.append(replace(est, segment=seg))
+            mask = labels == seg
+            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params, np.random.default_rng(segment_seeds[seg]))
+            return est, 1000.0 * (time.perf_counter() - t)
+
+        with ThreadPoolExecutor(max_workers=SEGMENT_WAVE, thread_name_prefix="binpick-match") as pool:
+            for start in range(0, len(order), SEGMENT_WAVE):
+                wave = []
+                for seg in order[start:start + SEGMENT_WAVE]:
+                    if found and explained_by(ppf, cloud.points_m[labels == seg], params, [f.T_cam_from_model for f in found]):
+                        n_explained += 1
+                    else:
+                        wave.append(seg)
+                for seg, (est, ms) in zip(wave, pool.map(match, wave), strict=True):
+                    per_instance_ms.append(ms)
+                    if est is not None and est.score >= params.min_score:
+                        found.append(replace(est, segment=seg))
         kept = suppress_duplicates(ppf, found, params, cloud.points_m)
         poses = [found[k] for k in kept]
         n_duplicates = len(found) - len(kept) + n_explained

@@ -27,17 +27,35 @@ def crop(points: np.ndarray, n_points: int, rng: np.random.Generator) -> np.ndar
 
 
 def cover(points: np.ndarray, n_points: int, rng: np.random.Generator) -> list[tuple[int, np.ndarray]]:
-    """Blocks (seed index, indices) that together cover every point; seeds are drawn among the
-    points not yet covered, so blocks overlap little."""
+    """Blocks (seed index, indices) that together cover the points: every point lies in a
+    block's ball (the n_points nearest neighbours of its seed) or less than the median point
+    spacing outside one. The first block is around a random point, each next one around the
+    uncovered point farthest from every block so far (the middle of the largest region left),
+    so that each pass covers as much new ground as it can."""
     n = len(points)
     if n <= n_points:
         return [(0, np.arange(n))]
     tree = cKDTree(points)
+    spacing = float(np.median(tree.query(points[:: max(1, n // 1000)], k=2)[0][:, 1]))
     covered = np.zeros(n, dtype=bool)
+    # Each point's distance outside the nearest block, a block being the ball of its seed's
+    # n_points nearest neighbours: |p - seed| - radius, at most 0 inside.
+    outside = np.full(n, np.inf)
     blocks = []
-    while not covered.all():
-        seed = int(rng.choice(np.flatnonzero(~covered)))
-        idx = block_around(tree, n, points[seed], n_points)
+    seed = int(rng.integers(n))
+    while True:
+        distances, idx = tree.query(points[seed], k=n_points)
+        idx = np.atleast_1d(idx).astype(np.int64)
         covered[idx] = True
         blocks.append((seed, idx))
-    return blocks
+        np.minimum(outside, np.linalg.norm(points - points[seed], axis=1) - float(np.max(distances)), out=outside)
+        # A point less than a point spacing outside a ball is on its rim, next to points in it:
+        # it takes their labels (label_blocks) instead of a pass of its own (one that covered 1-7
+        # new points in a third of the bins of 8 and 20 T-joints).
+        covered |= outside <= spacing
+        if covered.all():
+            return blocks
+        # A seed drawn at random among the uncovered points often fell at the rim of a block,
+        # and its pass (a whole network pass) covered a few hundred points, or four: 5-6 passes
+        # over an 8-part T-joint bin of 11,000 points, 4-5 with this choice.
+        seed = int(np.argmax(np.where(covered, -np.inf, outside)))

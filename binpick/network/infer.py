@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from binpick.network.blocks import cover
 from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network
@@ -121,12 +122,15 @@ def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams)
     """Labels (M,) int32 of the M scene points from the clustered blocks.
 
     Each point keeps the label of the block whose seed is nearest to it (where it had the most
-    context); an instance of a block joins the instance that already holds most of its points
-    (MERGE_OVERLAP of them or more), else it is new.
+    context) among those that label it: a block that holds a point but not its part's centre
+    leaves it unlabelled (-1 only when no block labels it). An instance of a block joins the instance that already holds most of its points
+    (MERGE_OVERLAP of them or more), else it is new. A point in no block (on a block's rim:
+    blocks.cover) takes the label of the nearest point in one.
     """
     M = len(points)
     labels = np.full(M, -1, np.int32)
-    best_dist = np.full(M, np.inf)
+    best_dist = np.full(M, np.inf)  # to the seed of the block that gave the label
+    seen = np.zeros(M, bool)  # in a block
     n_instances = 0
     for seed, idx, emb, ctr in blocks:
         local = cluster(points[idx], emb, ctr, params)
@@ -140,9 +144,16 @@ def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams)
                 mapping[j] = n_instances
                 n_instances += 1
         dist = np.linalg.norm(points[idx] - points[seed], axis=1)
-        closer = dist < best_dist[idx]
-        labels[idx[closer]] = mapping[np.where(local >= 0, local, -1)][closer]
+        closer = (dist < best_dist[idx]) & (local >= 0)
+        labels[idx[closer]] = mapping[local[closer]]
         best_dist[idx[closer]] = dist[closer]
+        seen[idx] = True
+    # A point on a block's rim but in no block (blocks.cover) takes its nearest neighbour's label.
+    rim = np.flatnonzero(~seen)
+    if len(rim) and len(rim) < M:
+        inside = np.flatnonzero(seen)
+        _, nearest = cKDTree(points[inside]).query(points[rim])
+        labels[rim] = labels[inside[nearest]]
     # Renumber 0..k-1 (a merged or fully overwritten instance leaves a gap).
     present = np.unique(labels[labels >= 0])
     remap = np.full(n_instances + 1, -1, np.int32)

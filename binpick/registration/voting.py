@@ -4,6 +4,8 @@ candidates. Scene points in the camera frame, metres; poses T_cam_from_model."""
 
 from __future__ import annotations
 
+import threading
+
 import numba
 import numpy as np
 from numba import njit
@@ -13,23 +15,29 @@ from binpick.io.ppf_model import PPFModel
 from binpick.registration.constants import PEAKS_PER_REFERENCE
 from binpick.registration.model import _align_to_x
 
+# One voting at a time in the process: both kernels already spread over every core, and numba's
+# fallback thread pool (workqueue, where OpenMP is missing) aborts on launches from two threads.
+# Segments matched on threads (scene_path) overlap the rest of their matching instead.
+_KERNELS = threading.Lock()
+
 
 def vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -> list[tuple[np.ndarray, float]]:
     """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference."""
     T_s = _align_to_x(pts, nrm)
-    group_start, keys, alpha_s = _scene_pairs(
-        pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), np.ascontiguousarray(T_s[:, :3, :3]),
-        np.ascontiguousarray(T_s[:, :3, 3]), refs.astype(np.int64), model.diameter_m, model.distance_step_m, model.angle_bins,
-    )
-    if len(keys) == 0:
-        return []
-    A = model.angle_bins
-    peak_flat, peak_votes = _accumulate_peaks(
-        # The table as stored (int64 / int32 / float32): a converted copy would cost more than the voting.
-        group_start, keys, alpha_s, np.asarray(model.key_starts, np.int64),
-        np.asarray(model.ref_index, np.int32), np.asarray(model.alpha, np.float32), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
-        4 * numba.get_num_threads(),
-    )
+    with _KERNELS:
+        group_start, keys, alpha_s = _scene_pairs(
+            pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), np.ascontiguousarray(T_s[:, :3, :3]),
+            np.ascontiguousarray(T_s[:, :3, 3]), refs.astype(np.int64), model.diameter_m, model.distance_step_m, model.angle_bins,
+        )
+        if len(keys) == 0:
+            return []
+        A = model.angle_bins
+        peak_flat, peak_votes = _accumulate_peaks(
+            # The table as stored (int64 / int32 / float32): a converted copy would cost more than the voting.
+            group_start, keys, alpha_s, np.asarray(model.key_starts, np.int64),
+            np.asarray(model.ref_index, np.int32), np.asarray(model.alpha, np.float32), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
+            4 * numba.get_num_threads(),
+        )
     valid = peak_votes > 0
     ref_rows, _ = np.nonzero(valid)
     m_r, a_bin = np.divmod(peak_flat[valid], A)
