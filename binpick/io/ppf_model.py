@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 from binpick.io.npz import load_fields, save_fields
 
@@ -39,9 +39,10 @@ class PPFModel:
     angle_bins: int
 
     @cached_property
-    def dense_tree(self) -> cKDTree:
-        """A k-d tree of dense_points_m (model frame), built on first use and kept with the model."""
-        return cKDTree(self.dense_points_m)
+    def dense_tree(self) -> KDTree:
+        """A k-d tree of dense_points_m (model frame), built on first use and kept with the model
+        (pykdtree: nearest-neighbour queries only, twice scipy's speed)."""
+        return KDTree(np.ascontiguousarray(self.dense_points_m, dtype=np.float64))
 
     @cached_property
     def dense_normal_dot_point(self) -> np.ndarray:

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
@@ -52,7 +53,7 @@ def match_segment(
     # cost does not grow with the density of the capture.
     scene_points = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
     inlier = scales.inlier_m
-    scene_tree = cKDTree(scene_points)
+    scene_tree = KDTree(np.ascontiguousarray(scene_points, dtype=np.float64))
     # Each strong cluster is refined by coarse ICP (on a subsample of the model) and scored;
     # comparing clusters only after ICP keeps a pose slid along a long part from winning. The
     # FINE_CLUSTERS best get the fine ICP and are scored again. (Two clusters that coarse ICP
@@ -135,7 +136,8 @@ def match_scene(
         candidates += vote(model, pts, nrm, chunk)
     fine = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
     inlier = scales.inlier_m
-    tree = cKDTree(fine)
+    tree = cKDTree(fine)  # ball queries
+    score_tree = KDTree(np.ascontiguousarray(fine, dtype=np.float64))  # nearest neighbours
     estimates: list[PartPose] = []
     support: list[np.ndarray] = []
     centre = model.dense_points_m.mean(axis=0)
@@ -159,7 +161,7 @@ def match_scene(
         if repeats_any(model, T, settled, params.cluster_rotation_deg, scales.cluster_translation_m):
             continue
         T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
-        score = score_pose(model, T, fine, inlier, tree, whole_scene=True)
+        score = score_pose(model, T, fine, inlier, score_tree, whole_scene=True)
         if score >= params.min_score:
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))
