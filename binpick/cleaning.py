@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from binpick.errors import BinpickError
 from binpick.geometry.pointcloud import first_in_each_voxel, fit_plane_ransac, statistical_outliers
@@ -194,7 +194,12 @@ def clean_capture(
     )
 
 
-@njit(cache=True)
+# _screen's chunks of the frame, spread over the cores (a fixed number: the result is the same
+# whatever the cores, as minima, maxima and counts do not depend on the order they are taken in).
+SCREEN_CHUNKS = 16
+
+
+@njit(cache=True, parallel=True)
 def _screen(xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam, roi_min, roi_max, inv_voxel):  # pragma: no cover - numba
     """One pass over a capture's points (n, 3), camera frame, metres: valid (n,) bool (all three
     coordinates finite); keep (n,) bool (valid, range squared within [range2_min, range2_max]
@@ -204,40 +209,51 @@ def _screen(xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam
     n = len(xyz)
     valid = np.zeros(n, np.bool_)
     keep = np.zeros(n, np.bool_)
+    lo_c = np.full((SCREEN_CHUNKS, 3), np.inf)
+    hi_c = np.full((SCREEN_CHUNKS, 3), -np.inf)
+    key_lo_c = np.full((SCREEN_CHUNKS, 3), np.iinfo(np.int64).max)
+    key_hi_c = np.full((SCREEN_CHUNKS, 3), np.iinfo(np.int64).min)
+    n_valid_c = np.zeros(SCREEN_CHUNKS, np.int64)
+    n_keep_c = np.zeros(SCREEN_CHUNKS, np.int64)
+    for c in prange(SCREEN_CHUNKS):
+        p = np.empty(3, np.float32)
+        for i in range(c * n // SCREEN_CHUNKS, (c + 1) * n // SCREEN_CHUNKS):
+            if not np.isfinite(xyz[i, 0] + xyz[i, 1] + xyz[i, 2]):
+                continue
+            valid[i] = True
+            n_valid_c[c] += 1
+            for a in range(3):
+                p[a] = np.float32(xyz[i, a])
+                lo_c[c, a] = min(lo_c[c, a], np.float64(p[a]))
+                hi_c[c, a] = max(hi_c[c, a], np.float64(p[a]))
+            range2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+            if range2 < range2_min or range2 > range2_max:
+                continue
+            if use_roi:
+                inside = True
+                for a in range(3):
+                    v = R_roi_from_cam[a, 0] * np.float64(p[0]) + R_roi_from_cam[a, 1] * np.float64(p[1]) + R_roi_from_cam[a, 2] * np.float64(p[2]) + t_roi_from_cam[a]
+                    if v < roi_min[a] or v > roi_max[a]:
+                        inside = False
+                if not inside:
+                    continue
+            keep[i] = True
+            n_keep_c[c] += 1
+            for a in range(3):
+                k = np.int64(np.floor(np.float64(p[a]) * inv_voxel))
+                key_lo_c[c, a] = min(key_lo_c[c, a], k)
+                key_hi_c[c, a] = max(key_hi_c[c, a], k)
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
     key_lo = np.full(3, np.iinfo(np.int64).max)
     key_hi = np.full(3, np.iinfo(np.int64).min)
-    n_valid = 0
-    n_keep = 0
-    p = np.empty(3, np.float32)
-    for i in range(n):
-        if not np.isfinite(xyz[i, 0] + xyz[i, 1] + xyz[i, 2]):
-            continue
-        valid[i] = True
-        n_valid += 1
+    for c in range(SCREEN_CHUNKS):
         for a in range(3):
-            p[a] = np.float32(xyz[i, a])
-            lo[a] = min(lo[a], np.float64(p[a]))
-            hi[a] = max(hi[a], np.float64(p[a]))
-        range2 = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
-        if range2 < range2_min or range2 > range2_max:
-            continue
-        if use_roi:
-            inside = True
-            for a in range(3):
-                v = R_roi_from_cam[a, 0] * np.float64(p[0]) + R_roi_from_cam[a, 1] * np.float64(p[1]) + R_roi_from_cam[a, 2] * np.float64(p[2]) + t_roi_from_cam[a]
-                if v < roi_min[a] or v > roi_max[a]:
-                    inside = False
-            if not inside:
-                continue
-        keep[i] = True
-        n_keep += 1
-        for a in range(3):
-            k = np.int64(np.floor(np.float64(p[a]) * inv_voxel))
-            key_lo[a] = min(key_lo[a], k)
-            key_hi[a] = max(key_hi[a], k)
-    return valid, keep, lo, hi, key_lo, key_hi, n_valid, n_keep
+            lo[a] = min(lo[a], lo_c[c, a])
+            hi[a] = max(hi[a], hi_c[c, a])
+            key_lo[a] = min(key_lo[a], key_lo_c[c, a])
+            key_hi[a] = max(key_hi[a], key_hi_c[c, a])
+    return valid, keep, lo, hi, key_lo, key_hi, n_valid_c.sum(), n_keep_c.sum()
 
 
 @njit(cache=True)

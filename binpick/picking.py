@@ -35,6 +35,7 @@ from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
@@ -279,7 +280,8 @@ class _OwnPoints:
 
     def __init__(self, points_m: np.ndarray, normals: np.ndarray, own_m: float) -> None:
         self.normals, self.own_m = normals, own_m
-        tree = cKDTree(points_m) if len(points_m) else None
+        # pykdtree: nearest-neighbour queries only, half scipy's time (a query per target part).
+        tree = KDTree(np.ascontiguousarray(points_m, dtype=np.float64)) if len(points_m) else None
         self.tree, self.points_m = tree, points_m
         spacing = 0.0
         if tree is not None and len(points_m) > 1:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.bench import cpu_model
 from binpick.params import CameraParams, GenerateParams
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden_scene.npz"
@@ -45,18 +46,6 @@ def render_golden() -> dict[str, np.ndarray]:
     scene = generate_scene(part, GenerateParams.model_validate(GENERATE), CameraParams.model_validate(CAMERA), view, SEED)
     return {"depth_m": scene.xyz_m[..., 2].astype(np.float32), "labels": scene.labels.astype(np.int16),
             "T_cam_from_model": scene.T_cam_from_model.astype(np.float64)}
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    import platform
-
-    return platform.processor() or platform.machine()
 
 
 def main() -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import open3d as o3d
-from numba import njit
+from numba import njit, prange
 from scipy.spatial import cKDTree
 
 
@@ -176,17 +176,20 @@ def _ransac_plane(points: np.ndarray, threshold_m: float, iterations: int, confi
     return best
 
 
-@njit(cache=True)
+@njit(cache=True, parallel=True)
 def _count_inliers(points, normals, d, threshold_m):  # pragma: no cover - numba
     """(k,) int64: for each plane (normals (k, 3), d (k,)) the points (n, 3) within threshold_m.
-    One pass, no (n, k) matrix: a third of numpy's time on 5,000 points."""
+    One pass per plane, no (n, k) matrix (a third of numpy's time on 5,000 points); the planes
+    spread over the cores, each counted whole, so the counts do not depend on them."""
     k = normals.shape[0]
     out = np.zeros(k, np.int64)
-    for i in range(points.shape[0]):
-        x, y, z = points[i, 0], points[i, 1], points[i, 2]
-        for j in range(k):
-            if abs(normals[j, 0] * x + normals[j, 1] * y + normals[j, 2] * z + d[j]) <= threshold_m:
-                out[j] += 1
+    for j in prange(k):
+        a, b, c, e = normals[j, 0], normals[j, 1], normals[j, 2], d[j]
+        count = 0
+        for i in range(points.shape[0]):
+            if abs(a * points[i, 0] + b * points[i, 1] + c * points[i, 2] + e) <= threshold_m:
+                count += 1
+        out[j] = count
     return out
 
 
