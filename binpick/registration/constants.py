@@ -24,13 +24,8 @@ SCORE_STRIDE = 2
 PEAKS_PER_REFERENCE = 2
 # Whole-scene voting: references per accumulator (it holds references x model points x angles).
 SCENE_REFS_PER_CHUNK = 64
-# Whole-scene matching: clusters refined per instance sought ...
+# Whole-scene matching: clusters refined per instance sought.
 SCENE_CLUSTERS_PER_INSTANCE = 3
-# ... and the pass ends after this many clusters in a row were refined, scored and refused: on a
-# 20-part T-joint bin it had gone on through all 90 when some leftover patch held no part (3.0 s
-# of registration instead of 1.6 s); the poses stayed the same on 8- and 20-part T-joint and ring
-# screw bins, with segments and over the whole scene.
-SCENE_MISSES_TO_STOP = 10
 # Non-maximum suppression by support: a pose is dropped when more than this share of its
 # supporting scene points is explained by a better pose already.
 MAX_SHARED_SUPPORT = 0.3

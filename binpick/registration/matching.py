@@ -24,7 +24,6 @@ from binpick.registration.constants import (
     MAX_CLUSTER_CANDIDATES,
     MIN_FREE_SHARE,
     SCENE_CLUSTERS_PER_INSTANCE,
-    SCENE_MISSES_TO_STOP,
     SCENE_REFS_PER_CHUNK,
     SEGMENT_EXPLAINED_SHARE,
     TOP_CLUSTERS,
@@ -149,10 +148,7 @@ def match_scene(
 
     settled = np.asarray(known, dtype=np.float64).reshape(-1, 4, 4)  # poses a coarse fit may repeat
 
-    misses = 0  # clusters in a row refined and scored below min_score
     for T, _ in cluster_poses(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
-        if misses >= SCENE_MISSES_TO_STOP:
-            break
         # ICP and support only see the scene around the pose: the rest cannot match this part.
         near = np.asarray(tree.query_ball_point(T[:3, :3] @ centre + T[:3, 3], reach), dtype=np.int64)
         if len(near) < 6:
@@ -166,7 +162,6 @@ def match_scene(
             continue
         T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, fine, inlier, score_tree, whole_scene=True)
-        misses = misses + 1 if score < params.min_score else 0
         if score >= params.min_score:
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))
