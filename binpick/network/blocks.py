@@ -44,11 +44,11 @@ def cover(points: np.ndarray, n_points: int, rng: np.random.Generator) -> list[t
     blocks = []
     seed = int(rng.integers(n))
     while True:
-        distances, idx = tree.query(points[seed], k=n_points)
-        idx = np.atleast_1d(idx).astype(np.int64)
+        idx = block_around(tree, n, points[seed], n_points)
         covered[idx] = True
         blocks.append((seed, idx))
-        np.minimum(outside, np.linalg.norm(points - points[seed], axis=1) - float(np.max(distances)), out=outside)
+        radius = float(np.linalg.norm(points[idx[-1]] - points[seed]))  # nearest first: the last is the farthest
+        np.minimum(outside, np.linalg.norm(points - points[seed], axis=1) - radius, out=outside)
         # A point less than a point spacing outside a ball is on its rim, next to points in it:
         # it takes their labels (label_blocks) instead of a pass of its own (one that covered 1-7
         # new points in a third of the bins of 8 and 20 T-joints).

@@ -123,9 +123,10 @@ def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams)
 
     Each point keeps the label of the block whose seed is nearest to it (where it had the most
     context) among those that label it: a block that holds a point but not its part's centre
-    leaves it unlabelled (-1 only when no block labels it). An instance of a block joins the instance that already holds most of its points
-    (MERGE_OVERLAP of them or more), else it is new. A point in no block (on a block's rim:
-    blocks.cover) takes the label of the nearest point in one.
+    leaves it unlabelled (-1 only when no block labels it). An instance of a block joins the
+    instance that already holds most of its points (MERGE_OVERLAP of them or more), else it is
+    new. A point in no block (on a block's rim: blocks.cover) takes the label of the nearest
+    point in one.
     """
     M = len(points)
     labels = np.full(M, -1, np.int32)
