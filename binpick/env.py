@@ -17,6 +17,9 @@ _DEFAULTS = {
     "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
     "PREFECT_CLOUD_ENABLE_ORCHESTRATION_TELEMETRY": "false",
     "PREFECT_UI_ENABLED": "false",
+    # A flow run without PREFECT_API_URL starts a server in a subprocess, migrating a fresh
+    # database first; Prefect's 20 s limit was too short on a busy 2-core CI machine.
+    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180",
     "GIT_PYTHON_REFRESH": "quiet",
     "TQDM_MININTERVAL": "2",
     # The PPF voting loop runs on every core through OpenMP or numba's own pool; the TBB found on
