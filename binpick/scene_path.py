@@ -19,8 +19,11 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
 
 from binpick.cleaning import clean_capture
+from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet, load_grasps
 from binpick.io.part_model import PartModel, load_part_model
@@ -30,9 +33,10 @@ from binpick.network.checkpoint import InferenceSettings
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
 from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
-from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
+from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, Scales
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
-from binpick.registration.verification import seen_through
+from binpick.registration.near_symmetry import resolve
+from binpick.registration.verification import score_pose, seen_through
 from binpick.registration.visibility import DepthView
 from binpick.seeding import derive_int, derive_seed
 
@@ -200,10 +204,12 @@ def register(
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
         log.info("whole-scene matching added %d poses", len(more))
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    if len(ppf.near_symmetries) and poses:
+        poses = _resolve_near_symmetries(cloud, labels, poses, ppf, params, view)
     # Verification against what the camera saw: a pose whose surface lies where the sensor saw
     # through it (a cup fitted into a box wall, a part floating before the wall behind a desk)
     # is not there, whatever its fit to the points near it.
-    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
     limit = DEFAULT_MAX_SEEN_THROUGH if params.max_seen_through is None else params.max_seen_through
     kept_poses = []
     for pose in poses:
@@ -213,6 +219,33 @@ def register(
     if len(kept_poses) < len(poses):
         log.info("dropped %d of %d poses lying where the camera saw through them", len(poses) - len(kept_poses), len(poses))
     return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses))
+
+
+def _resolve_near_symmetries(
+    cloud: CleanCloud, labels: np.ndarray | None, poses: list[PartPose], ppf: PPFModel, params: RegisterParams, view: DepthView
+) -> list[PartPose]:
+    """Each pose, or its turn by one of the part's near symmetries that what the camera saw
+    supports better (registration/near_symmetry.py). A turned pose is scored again as its source
+    scores (on its segment's points, or on the whole scene's)."""
+    scales = Scales.of(ppf.diameter_m, params)
+    fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
+    ball_tree, score_tree = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
+    out = []
+    for pose in poses:
+        T, turned = resolve(ppf, pose.T_cam_from_model, fine, ball_tree, score_tree, view, scales, params.icp_iterations)
+        if turned:
+            if pose.segment >= 0 and labels is not None:
+                own = cloud.points_m[labels == pose.segment].astype(np.float64)
+                own = own[voxel_downsample_indices(own, scales.refine_step_m)]
+                score = score_pose(ppf, T, own, scales.inlier_m)
+            else:
+                score = score_pose(ppf, T, fine, scales.inlier_m, score_tree, whole_scene=True)
+            pose = replace(pose, T_cam_from_model=T, score=score, extra={**(pose.extra or {}), "turned_by_near_symmetry": 1.0})
+        out.append(pose)
+    n_turned = sum(1 for p in out if (p.extra or {}).get("turned_by_near_symmetry"))
+    if n_turned:
+        log.info("turned %d of %d poses by a near symmetry of the part, as the capture showed it", n_turned, len(out))
+    return out
 
 
 def bin_box_of(params: ImportCaptureParams) -> BinBoxObstacle | None:

@@ -26,6 +26,16 @@ def test_ppf_model_roundtrip(tmp_path, ppf):
     back = load_ppf_model(tmp_path / "ppf.npz")
     assert np.array_equal(back.keys, ppf.keys) and back.angle_bins == ppf.angle_bins
     assert np.all(np.diff(back.keys) >= 0)
+    assert back.near_symmetries.shape == ppf.near_symmetries.shape == (0, 4, 4)
+
+
+def test_a_ppf_model_written_before_near_symmetries_reads_as_having_none(tmp_path, ppf):
+    save_ppf_model(tmp_path / "ppf.npz", ppf)
+    with np.load(tmp_path / "ppf.npz") as z:
+        older = {k: z[k] for k in z.files if k != "near_symmetries"}
+    np.savez(tmp_path / "old.npz", **older)
+    back = load_ppf_model(tmp_path / "old.npz")
+    assert back.near_symmetries.shape == (0, 4, 4) and np.array_equal(back.keys, ppf.keys)
 
 
 def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):

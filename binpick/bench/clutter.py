@@ -103,7 +103,9 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
     from binpick.bench.parts import bench_parts
 
     wanted = list(names or DEFAULT_PARTS)
-    parts = bench_parts([n for n in wanted if n != CUP], n_points=settings.ingest.n_surface_points)
+    others = [n for n in wanted if n != CUP]
+    # (An empty list would mean every part to bench_parts: `--part icbin_coffee_cup` alone ran them all.)
+    parts = bench_parts(others, n_points=settings.ingest.n_surface_points) if others else []
     if CUP in wanted and (cup := _cup(settings.ingest.n_surface_points)) is not None:
         parts.append(cup)
     per_part: dict[str, dict[str, float]] = {}

@@ -25,14 +25,16 @@ def save_fields(path: str | Path, obj: Any, compressed: bool = True) -> None:
             np.savez(tmp, **arrays)  # type: ignore[arg-type]
 
 
-def load_fields(path: str | Path, cls: type[T], what: str, missing: str) -> dict[str, np.ndarray]:
-    """The arrays of the fields of `cls` from `path`; InputError naming the file when it is
-    missing (`missing` says how to make it) or is not a `what`."""
+def load_fields(path: str | Path, cls: type[T], what: str, missing: str, defaults: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """The arrays of the fields of `cls` from `path` (`defaults` for fields that files written
+    before them lack); InputError naming the file when it is missing (`missing` says how to make
+    it) or is not a `what`."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, missing)
     try:
         with np.load(path, allow_pickle=False) as z:
-            return {f.name: z[f.name] for f in fields(cls)}  # type: ignore[arg-type]  # cls is a dataclass
+            absent = {k: v for k, v in (defaults or {}).items() if k not in z.files}
+            return {f.name: absent[f.name] if f.name in absent else z[f.name] for f in fields(cls)}  # type: ignore[arg-type]  # cls is a dataclass
     except (KeyError, ValueError, OSError) as exc:
         raise InputError(path, f"not a binpick {what} ({exc})") from None

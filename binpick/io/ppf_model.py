@@ -23,6 +23,8 @@ class PPFModel:
     of key k are keys[key_starts[k]:key_starts[k + 1]] (an O(1) lookup).
     dense_points_m, dense_normals: the full surface sample, for scoring and ICP.
     symmetries (m, 4, 4): transforms of the model frame onto itself, identity first.
+    near_symmetries (k, 4, 4): turns of the model frame that map nearly all of the surface onto
+    itself but are not symmetries (registration/model.py); k = 0 for most parts.
     """
 
     points_m: np.ndarray
@@ -34,6 +36,7 @@ class PPFModel:
     dense_points_m: np.ndarray
     dense_normals: np.ndarray
     symmetries: np.ndarray
+    near_symmetries: np.ndarray
     diameter_m: float
     distance_step_m: float
     angle_bins: int
@@ -57,7 +60,9 @@ def save_ppf_model(path: str | Path, model: PPFModel) -> None:
 
 
 def load_ppf_model(path: str | Path) -> PPFModel:
-    values: dict[str, Any] = dict(load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)"))
+    # Models written before near symmetries were found have none (the ppf stage rebuilds them).
+    values: dict[str, Any] = dict(load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)",
+                                              {"near_symmetries": np.zeros((0, 4, 4))}))
     for name in ("diameter_m", "distance_step_m"):
         values[name] = float(values[name])
     values["angle_bins"] = int(values["angle_bins"])

@@ -39,6 +39,19 @@ SEGMENT_EXPLAINED_SHARE = 0.8
 # ICP stops when fitness and RMSE change by less than this, relative.
 ICP_RELATIVE_CHANGE = 1e-4
 
+# Near symmetries (model.py, near_symmetry.py): turns that are not declared symmetries but map
+# nearly all of a part's surface onto itself. Turns tried about each principal axis: multiples of
+# this angle; a pose found is within half a step of the right turn, which fine ICP then reaches
+# (the distinguishing feature pulls it).
+NEAR_SYMMETRY_STEP_DEG = 30
+# A turn is a near symmetry when it brings this share of the surface to within the score's inlier
+# distance of the surface: the coffee cup of the IC-BIN frame turned about its axis keeps 0.94-0.97
+# (its handle is the rest); no turn of the T-joint, gear shaft, ring screw or three-way pipe other
+# than their declared symmetries keeps more than 0.61.
+NEAR_SYMMETRY_MIN_OVERLAP = 0.85
+# Every k-th dense point is used to measure the overlap.
+NEAR_SYMMETRY_PROBE_STRIDE = 4
+
 
 @dataclass(frozen=True)
 class Scales:

@@ -9,10 +9,12 @@ Frames: model points in the part's model frame, metres.
 from __future__ import annotations
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.io.ppf_model import PPFModel
 from binpick.params import RegisterParams
+from binpick.registration.constants import NEAR_SYMMETRY_MIN_OVERLAP, NEAR_SYMMETRY_PROBE_STRIDE, NEAR_SYMMETRY_STEP_DEG
 
 
 def _align_to_x(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -91,7 +93,79 @@ def train_ppf(
         dense_points_m=np.asarray(dense_points_m, dtype=np.float64),
         dense_normals=np.asarray(dense_normals, dtype=np.float64),
         symmetries=symmetries,
+        near_symmetries=near_symmetries(dense_points_m, symmetries, params.score_inlier_rel * diameter_m),
         diameter_m=float(diameter_m),
         distance_step_m=step,
         angle_bins=params.angle_bins,
     )
+
+
+def near_symmetries(dense_points_m: np.ndarray, symmetries: np.ndarray, inlier_m: float) -> np.ndarray:
+    """(k, 4, 4) model-frame transforms: turns by multiples of NEAR_SYMMETRY_STEP_DEG about the
+    principal axes of the surface sample (through its centroid) that bring at least
+    NEAR_SYMMETRY_MIN_OVERLAP of it to within inlier_m of itself, leaving out the declared
+    symmetries (m, 4, 4) and turns equal to one found already.
+
+    dense_points_m : (n, 3) the part's surface sample, model frame, metres.
+    """
+    points = np.asarray(dense_points_m, dtype=np.float64)
+    if len(points) < 3:
+        return np.zeros((0, 4, 4))
+    centre = points.mean(axis=0)
+    axes = np.linalg.svd(points - centre, full_matrices=False)[2]
+    probe = np.ascontiguousarray(points[::NEAR_SYMMETRY_PROBE_STRIDE])
+    moments = (probe.mean(axis=0), probe.T @ probe / len(probe))
+    tree = KDTree(points)
+    found: list[np.ndarray] = []
+    for axis in axes:
+        for k in range(1, 360 // NEAR_SYMMETRY_STEP_DEG):
+            T = _turn(axis, np.radians(k * NEAR_SYMMETRY_STEP_DEG), centre)
+            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *found)):
+                continue
+            # The axis through the centroid misses the turn's own axis when the feature that
+            # breaks the symmetry moves the centroid (a mug's handle): the turn is fitted first.
+            T = _self_aligned(T, probe, points, tree, 3.0 * inlier_m)
+            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *found)):
+                continue
+            d, _ = tree.query(probe @ T[:3, :3].T + T[:3, 3], distance_upper_bound=inlier_m)
+            if np.isfinite(d).mean() >= NEAR_SYMMETRY_MIN_OVERLAP:
+                found.append(T)
+    return np.array(found).reshape(-1, 4, 4)
+
+
+def _self_aligned(T: np.ndarray, probe: np.ndarray, points: np.ndarray, tree: KDTree, max_distance_m: float, iterations: int = 15) -> np.ndarray:
+    """T (4, 4) refined so that the probe points it moves land on the surface points (point to
+    point ICP, pairs closer than max_distance_m)."""
+    for _ in range(iterations):
+        moved = probe @ T[:3, :3].T + T[:3, 3]
+        d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+        pair = np.isfinite(d)
+        if pair.sum() < 3:
+            break
+        src, dst = moved[pair], points[j[pair]]
+        cs, cd = src.mean(axis=0), dst.mean(axis=0)
+        U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
+        step = np.eye(4)
+        step[:3, :3], step[:3, 3] = R, cd - R @ cs
+        T = step @ T
+    return T
+
+
+def _turn(axis: np.ndarray, angle_rad: float, centre: np.ndarray) -> np.ndarray:
+    """(4, 4) the rotation by angle_rad about the unit axis through centre."""
+    a = axis / np.linalg.norm(axis)
+    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
+    R = np.eye(3) + np.sin(angle_rad) * K + (1.0 - np.cos(angle_rad)) * (K @ K)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, centre - R @ centre
+    return T
+
+
+def _apart_m(A: np.ndarray, B: np.ndarray, moments: tuple[np.ndarray, np.ndarray]) -> float:
+    """Root mean square distance between points moved by A and by B, from the points' mean (3,)
+    and second moment (3, 3): mean |D p + e|^2 = tr(D M D^T) + 2 e . D mean + |e|^2 (a
+    revolution's 360 declared symmetries are compared with every turn)."""
+    mean, M = moments
+    D, e = A[:3, :3] - B[:3, :3], A[:3, 3] - B[:3, 3]
+    return float(np.sqrt(max(0.0, np.trace(D @ M @ D.T) + 2.0 * e @ (D @ mean) + e @ e)))

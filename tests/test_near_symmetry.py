@@ -1,0 +1,84 @@
+"""Near symmetries: a mug's turns about its axis are found (and no turn of the T-joint is), and a
+pose turned so that the handle lies where the camera saw the floor behind it is turned back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
+
+from binpick.generation.camera import Intrinsics, render
+from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.geometry.symmetry import symmetry_transforms
+from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
+from binpick.params import SymmetryParams
+from binpick.parts import make_part_model
+from binpick.registration.constants import Scales
+from binpick.registration.model import near_symmetries, train_ppf
+from binpick.registration.near_symmetry import resolve
+from binpick.registration.visibility import DepthView
+from binpick.scene_path import clean
+
+from settings import PARAMS
+
+HANDLE_CENTRE_M = np.array([0.038, 0.0, 0.0])
+
+
+@pytest.fixture(scope="module")
+def mug():
+    """A closed cylinder (radius 30 mm, 80 mm tall, axis z) with a 16 x 6 x 30 mm block on its +x side."""
+    body = trimesh.creation.cylinder(radius=0.03, height=0.08, sections=48)
+    handle = trimesh.creation.box(extents=(0.016, 0.006, 0.03))
+    handle.apply_translation(HANDLE_CENTRE_M)
+    mesh = trimesh.util.concatenate([body, handle])
+    part = make_part_model("mug", mesh, SymmetryParams(), 8000, np.random.default_rng(0), "m")
+    return mesh, train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration)
+
+
+def _axis_of(T: np.ndarray) -> np.ndarray:
+    """The turn's axis (unit): the rotation's eigenvector of eigenvalue 1."""
+    w, v = np.linalg.eig(T[:3, :3])
+    return np.real(v[:, np.argmin(np.abs(w - 1.0))])
+
+
+def test_a_mugs_turns_about_its_axis_are_near_symmetries_and_no_turn_of_the_t_joint_is(mug, t_joint):
+    _, ppf = mug
+    about_axis = [T for T in ppf.near_symmetries if abs(_axis_of(T)[2]) > 0.99]
+    assert len(about_axis) == 11  # every 30 degrees but the identity
+    # (The two half turns about the other axes keep all but the handle too: the body is closed at both ends.)
+    assert len(ppf.near_symmetries) <= 13
+    inlier = PARAMS.registration.score_inlier_rel * t_joint.diameter_m
+    # The T-joint's one turn that maps it onto itself is its declared symmetry.
+    assert len(near_symmetries(t_joint.points_m, symmetry_transforms(t_joint.symmetry), inlier)) == 0
+
+
+def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mug):
+    mesh, ppf = mug
+    # The mug lies on its side 0.45 m from the camera, axis along the image's rows, the handle
+    # pointing across the image (+x); the floor is 0.2 m behind it.
+    T_true = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi / 2), np.array([0.0, 0.0, 0.45]))
+    floor = trimesh.creation.box(extents=(1.0, 1.0, 0.01))
+    floor.apply_translation((0.0, 0.0, 0.655))
+    intr = Intrinsics(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
+    vertices = transform_points(T_true, np.asarray(mesh.vertices))
+    frame = render([(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
+    cloud = clean(frame.xyz_m.reshape(-1, 3), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    scales = Scales.of(ppf.diameter_m, PARAMS.registration)
+    fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
+    trees = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
+
+    def handle_off_mm(T: np.ndarray) -> float:
+        """How far the posed handle's centre lies from the true one (the test mug's body is also
+        symmetric under a half turn about the handle's axis, which keeps the handle in place)."""
+        return 1000.0 * float(np.linalg.norm(transform_points(T, HANDLE_CENTRE_M[None]) - transform_points(T_true, HANDLE_CENTRE_M[None])))
+
+    half_turn = next(S for S in ppf.near_symmetries if abs(_axis_of(S)[2]) > 0.99 and abs(S[0, 0] + 1.0) < 0.01)
+    assert handle_off_mm(T_true @ half_turn) > 70.0  # the handle on the other side
+    T, turned = resolve(ppf, T_true @ half_turn, fine, *trees, view, scales, PARAMS.registration.icp_iterations)
+    assert turned and handle_off_mm(T) < 3.0
+    # The right pose stays (or moves by no more than its refinement).
+    T, _ = resolve(ppf, T_true, fine, *trees, view, scales, PARAMS.registration.icp_iterations)
+    assert handle_off_mm(T) < 3.0
