@@ -207,7 +207,9 @@ def plan_picks(
     sources = [np.full(len(captured), -1)] + ([np.full(len(chunks[1]), -2)] if bin_box is not None else []) + [np.full(len(p), k) for k, p in enumerate(posed)]
     obstacles = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     source = np.concatenate(sources) if sources else np.zeros(0, int)
-    tree = cKDTree(obstacles) if len(obstacles) else None
+    # Midpoint splits, nodes not shrunk to their points: 14-16 ms to build over the 100,000
+    # obstacle points of an 8-part T-joint bin instead of 37-39 ms, and ball queries no slower.
+    tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False) if len(obstacles) else None
     reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + params.own_points_m if len(model_sample) else 0.0
 
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
@@ -328,7 +330,8 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
 
 def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:
     """Indices of the captured points within radius_m of `at`: the obstacle tree's first n_captured rows."""
-    near = np.asarray(tree.query_ball_point(at, radius_m), dtype=np.int64)
+    # Sorted: the order (which the tree's layout sets) must not change sums over these points.
+    near = np.asarray(tree.query_ball_point(at, radius_m, return_sorted=True), dtype=np.int64)
     return near[near < n_captured]
 
 
