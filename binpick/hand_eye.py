@@ -19,7 +19,7 @@ from typing import Literal
 import numpy as np
 
 from binpick.errors import BinpickError
-from binpick.geometry.transforms import invert_T
+from binpick.geometry.transforms import invert_T, rigid_fit
 
 Setup = Literal["eye_to_hand", "eye_in_hand"]
 MIN_POSES = 3
@@ -139,7 +139,7 @@ def board_pose(image: np.ndarray, pattern: tuple[int, int], square_m: float, K: 
         measured = xyz_m[v, u]
         ok = np.all(np.isfinite(measured), axis=1)
         if ok.sum() >= 6:
-            return _rigid_fit(model[ok], measured[ok])
+            return rigid_fit(model[ok], measured[ok])
     ok_pnp, rvec, tvec = cv2.solvePnP(model, corners, K, None, flags=cv2.SOLVEPNP_ITERATIVE)
     if not ok_pnp:
         return None
@@ -147,13 +147,3 @@ def board_pose(image: np.ndarray, pattern: tuple[int, int], square_m: float, K: 
     T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.reshape(3)
     return T
 
-
-def _rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
-    """T with T @ src = dst in the least-squares sense (Kabsch)."""
-    cs, cd = src.mean(0), dst.mean(0)
-    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
-    R = Vt.T @ D @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, cd - R @ cs
-    return T

@@ -231,9 +231,11 @@ def _resolve_near_symmetries(
     fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
     ball_tree, score_tree = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
     out = []
+    n_turned = 0
     for pose in poses:
         T, turned = resolve(ppf, pose.T_cam_from_model, fine, ball_tree, score_tree, view, scales, params.icp_iterations)
         if turned:
+            n_turned += 1
             if pose.segment >= 0 and labels is not None:
                 own = cloud.points_m[labels == pose.segment].astype(np.float64)
                 own = own[voxel_downsample_indices(own, scales.refine_step_m)]
@@ -242,7 +244,6 @@ def _resolve_near_symmetries(
                 score = score_pose(ppf, T, fine, scales.inlier_m, score_tree, whole_scene=True)
             pose = replace(pose, T_cam_from_model=T, score=score, extra={**(pose.extra or {}), "turned_by_near_symmetry": 1.0})
         out.append(pose)
-    n_turned = sum(1 for p in out if (p.extra or {}).get("turned_by_near_symmetry"))
     if n_turned:
         log.info("turned %d of %d poses by a near symmetry of the part, as the capture showed it", n_turned, len(out))
     return out

@@ -51,6 +51,17 @@ def rotate_vectors(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:
     return (vectors @ np.asarray(T, dtype=np.float64)[:3, :3].T).astype(vectors.dtype, copy=False)
 
 
+def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """(4, 4) T with T @ src = dst in the least-squares sense (Kabsch): src, dst (n, 3) paired points."""
+    cs, cd = src.mean(0), dst.mean(0)
+    U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    R = Vt.T @ D @ U.T
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, cd - R @ cs
+    return T
+
+
 def axis_angle_to_R(axis: np.ndarray, angle_rad: float) -> np.ndarray:
     """(3, 3) rotation by `angle_rad` about `axis` (any length > 0), Rodrigues' formula."""
     axis = np.asarray(axis, dtype=np.float64)

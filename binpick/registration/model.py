@@ -12,6 +12,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
+from binpick.geometry.transforms import axis_angle_to_R, make_T, rigid_fit
 from binpick.io.ppf_model import PPFModel
 from binpick.params import RegisterParams
 from binpick.registration.constants import NEAR_SYMMETRY_MIN_OVERLAP, NEAR_SYMMETRY_PROBE_STRIDE, NEAR_SYMMETRY_STEP_DEG
@@ -119,7 +120,8 @@ def near_symmetries(dense_points_m: np.ndarray, symmetries: np.ndarray, inlier_m
     found: list[np.ndarray] = []
     for axis in axes:
         for k in range(1, 360 // NEAR_SYMMETRY_STEP_DEG):
-            T = _turn(axis, np.radians(k * NEAR_SYMMETRY_STEP_DEG), centre)
+            R = axis_angle_to_R(axis, np.radians(k * NEAR_SYMMETRY_STEP_DEG))
+            T = make_T(R, centre - R @ centre)  # the turn about the axis through the centroid
             if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *found)):
                 continue
             # The axis through the centroid misses the turn's own axis when the feature that
@@ -142,23 +144,7 @@ def _self_aligned(T: np.ndarray, probe: np.ndarray, points: np.ndarray, tree: KD
         pair = np.isfinite(d)
         if pair.sum() < 3:
             break
-        src, dst = moved[pair], points[j[pair]]
-        cs, cd = src.mean(axis=0), dst.mean(axis=0)
-        U, _, Vt = np.linalg.svd((src - cs).T @ (dst - cd))
-        R = Vt.T @ np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))]) @ U.T
-        step = np.eye(4)
-        step[:3, :3], step[:3, 3] = R, cd - R @ cs
-        T = step @ T
-    return T
-
-
-def _turn(axis: np.ndarray, angle_rad: float, centre: np.ndarray) -> np.ndarray:
-    """(4, 4) the rotation by angle_rad about the unit axis through centre."""
-    a = axis / np.linalg.norm(axis)
-    K = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
-    R = np.eye(3) + np.sin(angle_rad) * K + (1.0 - np.cos(angle_rad)) * (K @ K)
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, centre - R @ centre
+        T = rigid_fit(moved[pair], points[j[pair]]) @ T
     return T
 
 
