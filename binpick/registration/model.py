@@ -15,7 +15,12 @@ from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import axis_angle_to_R, make_T, rigid_fit
 from binpick.io.ppf_model import PPFModel
 from binpick.params import RegisterParams
-from binpick.registration.constants import NEAR_SYMMETRY_MIN_OVERLAP, NEAR_SYMMETRY_PROBE_STRIDE, NEAR_SYMMETRY_STEP_DEG
+from binpick.registration.constants import (
+    NEAR_SYMMETRY_EXACT_SHARE,
+    NEAR_SYMMETRY_MIN_OVERLAP,
+    NEAR_SYMMETRY_PROBE_STRIDE,
+    NEAR_SYMMETRY_STEP_DEG,
+)
 
 
 def _align_to_x(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -105,7 +110,8 @@ def near_symmetries(dense_points_m: np.ndarray, symmetries: np.ndarray, inlier_m
     """(k, 4, 4) model-frame transforms: turns by multiples of NEAR_SYMMETRY_STEP_DEG about the
     principal axes of the surface sample (through its centroid) that bring at least
     NEAR_SYMMETRY_MIN_OVERLAP of it to within inlier_m of itself, leaving out the declared
-    symmetries (m, 4, 4) and turns equal to one found already.
+    symmetries (m, 4, 4), turns equal to one found already, and undeclared exact symmetries (turns
+    that bring NEAR_SYMMETRY_EXACT_SHARE of it to within 1.5 inlier_m).
 
     dense_points_m : (n, 3) the part's surface sample, model frame, metres.
     """
@@ -118,19 +124,22 @@ def near_symmetries(dense_points_m: np.ndarray, symmetries: np.ndarray, inlier_m
     moments = (probe.mean(axis=0), probe.T @ probe / len(probe))
     tree = KDTree(points)
     found: list[np.ndarray] = []
+    exact: list[np.ndarray] = []
     for axis in axes:
         for k in range(1, 360 // NEAR_SYMMETRY_STEP_DEG):
             R = axis_angle_to_R(axis, np.radians(k * NEAR_SYMMETRY_STEP_DEG))
             T = make_T(R, centre - R @ centre)  # the turn about the axis through the centroid
-            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *found)):
+            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *exact, *found)):
                 continue
             # The axis through the centroid misses the turn's own axis when the feature that
             # breaks the symmetry moves the centroid (a mug's handle): the turn is fitted first.
             T = _self_aligned(T, probe, points, tree, 3.0 * inlier_m)
-            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *found)):
+            if any(_apart_m(T, S, moments) < inlier_m for S in (*symmetries, *exact, *found)):
                 continue
-            d, _ = tree.query(probe @ T[:3, :3].T + T[:3, 3], distance_upper_bound=inlier_m)
-            if np.isfinite(d).mean() >= NEAR_SYMMETRY_MIN_OVERLAP:
+            d, _ = tree.query(probe @ T[:3, :3].T + T[:3, 3], distance_upper_bound=1.5 * inlier_m)
+            if np.mean(d < 1.5 * inlier_m) >= NEAR_SYMMETRY_EXACT_SHARE:
+                exact.append(T)
+            elif np.mean(d < inlier_m) >= NEAR_SYMMETRY_MIN_OVERLAP:
                 found.append(T)
     return np.array(found).reshape(-1, 4, 4)
 
