@@ -7,10 +7,10 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-import open3d as o3d
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
+from binpick.geometry.icp import point_to_plane_icp
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.ppf_model import PPFModel
 from binpick.registration.constants import (
@@ -76,18 +76,11 @@ def refine_icp(
     facing = _facing(model, T_cam_from_model, stride)
     if facing.sum() < 6:
         return T_cam_from_model
-    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, dtype=np.float64)))
-    target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(model.dense_points_m[::stride][facing]))
-    target.normals = o3d.utility.Vector3dVector(model.dense_normals[::stride][facing])
-    result = o3d.pipelines.registration.registration_icp(
-        source,
-        target,
-        max_distance_m,
-        invert_T(T_cam_from_model),
-        o3d.pipelines.registration.TransformationEstimationPointToPlane(),
-        o3d.pipelines.registration.ICPConvergenceCriteria(relative_fitness=ICP_RELATIVE_CHANGE, relative_rmse=ICP_RELATIVE_CHANGE, max_iteration=iterations),
+    T_model_from_cam = point_to_plane_icp(
+        scene_points, model.dense_points_m[::stride][facing], model.dense_normals[::stride][facing], invert_T(T_cam_from_model),
+        max_distance_m, iterations, ICP_RELATIVE_CHANGE,
     )
-    return invert_T(np.asarray(result.transformation))
+    return invert_T(T_model_from_cam)
 
 
 def explained_points(model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float) -> np.ndarray:

@@ -1,0 +1,96 @@
+"""Point-to-plane ICP onto a target with known normals, repeatable to the last bit.
+
+Open3D's `registration_icp` sums its normal equations in parallel and returns different last bits
+on identical input (12-16 distinct results in 20 calls, even with one OpenMP thread); the
+registration's thresholds turned those bits into different pose sets from run to run. Here every
+sum runs in one fixed order (one loop over the points, compiled by numba), so the same input gives the same pose.
+The iteration follows Open3D's: nearest target point within max_distance_m for each source point,
+one linearised point-to-plane step, stop when both the share of source points paired and their
+root mean square distance change by less than the tolerance.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+from pykdtree.kdtree import KDTree
+
+from binpick.geometry.transforms import axis_angle_to_R, make_T
+
+# Fewer pairs than this leave the six unknowns of a step undetermined.
+MIN_PAIRS = 6
+
+
+def point_to_plane_icp(
+    source_points: np.ndarray, target_points: np.ndarray, target_normals: np.ndarray, T_target_from_source: np.ndarray,
+    max_distance_m: float, max_iterations: int, tolerance: float,
+) -> np.ndarray:
+    """(4, 4) T_target_from_source refined from the given start so that the source points lie on
+    the planes of their nearest target points.
+
+    source_points : (n, 3) source frame, metres.
+    target_points, target_normals : (m, 3) target frame, metres and unit normals.
+    max_distance_m : pairs farther apart than this (at the current pose) are not used.
+    tolerance : stop when the paired share and the pairs' rms distance (metres) change by less.
+    """
+    source = np.ascontiguousarray(source_points, dtype=np.float64)
+    target = np.ascontiguousarray(target_points, dtype=np.float64)
+    normals = np.asarray(target_normals, dtype=np.float64)
+    T = np.array(T_target_from_source, dtype=np.float64)
+    if len(source) == 0 or len(target) == 0:
+        return T
+    tree = KDTree(target)
+    moved = source @ T[:3, :3].T + T[:3, 3]
+    d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+    JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
+    for _ in range(max_iterations):
+        if n_pairs < MIN_PAIRS:
+            break
+        fitness, rmse = n_pairs / len(source), np.sqrt(sum_d2 / n_pairs)
+        try:
+            x = np.linalg.solve(JtJ, Jtr)
+        except np.linalg.LinAlgError:  # the pairs do not fix the pose (one plane): keep it
+            break
+        angle = float(np.linalg.norm(x[:3]))
+        R = axis_angle_to_R(x[:3] / angle, angle) if angle > 0.0 else np.eye(3)
+        T = make_T(R, x[3:]) @ T
+        moved = moved @ R.T + x[3:]
+        d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+        JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
+        if abs(n_pairs / len(source) - fitness) < tolerance and abs((np.sqrt(sum_d2 / n_pairs) if n_pairs else 0.0) - rmse) < tolerance:
+            break
+    return T
+
+
+@njit(cache=True, nogil=True)
+def _normal_equations(
+    moved: np.ndarray, target: np.ndarray, normals: np.ndarray, d: np.ndarray, j: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """The point-to-plane step's normal equations J^T J (6, 6) and J^T r (6,) over the paired
+    points (finite d), in the order of the points, with the pair count and the sum of squared
+    pair distances. A row of J: (p x n, n), the residual's derivative by (rotation vector,
+    translation); r = (q - p) . n."""
+    JtJ = np.zeros((6, 6))
+    Jtr = np.zeros(6)
+    row = np.empty(6)
+    n_pairs = 0
+    sum_d2 = 0.0
+    for i in range(len(moved)):
+        if not np.isfinite(d[i]):
+            continue
+        p, q, n = moved[i], target[j[i]], normals[j[i]]
+        row[0] = p[1] * n[2] - p[2] * n[1]
+        row[1] = p[2] * n[0] - p[0] * n[2]
+        row[2] = p[0] * n[1] - p[1] * n[0]
+        row[3], row[4], row[5] = n[0], n[1], n[2]
+        r = (q[0] - p[0]) * n[0] + (q[1] - p[1]) * n[1] + (q[2] - p[2]) * n[2]
+        for a in range(6):
+            Jtr[a] += row[a] * r
+            for b in range(a, 6):
+                JtJ[a, b] += row[a] * row[b]
+        n_pairs += 1
+        sum_d2 += d[i] * d[i]
+    for a in range(6):
+        for b in range(a):
+            JtJ[a, b] = JtJ[b, a]
+    return JtJ, Jtr, n_pairs, sum_d2
