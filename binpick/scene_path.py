@@ -43,7 +43,7 @@ from binpick.seeding import derive_int, derive_seed
 log = logging.getLogger(__name__)
 
 # Segments matched at once, on threads: two, for the two cores the service is sized for. The
-# matcher's kernels (voting, Open3D's ICP, k-d tree queries) already use both cores; the second
+# matcher's kernels (voting, k-d tree queries) already use both cores; the second
 # thread fills the gaps between them (the interpreter's share of a match): 0.72 -> 0.44-0.70 s of
 # registration on 8-part T-joint bins. A constant, not the machine's core count: which segments
 # are matched, and so the poses, must not depend on the machine.
