@@ -3,7 +3,8 @@
 Open3D's `registration_icp` sums its normal equations in parallel and returns different last bits
 on identical input (12-16 distinct results in 20 calls, even with one OpenMP thread); the
 registration's thresholds turned those bits into different pose sets from run to run. Here every
-sum runs in one fixed order (one loop over the points, compiled by numba), so the same input gives the same pose.
+sum runs in one fixed order (one loop over the points, compiled by numba), so the same input gives
+the same pose.
 The iteration follows Open3D's: nearest target point within max_distance_m for each source point,
 one linearised point-to-plane step, stop when both the share of source points paired and their
 root mean square distance change by less than the tolerance.
@@ -40,13 +41,19 @@ def point_to_plane_icp(
     if len(source) == 0 or len(target) == 0:
         return T
     tree = KDTree(target)
+
+    def paired(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
+        """The step's normal equations at these source positions, the paired share and the pairs'
+        rms distance."""
+        d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+        JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
+        return JtJ, Jtr, n_pairs, n_pairs / len(source), float(np.sqrt(sum_d2 / n_pairs)) if n_pairs else 0.0
+
     moved = source @ T[:3, :3].T + T[:3, 3]
-    d, j = tree.query(moved, distance_upper_bound=max_distance_m)
-    JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
+    JtJ, Jtr, n_pairs, fitness, rmse = paired(moved)
     for _ in range(max_iterations):
         if n_pairs < MIN_PAIRS:
             break
-        fitness, rmse = n_pairs / len(source), np.sqrt(sum_d2 / n_pairs)
         try:
             x = np.linalg.solve(JtJ, Jtr)
         except np.linalg.LinAlgError:  # the pairs do not fix the pose (one plane): keep it
@@ -55,9 +62,9 @@ def point_to_plane_icp(
         R = axis_angle_to_R(x[:3] / angle, angle) if angle > 0.0 else np.eye(3)
         T = make_T(R, x[3:]) @ T
         moved = moved @ R.T + x[3:]
-        d, j = tree.query(moved, distance_upper_bound=max_distance_m)
-        JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
-        if abs(n_pairs / len(source) - fitness) < tolerance and abs((np.sqrt(sum_d2 / n_pairs) if n_pairs else 0.0) - rmse) < tolerance:
+        before = fitness, rmse
+        JtJ, Jtr, n_pairs, fitness, rmse = paired(moved)
+        if abs(fitness - before[0]) < tolerance and abs(rmse - before[1]) < tolerance:
             break
     return T
 
