@@ -7,7 +7,8 @@ sum runs in one fixed order (one loop over the points, compiled by numba), so th
 the same pose.
 The iteration follows Open3D's: nearest target point within max_distance_m for each source point,
 one linearised point-to-plane step, stop when both the share of source points paired and their
-root mean square distance change by less than the tolerance.
+root mean square distance change by less than the tolerance since the last step, or (a cycle of
+two states, which Open3D runs to its iteration limit) since the step before it.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ MIN_PAIRS = 6
 
 def point_to_plane_icp(
     source_points: np.ndarray, target_points: np.ndarray, target_normals: np.ndarray, T_target_from_source: np.ndarray,
-    max_distance_m: float, max_iterations: int, tolerance: float,
+    max_distance_m: float, max_iterations: int, tolerance: float, free_turn: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """(4, 4) T_target_from_source refined from the given start so that the source points lie on
     the planes of their nearest target points.
@@ -33,6 +34,11 @@ def point_to_plane_icp(
     target_points, target_normals : (m, 3) target frame, metres and unit normals.
     max_distance_m : pairs farther apart than this (at the current pose) are not used.
     tolerance : stop when the paired share and the pairs' rms distance (metres) change by less.
+    free_turn : (axis direction (3,), a point on it (3,)), target frame: the target is a surface
+                of revolution about that axis. No pairing can fix the turn about it, and a step
+                that includes it spins the source by noise (3-20 degrees a step on a gear shaft,
+                pairs changing every time, so that ICP never stopped before max_iterations); the
+                steps leave that turn out.
     """
     source = np.ascontiguousarray(source_points, dtype=np.float64)
     target = np.ascontiguousarray(target_points, dtype=np.float64)
@@ -41,6 +47,7 @@ def point_to_plane_icp(
     if len(source) == 0 or len(target) == 0:
         return T
     tree = KDTree(target)
+    basis = None if free_turn is None else _without_turn(*free_turn)
 
     def paired(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
         """The step's normal equations at these source positions, the paired share and the pairs'
@@ -51,22 +58,36 @@ def point_to_plane_icp(
 
     moved = source @ T[:3, :3].T + T[:3, 3]
     JtJ, Jtr, n_pairs, fitness, rmse = paired(moved)
+    history: tuple[float, ...] = ()  # (fitness, rmse) one and two steps back
     for _ in range(max_iterations):
         if n_pairs < MIN_PAIRS:
             break
         try:
-            x = np.linalg.solve(JtJ, Jtr)
+            x = np.linalg.solve(JtJ, Jtr) if basis is None else basis @ np.linalg.solve(basis.T @ JtJ @ basis, basis.T @ Jtr)
         except np.linalg.LinAlgError:  # the pairs do not fix the pose (one plane): keep it
             break
         angle = float(np.linalg.norm(x[:3]))
         R = axis_angle_to_R(x[:3] / angle, angle) if angle > 0.0 else np.eye(3)
         T = make_T(R, x[3:]) @ T
         moved = moved @ R.T + x[3:]
-        before = fitness, rmse
+        history = (fitness, rmse, *history[:2])
         JtJ, Jtr, n_pairs, fitness, rmse = paired(moved)
-        if abs(fitness - before[0]) < tolerance and abs(rmse - before[1]) < tolerance:
+        # Converged: nothing changed since the last step; or caught in a two-step cycle (the
+        # pairs of one state pull to the other and back): nothing changed since the step before.
+        if any(abs(fitness - f) < tolerance and abs(rmse - r) < tolerance for f, r in zip(history[::2], history[1::2], strict=True)):
             break
     return T
+
+
+def _without_turn(axis: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(6, 5) orthonormal basis of the steps (rotation vector, translation) that have no
+    component along the turn about the axis through `point`: that turn, p -> p + w a x (p - o),
+    is the step (a, o x a) per radian."""
+    a = np.asarray(axis, dtype=np.float64) / np.linalg.norm(axis)
+    turn = np.concatenate([a, np.cross(np.asarray(point, dtype=np.float64), a)])
+    turn /= np.linalg.norm(turn)
+    # The right singular vectors after the first span the complement of `turn`.
+    return np.linalg.svd(turn[None, :])[2][1:].T
 
 
 @njit(cache=True, nogil=True)

@@ -48,6 +48,14 @@ class PPFModel:
         return KDTree(np.ascontiguousarray(self.dense_points_m, dtype=np.float64))
 
     @cached_property
+    def revolution_axis(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(unit axis (3,), a point on it (3,)), model frame, when the symmetries are a sampled
+        revolution (ICP leaves the turn about it free); None otherwise."""
+        from binpick.geometry.symmetry import revolution_axis
+
+        return revolution_axis(self.symmetries)
+
+    @cached_property
     def dense_normal_dot_point(self) -> np.ndarray:
         """(D,) n . p of each dense point and its normal (model frame, metres), kept with the model:
         at pose (R, t) a point faces the camera at the origin when n . p + n . (R^T t) < 0."""

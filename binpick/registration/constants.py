@@ -46,7 +46,7 @@ ICP_RELATIVE_CHANGE = 1e-4
 NEAR_SYMMETRY_STEP_DEG = 30
 # A turn is a near symmetry when it brings this share of the surface to within the score's inlier
 # distance of the surface: the coffee cup of the IC-BIN frame turned about its axis keeps 0.94-0.97
-# (its handle is the rest); no turn of the T-joint, gear shaft, ring screw or three-way pipe other
+# (the relief of its lid is the rest: it has no handle); no turn of the T-joint, gear shaft, ring screw or three-way pipe other
 # than their declared symmetries keeps more than 0.61.
 NEAR_SYMMETRY_MIN_OVERLAP = 0.85
 # A turn that brings this share of the surface to within 1.5 inlier distances of it is a symmetry

@@ -1,5 +1,5 @@
 """Choosing between a pose and its turns by the part's near symmetries (registration/model.py:
-turns that map nearly all of its surface onto itself, as a cup turned about its axis, all but the
+turns that map nearly all of its surface onto itself, as a mug turned about its axis, all but the
 handle). The matcher's fit and score hardly see the small part of the surface that tells such
 poses apart, so a pose found may be turned by any of them; what the camera saw decides: the turn
 that leaves the handle in free space is contradicted by the measurements behind it.

@@ -69,7 +69,8 @@ def refine_icp(
 
     Only model points facing the camera at the starting pose are targets: a thin wall's inner
     surface lies within a few millimetres of its outer one, and matching the camera's view of the
-    outside to the inside holds ICP in a wrong minimum.
+    outside to the inside holds ICP in a wrong minimum. On a part declared with a revolution
+    symmetry the turn about its axis is left as the start pose has it (no fit can fix it).
     """
     if iterations == 0 or len(scene_points) < 6:
         return T_cam_from_model
@@ -78,7 +79,7 @@ def refine_icp(
         return T_cam_from_model
     T_model_from_cam = point_to_plane_icp(
         scene_points, model.dense_points_m[::stride][facing], model.dense_normals[::stride][facing], invert_T(T_cam_from_model),
-        max_distance_m, iterations, ICP_RELATIVE_CHANGE,
+        max_distance_m, iterations, ICP_RELATIVE_CHANGE, model.revolution_axis,
     )
     return invert_T(T_model_from_cam)
 
