@@ -23,9 +23,20 @@ MIN_PLANE_FRACTION = 0.05  # a support plane holds at least this share of the po
 # ... and has at most this share behind it, seen from the camera: a slab through a heap of
 # objects has as many points behind it as in front.
 MAX_BEHIND_FRACTION = 0.25
-WALL_MAX_COS_TO_FLOOR = 0.3  # walls stand within ~17 degrees of perpendicular to the floor
+WALL_MAX_COS_TO_FLOOR = 0.15  # walls stand within ~9 degrees of perpendicular to the floor
+# Points whose normal is within ~45 degrees of the floor's are not searched for walls.
+WALL_SEARCH_MAX_COS = 0.7
 MIN_POINTS = 10
 WALL_INNER_SHARE = 0.8  # a bin wall has most of what is left on the bin's side
+# A bin wall is longer along the floor than it stands high (a KLT box's short side: 1.4 times);
+# the side of a part standing on the floor is not (a cup: 0.7, a ring screw on edge: about 1).
+WALL_MIN_LENGTH_TO_HEIGHT = 1.2
+# Its length is that of its longest run of points along the floor, runs split at gaps wider than
+# this many voxels (the plane also passes through things far along it).
+WALL_RUN_GAP_VOXELS = 5.0
+# A bin is a box: each wall stands parallel or square to the first one found, within this angle
+# (a plane along a diagonal row of parts is not a wall).
+WALL_SQUARE_TOLERANCE_DEG = 10.0
 
 
 def bin_reference_point(floor: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -47,6 +58,33 @@ def _at_the_edge(others: np.ndarray, floor: np.ndarray, plane: np.ndarray, thres
     side = (others @ plane[:3] + plane[3]) > -threshold_m
     share = float(side.mean())
     return max(share, 1.0 - share) >= WALL_INNER_SHARE
+
+
+def _long_and_low(on_plane: np.ndarray, floor: np.ndarray, plane: np.ndarray, gap_m: float) -> bool:
+    """Whether a wall plane's points (k, 3) run along the floor at least WALL_MIN_LENGTH_TO_HEIGHT
+    times as far as they rise above it: the longest run along the floor (gaps wider than gap_m
+    split runs) against the height span of that run's points (5th to 95th percentile)."""
+    if len(on_plane) < MIN_POINTS:
+        return False
+    along = np.cross(floor[:3], plane[:3])
+    along /= np.linalg.norm(along)
+    u = on_plane @ along
+    order = np.argsort(u)
+    u = u[order]
+    breaks = np.flatnonzero(np.diff(u) > gap_m)
+    starts, ends = np.r_[0, breaks + 1], np.r_[breaks + 1, len(u)]
+    k = int(np.argmax(u[ends - 1] - u[starts]))
+    run = order[starts[k]:ends[k]]
+    height = on_plane[run] @ floor[:3] + floor[3]
+    rise = float(np.percentile(height, 95) - np.percentile(height, 5))
+    return float(u[ends[k] - 1] - u[starts[k]]) >= WALL_MIN_LENGTH_TO_HEIGHT * rise
+
+
+def _square_to(plane: np.ndarray, walls: list[np.ndarray]) -> bool:
+    """Whether the plane's normal is parallel or perpendicular, within WALL_SQUARE_TOLERANCE_DEG,
+    to every wall's found so far."""
+    tol = np.sin(np.radians(WALL_SQUARE_TOLERANCE_DEG))
+    return all(min(abs(plane[:3] @ w[:3]), np.sqrt(max(0.0, 1.0 - (plane[:3] @ w[:3]) ** 2))) <= tol for w in walls)
 
 
 def inside_walls(points: np.ndarray, floor: np.ndarray, walls: list[np.ndarray], threshold_m: float) -> np.ndarray:
@@ -146,16 +184,28 @@ def clean_capture(
     if params.remove_walls and np.isfinite(floor).all():
         # Planes other than walls (the rims' tops, the top of a stack of parts) are set aside
         # from the search, not removed, and the search goes on: a few more tries than walls.
-        search = np.ones(len(pts), bool)
+        # Only points on surfaces standing across the floor are searched, and only planes across
+        # it are drawn: seen from above, a heap's floor-parallel layers (and the rims' tops)
+        # outnumber the walls and took every try, and a slab of them holds a strip of each wall.
+        search = np.abs(view_normals(pts, view) @ floor[:3]) < WALL_SEARCH_MAX_COS if len(pts) >= MIN_POINTS else np.zeros(len(pts), bool)
         for w in range(2 * params.max_walls):
             if len(walls) >= params.max_walls or search.sum() < MIN_POINTS:
                 break
-            plane, inl = fit_plane_ransac(pts[search], params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence)
-            if inl.sum() < params.wall_min_fraction * n_valid:
+            plane, inl = fit_plane_ransac(
+                pts[search], params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence,
+                across=floor[:3], max_cos=WALL_MAX_COS_TO_FLOOR,
+            )
+            # The plane's points among all that are left: the wall's edges, whose normals lean,
+            # belong to it too.
+            inliers = np.abs(pts @ plane[:3] + plane[3]) <= params.plane_threshold_m
+            if inliers.sum() < params.wall_min_fraction * n_valid:
                 break
-            inliers = np.zeros(len(pts), bool)
-            inliers[np.flatnonzero(search)[inl]] = True
-            if abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m):
+            if (
+                abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
+                or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m)
+                or not _square_to(plane, walls)
+                or not _long_and_low(pts[inliers], floor, plane, WALL_RUN_GAP_VOXELS * view.voxel_size_m)
+            ):
                 search &= ~inliers
                 continue
             walls.append(plane)

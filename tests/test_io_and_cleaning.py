@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from binpick.cleaning import clean_capture
+from binpick.cleaning import _long_and_low, _square_to, clean_capture
 from binpick.errors import BinpickError, InputError
 from binpick.io.capture import load_capture
 from binpick.io.cloud import load_cloud, save_cloud
@@ -150,6 +150,73 @@ def test_points_outside_the_bin_walls_are_dropped():
     assert (kept == 0).sum() > 50 and (kept == 1).sum() == 0  # the part stays, the carton goes
     uncropped = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(params, crop_to_walls=False), 0)
     assert (frame.labels.reshape(-1)[uncropped.pixel_index] == 1).sum() > 50  # it was there to drop
+
+
+def test_walls_are_found_under_a_heap_of_flat_layers():
+    """A bin holding flat plates at nine heights (each a floor-parallel plane, like a heap of flat
+    parts seen from above) and a carton outside: the layers do not take the wall search's tries,
+    the walls found stand upright at the bin's inner faces, and the carton goes."""
+    import trimesh
+
+    from binpick.generation.bin import T_bin_from_cam, bin_meshes
+    from binpick.generation.camera import Intrinsics, render
+    from binpick.geometry.transforms import invert_T, transform_points
+
+    bin_params = PARAMS.generate.bin
+    table = trimesh.creation.box(extents=[1.2, 1.0, 0.01])
+    table.apply_translation([0.0, 0.0, -0.025])
+    plates = []
+    for k, (x, y) in enumerate((x, y) for x in (-0.07, 0.0, 0.07) for y in (-0.05, 0.0, 0.05)):
+        plate = trimesh.creation.box(extents=[0.05, 0.035, 0.004])
+        plate.apply_translation([x, y, 0.004 + 0.005 * k])  # nine heights, 5 mm apart
+        plates.append(plate)
+    outside = trimesh.creation.box(extents=[0.08, 0.05, 0.12])
+    outside.apply_translation([bin_params.inner_x_m / 2 + 0.09, 0.0, 0.04])
+    T_cam_bin = invert_T(T_bin_from_cam(0.8))
+    scene = [*bin_meshes(bin_params), table, *plates, outside]
+    meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in scene]
+    labels = [-1] * (len(scene) - len(plates) - 1) + [0] * len(plates) + [1]
+    frame = render(meshes, labels, Intrinsics.from_params(PARAMS.camera.model_copy(update={"downscale": 4})))
+    H, W = frame.labels.shape
+    cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(PARAMS.import_capture, crop_to_walls=True), 0)
+    kept = frame.labels.reshape(-1)[cloud.pixel_index]
+    assert len(cloud.wall_planes) >= 2
+    # Upright (the bin's walls are), and at the inner faces: 0.15 m and 0.10 m from the bin's axis.
+    up = T_cam_bin[:3, 2]
+    centre = T_cam_bin[:3, 3]
+    for plane in cloud.wall_planes:
+        assert abs(plane[:3] @ up) < 0.02, plane
+        assert min(abs(abs(plane[:3] @ centre + plane[3]) - a) for a in (0.15, 0.10)) < 0.004, plane
+    assert (kept == 0).sum() > 500 and (kept == 1).sum() == 0
+
+
+def test_a_wall_runs_along_the_floor_and_a_part_side_does_not():
+    """Points on the plane x = 0.2 (floor z = 0, normal +z): a bin wall 0.4 m long and 0.15 m
+    high is one; the side of a part standing on the floor, 0.08 m wide and 0.12 m high, is not,
+    nor is it with things far along the same plane (past a gap)."""
+    rng = np.random.default_rng(0)
+    floor, plane = np.array([0.0, 0.0, 1.0, 0.0]), np.array([-1.0, 0.0, 0.0, 0.2])
+
+    def patch(y0, y1, height, n):
+        return np.c_[np.full(n, 0.2), rng.uniform(y0, y1, n), rng.uniform(0.0, height, n)]
+
+    assert _long_and_low(patch(-0.2, 0.2, 0.15, 3000), floor, plane, 0.02)
+    side = patch(0.0, 0.08, 0.12, 600)
+    assert not _long_and_low(side, floor, plane, 0.02)
+    assert not _long_and_low(np.vstack([side, patch(0.2, 0.26, 0.12, 400), patch(0.4, 0.45, 0.1, 300)]), floor, plane, 0.02)
+
+
+def test_walls_stand_square_to_each_other():
+    """After a wall with normal +x: walls with normals along y or -x (5 degrees off) are square
+    to it; a plane along a diagonal row of parts (30 degrees) is not."""
+    first = np.array([1.0, 0.0, 0.0, -0.2])
+
+    def plane(deg):
+        a = np.radians(deg)
+        return np.array([np.cos(a), np.sin(a), 0.0, 0.1])
+
+    assert _square_to(plane(0.0), []) and _square_to(plane(95.0), [first]) and _square_to(plane(175.0), [first])
+    assert not _square_to(plane(30.0), [first]) and not _square_to(plane(135.0), [first])
 
 
 def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region():

@@ -109,12 +109,14 @@ RANSAC_BATCH = 64
 
 
 def fit_plane_ransac(
-    points: np.ndarray, threshold_m: float, iterations: int, seed: int, confidence: float = 0.9999
+    points: np.ndarray, threshold_m: float, iterations: int, seed: int, confidence: float = 0.9999,
+    across: np.ndarray | None = None, max_cos: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC plane on a random subset of at most RANSAC_MAX_POINTS points, stopping once
     `confidence` is reached (at most `iterations` hypotheses), refined by least squares on its
     inliers among all points. Returns (plane (4,) a, b, c, d with unit normal and
-    a x + b y + c z + d = 0, inlier mask (n,)).
+    a x + b y + c z + d = 0, inlier mask (n,)). With `across` (3,), a unit vector, only planes
+    whose normal makes |cos| <= max_cos with it are drawn (walls across a floor).
 
     Written here rather than taken from Open3D: its segment_plane scores hypotheses on parallel
     threads and stops early when one thread's best says so, so the plane it returns depended on
@@ -126,7 +128,7 @@ def fit_plane_ransac(
         raise ValueError("a plane needs at least 3 points")
     rng = np.random.default_rng(seed)
     subset = points if len(points) <= RANSAC_MAX_POINTS else points[rng.choice(len(points), RANSAC_MAX_POINTS, replace=False)]
-    plane = _ransac_plane(subset, threshold_m, iterations, confidence, rng)
+    plane = _ransac_plane(subset, threshold_m, iterations, confidence, rng, across, max_cos)
     inl = np.asarray(points[np.abs(points @ plane[:3] + plane[3]) <= threshold_m], dtype=np.float64)
     if len(inl) >= 3:
         centre = inl.mean(axis=0)
@@ -137,11 +139,14 @@ def fit_plane_ransac(
     return plane, mask
 
 
-def _ransac_plane(points: np.ndarray, threshold_m: float, iterations: int, confidence: float, rng: np.random.Generator) -> np.ndarray:
+def _ransac_plane(
+    points: np.ndarray, threshold_m: float, iterations: int, confidence: float, rng: np.random.Generator,
+    across: np.ndarray | None = None, max_cos: float = 1.0,
+) -> np.ndarray:
     """The hypothesis (4,) with the most inliers among points (n, 3) (ties: the smaller inlier
     error, then the earlier drawn), drawn RANSAC_BATCH at a time until `iterations` are drawn or
     the standard bound says `confidence` is reached: log(1 - confidence) / log(1 - w^3) for the
-    best inlier share w so far."""
+    best inlier share w so far. across / max_cos: as fit_plane_ransac."""
     n = len(points)
     best, best_count, best_err = np.array([0.0, 0.0, 1.0, 0.0]), -1, np.inf
     needed, drawn = iterations, 0
@@ -152,6 +157,8 @@ def _ransac_plane(points: np.ndarray, threshold_m: float, iterations: int, confi
         length = np.linalg.norm(normal, axis=1)
         drawn += k
         ok = length > 1e-12  # three distinct, non-collinear points
+        if across is not None:
+            ok &= np.abs(normal @ across) <= max_cos * length
         if not ok.any():
             continue
         normal = normal[ok] / length[ok, None]
