@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, voxel_downsample_indices
+from binpick.geometry.pointcloud import estimate_normals, fit_plane_ransac, sample_normals, voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import (
     axis_angle_to_R,
@@ -118,3 +118,20 @@ def test_dihedral_symmetry_group():
             assert min(np.abs(a @ b - c).max() for c in S) < 1e-9
     with pytest.raises(ValueError, match="perpendicular"):
         SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=6, flip_axis=(0, 1, 1))
+
+
+def test_sample_normals_recover_a_plane_and_a_wall():
+    """A floor z = 0 and a wall x = 0.3 tilted 5 degrees, 1 mm noise: the normals of a sample of
+    the points are the planes' own, up to sign (but where a point's neighbours take in both)."""
+    rng = np.random.default_rng(4)
+    floor = np.c_[rng.uniform(-0.2, 0.2, (3000, 2)), rng.normal(0.0, 0.001, 3000)]
+    tilt = np.radians(5.0)
+    wall_normal = np.array([np.cos(tilt), 0.0, np.sin(tilt)])
+    u, v = rng.uniform(-0.2, 0.2, 2000), rng.uniform(0.0, 0.15, 2000)
+    wall = np.array([0.3, 0.0, 0.0]) + np.outer(u, [0.0, 1.0, 0.0]) + np.outer(v, [-np.sin(tilt), 0.0, np.cos(tilt)])
+    wall += rng.normal(0.0, 0.001, wall.shape) * wall_normal
+    points = np.vstack([floor, wall])
+    index = np.r_[rng.choice(3000, 200, replace=False), 3000 + rng.choice(2000, 200, replace=False)]
+    n = sample_normals(points, index)
+    assert np.percentile(np.abs(n[:200, 2]), 5) > 0.97
+    assert np.percentile(np.abs(n[200:] @ wall_normal), 5) > 0.97

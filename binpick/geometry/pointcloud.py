@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import open3d as o3d
 from numba import njit, prange
+from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 
@@ -99,6 +100,21 @@ def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray 
     flip = np.sum(n * (vp - points), axis=1) < 0
     n[flip] *= -1
     return n.astype(np.float32)
+
+
+def sample_normals(points: np.ndarray, index: np.ndarray, k: int = 12) -> np.ndarray:
+    """(m, 3) unit normals, unoriented, of points[index] (index (m,) int): the direction of least
+    spread of each one's k nearest neighbours among all the points (n, 3). For a sample of a
+    cloud, without estimating every point's normal."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    index = np.asarray(index, dtype=np.int64)
+    if len(index) == 0:
+        return np.zeros((0, 3))
+    _, near = KDTree(points).query(points[index], k=min(k, len(points)))
+    near = np.asarray(near).reshape(len(index), -1)
+    local = points[near]
+    local -= local.mean(axis=1, keepdims=True)
+    return np.linalg.eigh(np.matmul(local.transpose(0, 2, 1), local))[1][:, :, 0]
 
 
 # RANSAC scores its hypotheses on at most this many points; inliers and the final fit use all.
