@@ -196,7 +196,7 @@ def clean_capture(
         for w in range(2 * params.max_walls):
             if len(walls) >= params.max_walls or search.sum() < MIN_POINTS:
                 break
-            plane, inl = fit_plane_ransac(
+            plane, _ = fit_plane_ransac(
                 pts[search], params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence,
                 across=floor[:3], max_cos=WALL_MAX_COS_TO_FLOOR,
             )
