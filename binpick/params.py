@@ -359,6 +359,10 @@ class SegmentParams(_Strict):
 
 class RegisterParams(_Strict):
     sample_step_rel: float = Field(gt=0, description="model/scene subsampling, share of diameter")
+    # A part whose voting grid at sample_step_rel holds fewer model points than this gets a
+    # finer grid (and distance bins in proportion): a long thin part's few points cannot tell
+    # it from two of it side by side (registration/model.py voting_step).
+    min_voting_points: int = Field(ge=1)
     distance_step_rel: float = Field(gt=0, description="PPF distance bin, share of diameter")
     angle_bins: int = Field(ge=4)
     scene_ref_fraction: float = Field(gt=0, le=1)

@@ -76,7 +76,7 @@ def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mu
     frame = render([(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
     cloud = clean(frame.xyz_m.reshape(-1, 3), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
-    scales = Scales.of(ppf.diameter_m, PARAMS.registration)
+    scales = Scales.of(ppf.diameter_m, PARAMS.registration, ppf.sample_step_m)
     fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
     trees = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
 

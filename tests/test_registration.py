@@ -1,14 +1,16 @@
 import numpy as np
 import pytest
+import trimesh
 
-from binpick.generation.scene import generate_scene
+from binpick.generation.scene import generate_scene, render_scene
 from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.io.poses import PartPose
 from binpick.io.ppf_model import load_ppf_model, save_ppf_model
 from binpick.metrics.pose import pose_errors
-from binpick.registration.matching import match_segment
+from binpick.params import SymmetryParams
+from binpick.registration.matching import match_scene, match_segment
 from binpick.registration.model import train_ppf
 from binpick.registration.verification import score_pose
 from binpick.view import ViewParams
@@ -29,13 +31,18 @@ def test_ppf_model_roundtrip(tmp_path, ppf):
     assert back.near_symmetries.shape == ppf.near_symmetries.shape == (0, 4, 4)
 
 
-def test_a_ppf_model_written_before_near_symmetries_reads_as_having_none(tmp_path, ppf):
+def test_a_ppf_model_written_before_near_symmetries_and_its_grid_reads_with_none_and_the_params_grid(tmp_path, ppf):
+    from binpick.registration.constants import Scales
+
     save_ppf_model(tmp_path / "ppf.npz", ppf)
     with np.load(tmp_path / "ppf.npz") as z:
-        older = {k: z[k] for k in z.files if k != "near_symmetries"}
+        older = {k: z[k] for k in z.files if k not in ("near_symmetries", "sample_step_m")}
     np.savez(tmp_path / "old.npz", **older)
     back = load_ppf_model(tmp_path / "old.npz")
     assert back.near_symmetries.shape == (0, 4, 4) and np.array_equal(back.keys, ppf.keys)
+    assert np.isnan(back.sample_step_m) and ppf.sample_step_m > 0
+    params = PARAMS.registration
+    assert Scales.of(back.diameter_m, params, back.sample_step_m).sample_step_m == params.sample_step_rel * back.diameter_m
 
 
 def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):
@@ -166,3 +173,64 @@ def test_a_segment_a_found_pose_explains_is_a_fragment_and_one_holding_another_p
     assert explained_by(ppf, part_a, reg, [T_a]) and explained_by(ppf, part_a, reg, [T_b, T_a])
     assert not explained_by(ppf, part_a, reg, []) and not explained_by(ppf, part_a, reg, [turned]) and not explained_by(ppf, part_a, reg, [T_b])
     assert not explained_by(ppf, np.concatenate([part_a, part_b]), reg, [T_a])
+
+
+
+# A long thin part like the gear shaft (151 x 32 mm): a 16 mm shaft with two 32 mm collars off
+# centre, declared a surface of revolution about x.
+SHAFT_SYMMETRY = SymmetryParams(kind="revolution", axis=(1.0, 0.0, 0.0))
+
+
+@pytest.fixture(scope="module")
+def shaft():
+    from binpick.parts import make_part_model
+
+    pieces = []
+    for x0, x1, radius in ((-0.075, 0.075, 0.008), (-0.035, -0.025, 0.016), (0.025, 0.035, 0.016)):
+        piece = trimesh.creation.cylinder(radius=radius, height=x1 - x0, sections=48)
+        piece.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+        piece.apply_translation([(x0 + x1) / 2, 0, 0])
+        pieces.append(piece)
+    return make_part_model("shaft", trimesh.util.concatenate(pieces), SHAFT_SYMMETRY, 20000, np.random.default_rng(0), "m")
+
+
+def test_a_long_thin_part_gets_a_finer_voting_grid_and_a_compact_one_keeps_its_own(t_joint, shaft):
+    from binpick.registration.model import voting_step
+
+    params = changed(PARAMS.registration, min_voting_points=800)
+    coarse = params.sample_step_rel * shaft.diameter_m
+    assert len(voxel_downsample_indices(shaft.points_m, coarse)) < 400  # the premise: few points at the params' grid
+    step = voting_step(shaft.points_m, coarse, 800)
+    assert step < coarse and len(voxel_downsample_indices(shaft.points_m, step)) >= 800
+    model = train_ppf(shaft.points_m, shaft.normals, shaft.diameter_m, symmetry_transforms(SHAFT_SYMMETRY), params)
+    assert model.sample_step_m == step and len(model.points_m) >= 800
+    assert np.isclose(model.distance_step_m / step, params.distance_step_rel / params.sample_step_rel)
+    own = t_joint.diameter_m * params.sample_step_rel
+    assert voting_step(t_joint.points_m, own, 800) == own
+
+
+def test_two_long_parts_side_by_side_in_one_segment_are_both_found(shaft):
+    """A segmentation that merged two shafts lying 4 mm apart: the segment's pose lies on one
+    of them and the whole scene's pass finds the other; with the params' coarse grid alone
+    (min_voting_points 1: 288 model points) the second is not found."""
+    symmetries = symmetry_transforms(SHAFT_SYMMETRY)
+    T_a = make_T(np.eye(3), np.array([0.0, -0.018, 0.016]))
+    T_b = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.pi), np.array([0.01, 0.018, 0.016]))
+    scene = render_scene(shaft, np.stack([T_a, T_b]), PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006),
+                         np.random.default_rng(3))
+    xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
+    pts = xyz[(labels >= 0) & np.isfinite(xyz[:, 2])]
+    pts = pts[voxel_downsample_indices(pts, 0.002)]
+    nrm = estimate_normals(pts, 0.006)
+    fits = {}
+    for n in (800, 1):
+        params = changed(PARAMS.registration, min_voting_points=n)
+        model = train_ppf(shaft.points_m, shaft.normals, shaft.diameter_m, symmetries, params)
+        seg = match_segment(model, pts, nrm, params, np.random.default_rng(0))
+        found = [seg] + match_scene(model, pts, nrm, params, np.random.default_rng(1), known=[seg.T_cam_from_model])
+        fits[n] = sorted(
+            i for i, T_gt in enumerate(scene.T_cam_from_model) for f in found
+            if pose_errors(f.T_cam_from_model, T_gt, shaft.points_m, symmetries, shaft.diameter_m)["add_mm"] < 5.0
+        )
+    assert fits[800] == [0, 1], fits
+    assert len(fits[1]) == 1, fits

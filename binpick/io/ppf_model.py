@@ -25,6 +25,8 @@ class PPFModel:
     symmetries (m, 4, 4): transforms of the model frame onto itself, identity first.
     near_symmetries (k, 4, 4): turns of the model frame that map nearly all of the surface onto
     itself but are not symmetries (registration/model.py); k = 0 for most parts.
+    sample_step_m: the voting grid of model and scene (metres); NaN in files written before it
+    was stored, whose grid is the register params' sample_step_rel of the diameter.
     """
 
     points_m: np.ndarray
@@ -40,6 +42,7 @@ class PPFModel:
     diameter_m: float
     distance_step_m: float
     angle_bins: int
+    sample_step_m: float = float("nan")
 
     @cached_property
     def dense_tree(self) -> KDTree:
@@ -68,10 +71,11 @@ def save_ppf_model(path: str | Path, model: PPFModel) -> None:
 
 
 def load_ppf_model(path: str | Path) -> PPFModel:
-    # Models written before near symmetries were found have none (the ppf stage rebuilds them).
+    # Models written before near symmetries were found have none, and those written before the
+    # voting grid was stored used the params' (the ppf stage rebuilds both).
     values: dict[str, Any] = dict(load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)",
-                                              {"near_symmetries": np.zeros((0, 4, 4))}))
-    for name in ("diameter_m", "distance_step_m"):
+                                              {"near_symmetries": np.zeros((0, 4, 4)), "sample_step_m": np.array(np.nan)}))
+    for name in ("diameter_m", "distance_step_m", "sample_step_m"):
         values[name] = float(values[name])
     values["angle_bins"] = int(values["angle_bins"])
     return PPFModel(**values)

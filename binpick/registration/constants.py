@@ -4,6 +4,7 @@ part's diameter) and the shares in the `register` params."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from binpick.params import RegisterParams
@@ -79,17 +80,19 @@ class Scales:
     cluster_translation_m: float
 
     @classmethod
-    def of(cls, diameter_m: float, params: RegisterParams) -> Scales:
+    def of(cls, diameter_m: float, params: RegisterParams, sample_step_m: float = float("nan")) -> Scales:
+        """sample_step_m: the model's voting grid (PPFModel.sample_step_m); NaN: the params'."""
         # Each product is written as it always was: the same floating-point results.
         inlier = params.score_inlier_rel * diameter_m
+        step = params.sample_step_rel * diameter_m if not math.isfinite(sample_step_m) else sample_step_m
         return cls(
             diameter_m=diameter_m,
-            sample_step_m=params.sample_step_rel * diameter_m,
+            sample_step_m=step,
             refine_step_m=params.refine_step_rel * diameter_m,
             inlier_m=inlier,
-            coarse_icp_m=2.0 * params.sample_step_rel * diameter_m,
+            coarse_icp_m=2.0 * step,
             fine_icp_m=2.0 * inlier,
-            reach_m=0.5 * diameter_m + 2.0 * params.sample_step_rel * diameter_m,
+            reach_m=0.5 * diameter_m + 2.0 * step,
             cluster_translation_m=params.cluster_translation_rel * diameter_m,
         )
 
