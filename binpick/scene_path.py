@@ -233,7 +233,7 @@ def _resolve_near_symmetries(
     out = []
     n_turned = 0
     for pose in poses:
-        T, turned = resolve(ppf, pose.T_cam_from_model, fine, ball_tree, score_tree, view, scales, params.icp_iterations)
+        T, turned = resolve(ppf, pose.T_cam_from_model, fine, ball_tree, view, scales, params.icp_iterations)
         if turned:
             n_turned += 1
             if pose.segment >= 0 and labels is not None:
