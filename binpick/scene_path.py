@@ -227,7 +227,7 @@ def _resolve_near_symmetries(
     """Each pose, or its turn by one of the part's near symmetries that what the camera saw
     supports better (registration/near_symmetry.py). A turned pose is scored again as its source
     scores (on its segment's points, or on the whole scene's)."""
-    scales = Scales.of(ppf.diameter_m, params, ppf.sample_step_m)
+    scales = Scales.of(ppf, params)
     fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
     ball_tree, score_tree = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
     out = []

@@ -76,7 +76,7 @@ def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mu
     frame = render([(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
     cloud = clean(frame.xyz_m.reshape(-1, 3), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
-    scales = Scales.of(ppf.diameter_m, PARAMS.registration, ppf.sample_step_m)
+    scales = Scales.of(ppf, PARAMS.registration)
     fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
     tree = cKDTree(fine)
 
@@ -122,7 +122,7 @@ def test_a_turned_pose_is_turned_back_by_a_relief_on_the_lid_at_low_and_high_noi
     xyz = xyz * (1.0 + rng.normal(0.0, noise_m, len(xyz)) / np.maximum(xyz[:, 2], 1e-6))[:, None]  # along the ray
     cloud = clean(xyz.astype(np.float32), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
-    scales = Scales.of(ppf.diameter_m, PARAMS.registration, ppf.sample_step_m)
+    scales = Scales.of(ppf, PARAMS.registration)
     fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
     quarter = next(S for S in ppf.near_symmetries if abs(_axis_of(S)[2]) > 0.99 and abs(S[0, 0]) < 0.01)
 

@@ -42,7 +42,7 @@ def test_a_ppf_model_written_before_near_symmetries_and_its_grid_reads_with_none
     assert back.near_symmetries.shape == (0, 4, 4) and np.array_equal(back.keys, ppf.keys)
     assert np.isnan(back.sample_step_m) and ppf.sample_step_m > 0
     params = PARAMS.registration
-    assert Scales.of(back.diameter_m, params, back.sample_step_m).sample_step_m == params.sample_step_rel * back.diameter_m
+    assert Scales.of(back, params).sample_step_m == params.sample_step_rel * back.diameter_m
 
 
 def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):

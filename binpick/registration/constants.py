@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from binpick.io.ppf_model import PPFModel
 from binpick.params import RegisterParams
 
 # Per segment: the strongest accumulator peaks that are clustered (weak peaks, from references on
@@ -88,11 +89,13 @@ class Scales:
     cluster_translation_m: float
 
     @classmethod
-    def of(cls, diameter_m: float, params: RegisterParams, sample_step_m: float = float("nan")) -> Scales:
-        """sample_step_m: the model's voting grid (PPFModel.sample_step_m); NaN: the params'."""
+    def of(cls, model: PPFModel, params: RegisterParams) -> Scales:
+        """The lengths for a part's PPF model: its diameter and voting grid (the params' grid for
+        a model file written before the grid was stored)."""
+        diameter_m = model.diameter_m
         # Each product is written as it always was: the same floating-point results.
         inlier = params.score_inlier_rel * diameter_m
-        step = params.sample_step_rel * diameter_m if not math.isfinite(sample_step_m) else sample_step_m
+        step = model.sample_step_m if math.isfinite(model.sample_step_m) else params.sample_step_rel * diameter_m
         return cls(
             diameter_m=diameter_m,
             sample_step_m=step,

@@ -39,7 +39,7 @@ def match_segment(
     """The best pose of the part on one segment (camera frame points and normals), or None."""
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
-    scales = Scales.of(model.diameter_m, params, model.sample_step_m)
+    scales = Scales.of(model, params)
     idx = voxel_downsample_indices(scene_points, scales.sample_step_m)
     if len(idx) < 3:
         return None
@@ -82,7 +82,7 @@ def explained_by(
     part found already."""
     if len(known) == 0:
         return False
-    scales = Scales.of(model.diameter_m, params, model.sample_step_m)
+    scales = Scales.of(model, params)
     pts = scene_points[voxel_downsample_indices(scene_points, scales.sample_step_m)]
     taken = np.zeros(len(pts), bool)
     tree = cKDTree(pts)
@@ -111,7 +111,7 @@ def match_scene(
     """
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
-    scales = Scales.of(model.diameter_m, params, model.sample_step_m)
+    scales = Scales.of(model, params)
     idx = voxel_downsample_indices(scene_points, scales.sample_step_m)
     if len(idx) < 3:
         return []
@@ -197,7 +197,7 @@ def suppress_duplicates(
     (a wrong fit on the fragment of a part that another segment gave whole)."""
     order = sorted(range(len(estimates)), key=lambda k: -estimates[k].score)
     kept: list[int] = []
-    scales = Scales.of(model.diameter_m, params, model.sample_step_m)
+    scales = Scales.of(model, params)
     trans_thr = scales.cluster_translation_m
     for k in order:
         T = estimates[k].T_cam_from_model

@@ -49,32 +49,30 @@ def resolve(
     # 0.94 / 0.94.)
     # A noisier capture needs a wider radius (points scattered beyond it say nothing): at least
     # NEAR_SYMMETRY_NOISE_FACTOR times the noise seen about the pose as found.
-    radius = max(NEAR_SYMMETRY_RESIDUAL_REL * scales.inlier_m, NEAR_SYMMETRY_NOISE_FACTOR * _noise_m(model, T, local, scales.inlier_m))
+    d_found = _surface_distances(model, T, local, scales.inlier_m)
+    radius = max(NEAR_SYMMETRY_RESIDUAL_REL * scales.inlier_m, NEAR_SYMMETRY_NOISE_FACTOR * _noise_m(d_found))
 
-    def support(X: np.ndarray) -> float:
+    def support(X: np.ndarray, d: np.ndarray) -> float:
+        """d: the local points' distances to the surface at X (_surface_distances)."""
         if len(local) == 0:
             return -seen_through(model, X, view)
-        d = _surface_distances(model, X, local, scales.inlier_m)
         near_share = float(np.mean(np.where(d < radius, 1.0 - (np.minimum(d, radius) / radius) ** 2, 0.0)))
         counted = float(np.mean(d < scales.inlier_m))
         return near_share + counted - seen_through(model, X, view)
 
-    best, best_support, turned = T, support(T), False
+    best, best_support, turned = T, support(T, d_found), False
     for S in model.near_symmetries:
         X = refine_icp(model, T @ S, local, scales.fine_icp_m, icp_iterations, FINE_STRIDE)
-        value = support(X)
+        value = support(X, _surface_distances(model, X, local, scales.inlier_m))
         if value > best_support:
             best, best_support, turned = X, value, True
     return best, turned
 
 
-def _noise_m(model: PPFModel, T_cam_from_model: np.ndarray, points: np.ndarray, inlier_m: float) -> float:
-    """The measurement noise (metres, a standard deviation) about a pose: from the median distance
-    of the scene points (n, 3) near the posed surface (within inlier_m), as for a normal spread."""
-    if len(points) == 0:
-        return 0.0
-    d = _surface_distances(model, T_cam_from_model, points, inlier_m)
-    d = d[np.isfinite(d)]
+def _noise_m(distances_m: np.ndarray) -> float:
+    """The measurement noise (metres, a standard deviation) about a pose: from the median of the
+    scene points' distances to the posed surface (inf: not near it), as for a normal spread."""
+    d = distances_m[np.isfinite(distances_m)]
     return float(1.4826 * np.median(d)) if len(d) else 0.0
 
 
@@ -82,10 +80,12 @@ def _surface_distances(model: PPFModel, T_cam_from_model: np.ndarray, points: np
     """(n,) distance of each scene point (n, 3) to the posed surface: along the normal of its
     nearest dense model point (the dense sample's spacing, about a millimetre, would otherwise
     be most of it), inf where that point lies farther than within_m."""
+    out = np.full(len(points), np.inf)
+    if len(points) == 0:
+        return out
     local = transform_points(invert_T(T_cam_from_model), points)
     d, i = model.dense_tree.query(local, distance_upper_bound=within_m)
     found = np.isfinite(d)
-    out = np.full(len(points), np.inf)
     j = i[found].astype(np.int64)
     out[found] = np.abs(np.einsum("ij,ij->i", local[found] - model.dense_points_m[j], model.dense_normals[j]))
     return out
