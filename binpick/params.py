@@ -381,6 +381,10 @@ class RegisterParams(_Strict):
     # through (in front of what it measured) are dropped; 1 = no such check; null = the value
     # chosen on the validation scenes at training (in the checkpoint).
     max_seen_through: float | None = Field(ge=0, le=1)
+    # Poses with less than this share of the surface the camera should have seen supported by a
+    # measured point (verification.visible_support) are dropped; 0 = no such check; null = the
+    # value chosen on the validation scenes at training (in the checkpoint).
+    min_visible_support: float | None = Field(ge=0, le=1)
 
 
 class SuctionParams(_Strict):

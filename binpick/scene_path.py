@@ -33,10 +33,10 @@ from binpick.network.checkpoint import InferenceSettings
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
 from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
-from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, Scales
+from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT, Scales
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
-from binpick.registration.verification import score_pose, seen_through
+from binpick.registration.verification import score_pose, seen_through, visible_support
 from binpick.registration.visibility import DepthView
 from binpick.seeding import derive_int, derive_seed
 
@@ -87,12 +87,17 @@ class PartModels:
 
 
 def with_verification(params: RegisterParams, settings: InferenceSettings | None) -> RegisterParams:
-    """register params with max_seen_through resolved: the value in params, else the one chosen
-    at training (in the checkpoint's settings), else DEFAULT_MAX_SEEN_THROUGH."""
-    if params.max_seen_through is not None:
-        return params
-    chosen = settings.max_seen_through if settings is not None else None
-    return params.model_copy(update={"max_seen_through": DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen})
+    """register params with max_seen_through and min_visible_support resolved: the value in
+    params, else the one chosen at training (in the checkpoint's settings), else the default
+    (DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT)."""
+    update: dict[str, float] = {}
+    if params.max_seen_through is None:
+        chosen = settings.max_seen_through if settings is not None else None
+        update["max_seen_through"] = DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen
+    if params.min_visible_support is None:
+        chosen = settings.min_visible_support if settings is not None else None
+        update["min_visible_support"] = DEFAULT_MIN_VISIBLE_SUPPORT if chosen is None else chosen
+    return params.model_copy(update=update) if update else params
 
 
 @dataclass(frozen=True)
@@ -121,6 +126,7 @@ class Registration:
     n_duplicates_suppressed: int
     per_instance_ms: list[float]
     n_seen_through: int = 0  # poses dropped: too much of their surface where the camera saw through
+    n_unsupported: int = 0  # poses dropped: too little of their surface in view measured
 
 
 @dataclass(frozen=True)
@@ -204,21 +210,34 @@ def register(
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
         log.info("whole-scene matching added %d poses", len(more))
+    if not poses:
+        return Registration([], n_segments, n_duplicates, per_instance_ms)
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
-    if len(ppf.near_symmetries) and poses:
+    if len(ppf.near_symmetries):
         poses = _resolve_near_symmetries(cloud, labels, poses, ppf, params, view)
     # Verification against what the camera saw: a pose whose surface lies where the sensor saw
-    # through it (a cup fitted into a box wall, a part floating before the wall behind a desk)
-    # is not there, whatever its fit to the points near it.
+    # through it (a cup fitted into a box wall, a part floating before the wall behind a desk),
+    # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
+    # cylinder, its gear in the air), is not there, whatever its fit to the points near it.
     limit = DEFAULT_MAX_SEEN_THROUGH if params.max_seen_through is None else params.max_seen_through
+    least = DEFAULT_MIN_VISIBLE_SUPPORT if params.min_visible_support is None else params.min_visible_support
     kept_poses = []
+    n_unsupported = 0
+    inlier_m = Scales.of(ppf, params).inlier_m
+    cloud_tree = KDTree(np.ascontiguousarray(cloud.points_m, dtype=np.float64))
     for pose in poses:
         share = seen_through(ppf, pose.T_cam_from_model, view)
-        if share <= limit:
-            kept_poses.append(replace(pose, extra={**(pose.extra or {}), "seen_through": round(share, 4)}))
+        if share > limit:
+            continue
+        support = visible_support(ppf, pose.T_cam_from_model, view, cloud_tree, inlier_m)
+        if support < least:
+            n_unsupported += 1
+            continue
+        kept_poses.append(replace(pose, extra={**(pose.extra or {}), "seen_through": round(share, 4), "visible_support": round(support, 4)}))
     if len(kept_poses) < len(poses):
-        log.info("dropped %d of %d poses lying where the camera saw through them", len(poses) - len(kept_poses), len(poses))
-    return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses))
+        log.info("dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface in view measured",
+                 len(poses) - len(kept_poses), len(poses), len(poses) - len(kept_poses) - n_unsupported, n_unsupported)
+    return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses) - n_unsupported, n_unsupported)
 
 
 def _resolve_near_symmetries(

@@ -1,10 +1,11 @@
-"""The pose verification threshold (register.max_seen_through) of a part, chosen on its
-validation scenes after training, as the clustering is.
+"""The pose verification thresholds (register.max_seen_through, register.min_visible_support) of
+a part, chosen on its validation scenes after training, as the clustering is.
 
 Every validation scene goes through the scene path with verification off; each pose found is
-right or wrong against the rendered truth (ADD(-S) < 0.1 d) and has its seen-through share
-(registration/visibility.py). The threshold kept is the one that best separates them, weighing a
-wrong pose kept twice as much as a right one lost (a wrong pick costs more than a skipped one).
+right or wrong against the rendered truth (ADD(-S) < 0.1 d) and has its seen-through share and
+its visible support (registration/visibility.py). Each threshold kept is the one that best
+separates them, weighing a wrong pose kept twice as much as a right one lost (a wrong pick costs
+more than a skipped one): first the seen-through cut, then the support cut on the poses it keeps.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from binpick.io.scene import SyntheticScene
 from binpick.metrics.pose import scene_pose_metrics
-from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
+from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT
 from binpick.scene_path import PartModels, SceneSeeds, process
 
 # The threshold stays within these bounds whatever few validation scenes say. Below 0.3 it would
@@ -24,19 +25,27 @@ from binpick.scene_path import PartModels, SceneSeeds, process
 # ADD 0.1 d (binpick bench clutter, T-joint), while a quick profile's handful of validation
 # scenes may show a single wrong pose at 0.17.
 THRESHOLD_RANGE = (0.3, 0.6)
+# The visible support cut likewise. Above 0.7 it would drop right poses of noisy, tilted views
+# or leaning on distractors (bench clutter: right gear-shaft poses from 0.42, most above 0.8);
+# below 0.25 it would keep poses with three quarters of their surface in view unmeasured (right
+# T-joint poses on its validation scenes from 0.30, wrong ones up to 0.15).
+SUPPORT_RANGE = (0.25, 0.7)
 WRONG_WEIGHT = 2.0
 
 
-def choose_threshold(shares_right: Sequence[float], shares_wrong: Sequence[float]) -> float:
-    """The cut t (keep poses with share <= t) maximising kept right minus WRONG_WEIGHT x kept
-    wrong; among equally good cuts the one nearest DEFAULT_MAX_SEEN_THROUGH (what the validation
-    scenes do not decide, the prior does); within THRESHOLD_RANGE. With no wrong pose seen: the
-    prior."""
+def choose_threshold(
+    shares_right: Sequence[float], shares_wrong: Sequence[float], prior: float = DEFAULT_MAX_SEEN_THROUGH,
+    bounds: tuple[float, float] = THRESHOLD_RANGE, keep_below: bool = True,
+) -> float:
+    """The cut t (keep poses with share <= t; >= t when not keep_below) maximising kept right
+    minus WRONG_WEIGHT x kept wrong; among equally good cuts the one nearest the prior (what the
+    validation scenes do not decide, the prior does); within bounds. With no wrong pose seen: the
+    prior, or the cut nearest to it that keeps every right pose."""
+    if not keep_below:  # keeping the largest values is keeping the smallest of their negatives
+        return -choose_threshold([-s for s in shares_right], [-s for s in shares_wrong], -prior, (-bounds[1], -bounds[0]))
     right, wrong = np.sort(np.asarray(shares_right, float)), np.sort(np.asarray(shares_wrong, float))
-    lo, hi = THRESHOLD_RANGE
-    if len(wrong) == 0:
-        return float(np.clip(DEFAULT_MAX_SEEN_THROUGH, lo, hi))
-    cuts = np.unique(np.clip(np.concatenate([right, wrong, [lo, hi, DEFAULT_MAX_SEEN_THROUGH]]), lo, hi))
+    lo, hi = bounds
+    cuts = np.unique(np.clip(np.concatenate([right, wrong, [lo, hi, prior]]), lo, hi))
     gain = np.searchsorted(right, cuts, side="right") - WRONG_WEIGHT * np.searchsorted(wrong, cuts, side="right")
     # A cut keeps the same poses up to the next share above it: the best cuts span intervals;
     # the prior is taken when it lies in one, else the best cut nearest to it.
@@ -44,16 +53,19 @@ def choose_threshold(shares_right: Sequence[float], shares_wrong: Sequence[float
     best = cuts[gain == gain.max()]
     for c in best:
         nxt = order[order > c]
-        if c <= DEFAULT_MAX_SEEN_THROUGH < (nxt.min() if len(nxt) else np.inf):
-            return float(np.clip(DEFAULT_MAX_SEEN_THROUGH, lo, hi))
-    return float(np.clip(best[np.argmin(np.abs(best - DEFAULT_MAX_SEEN_THROUGH))], lo, hi))
+        if c <= prior < (nxt.min() if len(nxt) else np.inf):
+            return float(np.clip(prior, lo, hi))
+    return float(np.clip(best[np.argmin(np.abs(best - prior))], lo, hi))
 
 
-def calibrate_seen_through(scenes: Sequence[SyntheticScene], models: PartModels, seed: int, name: str) -> tuple[float, dict[str, float]]:
-    """The chosen threshold and what it was chosen on (counts, the shares' extremes)."""
-    off = replace(models, register_params=models.register_params.model_copy(update={"max_seen_through": 1.0}))
-    right: list[float] = []
-    wrong: list[float] = []
+def calibrate_verification(
+    scenes: Sequence[SyntheticScene], models: PartModels, seed: int, name: str
+) -> tuple[float, float, dict[str, float]]:
+    """The chosen max_seen_through and min_visible_support, and what they were chosen on
+    (counts, the values' extremes)."""
+    off = replace(models, register_params=models.register_params.model_copy(update={"max_seen_through": 1.0, "min_visible_support": 0.0}))
+    right: list[tuple[float, float]] = []
+    wrong: list[tuple[float, float]] = []
     for k, scene in enumerate(scenes):
         H, W = scene.labels.shape
         result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), off, SceneSeeds.of(seed, f"{name}-val-{k}"))
@@ -62,8 +74,15 @@ def calibrate_seen_through(scenes: Sequence[SyntheticScene], models: PartModels,
         _, per = scene_pose_metrics(T, scene.T_cam_from_model, scene.visible_fraction, models.ppf.dense_points_m,
                                     models.ppf.symmetries, models.ppf.diameter_m)
         for pose, match in zip(poses, per, strict=True):
-            (right if match and match["add_ok"] else wrong).append(float((pose.extra or {}).get("seen_through", 0.0)))
-    t = choose_threshold(right, wrong)
-    return t, {"n_right": float(len(right)), "n_wrong": float(len(wrong)), "right_max": max(right, default=0.0),
-               "wrong_min": min(wrong, default=1.0), "kept_wrong": float(sum(w <= t for w in wrong)),
-               "lost_right": float(sum(r > t for r in right))}
+            extra = pose.extra or {}
+            (right if match and match["add_ok"] else wrong).append((float(extra.get("seen_through", 0.0)), float(extra.get("visible_support", 1.0))))
+    t = choose_threshold([r[0] for r in right], [w[0] for w in wrong])
+    # The support cut is chosen on the poses the seen-through cut keeps: the two checks together.
+    s = choose_threshold([r[1] for r in right if r[0] <= t], [w[1] for w in wrong if w[0] <= t], DEFAULT_MIN_VISIBLE_SUPPORT, SUPPORT_RANGE, keep_below=False)
+    kept_wrong = [w for w in wrong if w[0] <= t and w[1] >= s]
+    return t, s, {
+        "n_right": float(len(right)), "n_wrong": float(len(wrong)),
+        "right_max": max((r[0] for r in right), default=0.0), "wrong_min": min((w[0] for w in wrong), default=1.0),
+        "right_support_min": min((r[1] for r in right), default=1.0), "wrong_support_max": max((w[1] for w in wrong), default=0.0),
+        "kept_wrong": float(len(kept_wrong)), "lost_right": float(sum(r[0] > t or r[1] < s for r in right)),
+    }

@@ -58,6 +58,7 @@ def run(
         "n_segments": float(result.n_segments),
         "n_duplicates_suppressed": float(result.n_duplicates_suppressed),
         "n_seen_through": float(result.n_seen_through),
+        "n_unsupported": float(result.n_unsupported),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }

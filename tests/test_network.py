@@ -349,3 +349,20 @@ def test_cover_reaches_every_point_with_few_passes():
     if len(left):
         d, _ = cKDTree(pts[in_block]).query(pts[left])
         assert d.max() <= 0.01 + 1e-9
+
+
+def test_the_verification_thresholds_are_stored_with_the_network(tmp_path):
+    """Both thresholds read back as written; a checkpoint written before the support threshold
+    existed reads with none (register then applies its default)."""
+    from binpick.network.checkpoint import InferenceSettings, read_settings, write_with_verification
+
+    model = FPCC(FPCCConfig(k_neighbours=4, width=8, embedding_dim=6)).eval()
+    extra = InferenceSettings("toy", 0.06, "normals", 0.02, PARAMS.train).to_extra()
+    save_checkpoint(tmp_path / "m.pt", model, None, 3, {"loss": 1.0}, extra)
+    write_with_verification(tmp_path / "m.pt", tmp_path / "both.pt", 0.41, 0.66)
+    both = read_settings(tmp_path / "both.pt")
+    assert (both.max_seen_through, both.min_visible_support) == (0.41, 0.66)
+    write_with_verification(tmp_path / "m.pt", tmp_path / "old.pt", 0.41)
+    old = read_settings(tmp_path / "old.pt")
+    assert (old.max_seen_through, old.min_visible_support) == (0.41, None)
+    assert read_settings(tmp_path / "m.pt").max_seen_through is None

@@ -234,3 +234,41 @@ def test_two_long_parts_side_by_side_in_one_segment_are_both_found(shaft):
         )
     assert fits[800] == [0, 1], fits
     assert len(fits[1]) == 1, fits
+
+
+def test_a_shaft_fitted_onto_a_plain_cylinder_lacks_visible_support(shaft):
+    """A plain cylinder of the shaft's girth lies beside a shaft: the shaft's pose on the
+    cylinder has its collars in the air, 8 mm off the cylinder (about the seen-through margin, so
+    that check hardly sees them), and a good part of what the camera should see of it
+    unmeasured; the shaft's own pose has nearly all of it measured. Hidden and unmeasured surface
+    is neutral: the same pose with half the frame's depth missing is supported as well."""
+    from pykdtree.kdtree import KDTree
+
+    from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, Scales
+    from binpick.registration.verification import seen_through, visible_support
+    from binpick.registration.visibility import depth_view
+
+    model = train_ppf(shaft.points_m, shaft.normals, shaft.diameter_m, symmetry_transforms(SHAFT_SYMMETRY), PARAMS.registration)
+    T_shaft = make_T(np.eye(3), np.array([0.0, -0.03, 0.016]))
+    T_cylinder = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), 0.3), np.array([0.0, 0.03, 0.008]))
+    cylinder = trimesh.creation.cylinder(radius=0.008, height=0.15, sections=48)
+    cylinder.apply_transform(T_cylinder @ trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
+    scene = render_scene(shaft, T_shaft[None], PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006),
+                         np.random.default_rng(3), distractors=[cylinder])
+    xyz = scene.xyz_m.reshape(-1, 3)
+    measured = xyz[np.isfinite(xyz[:, 2])]
+    tree = KDTree(np.ascontiguousarray(measured[voxel_downsample_indices(measured, 0.002)], dtype=np.float64))
+    inlier = Scales.of(model, PARAMS.registration).inlier_m
+    view = depth_view(xyz, scene.labels.shape, 0.002)
+    right = scene.T_cam_from_model[0]
+    on_cylinder = scene.T_cam_from_bin @ make_T(np.eye(3), np.array([0.0, 0.0, 0.008])) @ T_cylinder @ make_T(np.eye(3), np.array([0.0, 0.0, -0.008]))
+    support_right = visible_support(model, right, view, tree, inlier)
+    support_wrong = visible_support(model, on_cylinder, view, tree, inlier)
+    assert support_right > 0.9, support_right
+    assert support_wrong < 0.75 and support_right - support_wrong > 0.2, (support_right, support_wrong)
+    assert seen_through(model, on_cylinder, view) < DEFAULT_MAX_SEEN_THROUGH  # the other check lets it pass
+    # Missing depth says nothing: every other row of the frame unmeasured changes little.
+    holes = scene.xyz_m.copy()
+    holes[::2] = np.nan
+    sparse = depth_view(holes.reshape(-1, 3), scene.labels.shape, 0.002)
+    assert visible_support(model, right, sparse, tree, inlier) > 0.9

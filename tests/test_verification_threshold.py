@@ -27,3 +27,22 @@ def test_bounds_hold_with_few_poses():
     assert choose_threshold([0.05, 0.1], [0.5, 0.55]) == DEFAULT_MAX_SEEN_THROUGH
     # They say more: every wrong pose from 0.2, right ones up to 0.1: the lower bound.
     assert choose_threshold([0.05, 0.1], [0.2, 0.25, 0.3, 0.31]) == THRESHOLD_RANGE[0]
+
+
+def test_a_least_support_cut_keeps_poses_above_it():
+    from binpick.registration.constants import DEFAULT_MIN_VISIBLE_SUPPORT
+    from binpick.verification_threshold import SUPPORT_RANGE
+
+    def cut(right, wrong):
+        return choose_threshold(right, wrong, DEFAULT_MIN_VISIBLE_SUPPORT, SUPPORT_RANGE, keep_below=False)
+
+    # Wrong poses up to 0.45, right ones from 0.85: every cut between does as well, the prior.
+    assert cut([0.85, 0.9, 0.97], [0.2, 0.45]) == DEFAULT_MIN_VISIBLE_SUPPORT
+    # A wrong pose at 0.62: the cut goes above it, as near the prior as the right poses allow.
+    t = cut([0.85, 0.9, 0.97], [0.2, 0.62])
+    assert 0.62 < t <= 0.85
+    # Wrong poses up to 0.8 among right ones from 0.83: the bound holds the cut at 0.7.
+    assert cut([0.83, 0.9, 0.97], [0.5, 0.6, 0.8, 0.81]) == SUPPORT_RANGE[1]
+    # No wrong pose seen: the prior, unless it would drop right poses.
+    assert cut([0.9], []) == DEFAULT_MIN_VISIBLE_SUPPORT
+    assert cut([0.3, 0.9], []) == 0.3

@@ -1,7 +1,7 @@
 """Clutter benchmark: bins with distractors in and around them, seen by a tilted camera, through
 the real scene path (import and cleaning, segmentation when the part has a trained network,
 registration with verification), against the scoring without the checks this benchmark is for
-(`baseline_*`: no crop to the bin walls, no verification against what the camera saw).
+(`baseline_*`: no crop to the bin walls, no verification against what the camera saw: neither seen-through nor visible support).
 
 Per part: pose_precision and pose_recall (parts at least half visible, ADD(-S) < 0.1 d, as the
 register stage counts them), false_poses_outside_bin (wrong poses whose centre lies outside the
@@ -123,7 +123,7 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
         new = PartModels(part, ppf, segmenter, p.import_capture,
                          with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None))
         base = PartModels(part, ppf, segmenter, p.import_capture.model_copy(update={"crop_to_walls": False}),
-                          p.registration.model_copy(update={"mode": mode, "max_seen_through": 1.0}))
+                          p.registration.model_copy(update={"mode": mode, "max_seen_through": 1.0, "min_visible_support": 0.0}))
         rows_new: list[dict[str, float]] = []
         rows_base: list[dict[str, float]] = []
         for k in range(n_scenes):

@@ -54,6 +54,9 @@ class InferenceSettings:
     # The pose verification threshold (register.max_seen_through) chosen on the validation
     # scenes after training (binpick/verification_threshold.py); None until chosen.
     max_seen_through: float | None = None
+    # ... and register.min_visible_support, chosen with it (None: not chosen, as in checkpoints
+    # calibrated before it existed).
+    min_visible_support: float | None = None
 
     def to_extra(self) -> dict[str, Any]:
         """The stored form. Key order is part of the file's bytes: keep it."""
@@ -62,7 +65,7 @@ class InferenceSettings:
         if self.clustering is not None:
             extra["clustering"] = self.clustering.to_dict()
         if self.max_seen_through is not None:
-            extra["verification"] = {"max_seen_through": self.max_seen_through}
+            extra["verification"] = _verification(self.max_seen_through, self.min_visible_support)
         return extra
 
     @classmethod
@@ -78,6 +81,8 @@ class InferenceSettings:
                 clustering=None if clustering is None else CalibratedClustering(
                     float(clustering["centre_threshold"]), float(clustering["embedding_threshold"]), int(clustering["min_instance_points"])),
                 max_seen_through=float(extra["verification"]["max_seen_through"]) if "verification" in extra else None,
+                min_visible_support=(float(extra["verification"]["min_visible_support"])
+                                     if "min_visible_support" in extra.get("verification", {}) else None),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(path, f"holds no complete inference settings ({type(exc).__name__}: {exc})") from None
@@ -141,10 +146,17 @@ def write_with_clustering(source: str | Path, out: str | Path, clustering: Calib
     write_state(out, state)
 
 
-def write_with_verification(source: str | Path, out: str | Path, max_seen_through: float) -> None:
-    """Write the checkpoint at source to out with its pose verification threshold set."""
+def _verification(max_seen_through: float, min_visible_support: float | None) -> dict[str, float]:
+    out = {"max_seen_through": float(max_seen_through)}
+    if min_visible_support is not None:
+        out["min_visible_support"] = float(min_visible_support)
+    return out
+
+
+def write_with_verification(source: str | Path, out: str | Path, max_seen_through: float, min_visible_support: float | None = None) -> None:
+    """Write the checkpoint at source to out with its pose verification thresholds set."""
     state = read_checkpoint(source)
-    state["extra"] = {**state["extra"], "verification": {"max_seen_through": float(max_seen_through)}}
+    state["extra"] = {**state["extra"], "verification": _verification(max_seen_through, min_visible_support)}
     state.pop("sha256", None)
     write_state(out, state)
 

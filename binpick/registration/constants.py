@@ -116,3 +116,6 @@ SEEN_THROUGH_MARGIN_MIN_M = 0.003
 # and no checkpoint, e.g. whole-scene registration without a network): on cluttered T-joint bins
 # true poses have 0.00-0.03, estimates within ADD 0.1 d up to 0.28, wrong ones from 0.43.
 DEFAULT_MAX_SEEN_THROUGH = 0.35
+# The least visible support (visibility.py) when none was chosen at training (register.min_visible_support
+# null and no checkpoint, or a checkpoint calibrated before it existed).
+DEFAULT_MIN_VISIBLE_SUPPORT = 0.5

@@ -20,7 +20,7 @@ from binpick.registration.constants import (
     SEEN_THROUGH_MARGIN_MIN_M,
     SEEN_THROUGH_MARGIN_REL,
 )
-from binpick.registration.visibility import DepthView, seen_through_share
+from binpick.registration.visibility import DepthView, seen_through_share, visible_support_share
 
 
 def score_pose(
@@ -52,6 +52,20 @@ def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView,
     points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
     margin = max(SEEN_THROUGH_MARGIN_REL * model.diameter_m, SEEN_THROUGH_MARGIN_MIN_M)
     return seen_through_share(points, view, margin)
+
+
+def visible_support(
+    model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView, scene_tree: KDTree, inlier_m: float, stride: int = SCORE_STRIDE
+) -> float:
+    """Share of the pose's camera-facing surface the camera should have seen (visibility.py)
+    with a scene point of scene_tree (a pykdtree of the cleaned cloud) within inlier_m. Hidden
+    means a measurement more than inlier_m in front of the surface."""
+    facing = _facing(model, T_cam_from_model, stride)
+    if not facing.any():
+        return 0.0
+    points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
+    d, _ = scene_tree.query(points, distance_upper_bound=inlier_m)
+    return visible_support_share(points, np.isfinite(d), view, inlier_m)
 
 
 def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:

@@ -10,6 +10,14 @@ the model's camera-facing surface that cannot be there. It means the same for ev
 sensor, so one threshold (register.max_seen_through) serves all: a right pose leaves only noise
 and silhouette pixels there; a pose on a box wall or floating in front of the wall behind a desk
 has most of its surface in seen-through space.
+
+`visible_support_share` is the other side: of the surface the camera should have seen (not
+hidden, measured), the share with a measured point on it (register.min_visible_support). A pose
+fitted onto something that is only partly the part's shape (a lying cylinder of a shaft's girth
+taking the shaft's body, its gear and steps hanging in the air a few centimetres off it, too
+close to the measurements to count as seen through) has a third to a half of its visible surface
+without support; a right pose, however much of it other parts hide, has nearly all of what is
+left in view supported.
 """
 
 from __future__ import annotations
@@ -127,21 +135,44 @@ def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: 
     return DepthView(_zbuffer(pts, K, (h, w)), K)
 
 
-def seen_through_share(points_cam: np.ndarray, view: DepthView, margin_m: float) -> float:
-    """Share of the posed, camera-facing model points (k, 3; camera frame) that lie in front of
-    a measurement by more than margin_m, among those with a measurement along their ray."""
+def measured_depth(points_cam: np.ndarray, view: DepthView) -> np.ndarray:
+    """(k,) the depth measured along the ray of each point (k, 3; camera frame): the z-buffer's
+    cell it falls in; inf where nothing was measured, the point lies outside the view or behind
+    the camera."""
+    m = np.full(len(points_cam), np.inf)
     if view.is_empty or len(points_cam) == 0:
-        return 0.0
+        return m
     h, w = view.depth_m.shape
     z = points_cam[:, 2]
-    ok = z > 1e-6
+    ok = np.flatnonzero(z > 1e-6)
     uv = points_cam[ok] @ view.K.T
     u = np.floor(uv[:, 0] / uv[:, 2]).astype(np.int64)
     v = np.floor(uv[:, 1] / uv[:, 2]).astype(np.int64)
     inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    measured = view.depth_m[v[inside], u[inside]]
+    m[ok[inside]] = view.depth_m[v[inside], u[inside]]
+    return m
+
+
+def seen_through_share(points_cam: np.ndarray, view: DepthView, margin_m: float) -> float:
+    """Share of the posed, camera-facing model points (k, 3; camera frame) that lie in front of
+    a measurement by more than margin_m, among those with a measurement along their ray."""
+    measured = measured_depth(points_cam, view)
     known = np.isfinite(measured)
     if not known.any():
         return 0.0
-    zk = z[ok][inside][known]
-    return float(np.mean(zk < measured[known] - margin_m))
+    return float(np.mean(points_cam[known, 2] < measured[known] - margin_m))
+
+
+def visible_support_share(points_cam: np.ndarray, supported: np.ndarray, view: DepthView, hidden_margin_m: float) -> float:
+    """Share of the posed, camera-facing model points (k, 3; camera frame) the camera should have
+    seen that it did: among the points with a measurement along their ray that does not lie in
+    front of them by more than hidden_margin_m (those are hidden: neutral), the share with a
+    measured point near them (supported (k,) bool, the caller's nearest-neighbour test). Points
+    without a measurement are neutral too (the sensor's missing data says nothing). 0 when no
+    point should be seen. Without a view: the share supported among all points."""
+    supported = np.asarray(supported, dtype=bool)
+    if view.is_empty:
+        return float(supported.mean()) if len(supported) else 0.0
+    measured = measured_depth(points_cam, view)
+    expected = np.isfinite(measured) & (measured >= points_cam[:, 2] - hidden_margin_m)
+    return float(supported[expected].mean()) if expected.any() else 0.0
