@@ -120,3 +120,30 @@ def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():
     assert _true_touch(pick(np.array([-1.0, 0.0, 0.0])), "suction", T_obj[None], truth) == 0
     tilted = axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(20.0)) @ np.array([-1.0, 0.0, 0.0])
     assert _true_touch(pick(tilted), "suction", T_obj[None], truth) is None
+
+
+def test_scene_bench_bins_hold_twenty_long_parts(t_joint):
+    """The picking bins of a long part stop filling before 20; the scene benchmark's hold the 20
+    it asks for, of a long part and of the built-in one."""
+    import trimesh
+
+    from binpick.bench.picking import picking_settings
+    from binpick.bench.scene import scene_generate_settings
+    from binpick.generation.placement import place_objects
+    from binpick.params import SymmetryParams
+    from binpick.parts import make_part_model
+
+    # The gear shaft's proportions: a 0.44 m body of 60 mm girth with a 100 mm gear on it.
+    body, gear = trimesh.creation.cylinder(radius=0.03, height=0.44), trimesh.creation.cylinder(radius=0.05, height=0.06)
+    gear.apply_translation([0.0, 0.0, 0.1])
+    shaft = make_part_model("shaft", trimesh.util.concatenate([body, gear]), SymmetryParams(kind="revolution", axis=(0, 0, 1)),
+                            20000, np.random.default_rng(0), "m")
+
+    def held(part, g, seeds=(0, 1, 2)):
+        return [len(place_objects(part.points_m, 20, g.bin, g.placement, np.random.default_rng(k)).T_bin_from_model) for k in seeds]
+
+    p = picking_settings(PARAMS, shaft)
+    picking = p.generate.model_copy(update={"placement": p.generate.placement.model_copy(update={"mode": "drop"})})
+    assert min(held(shaft, picking)) < 20
+    assert held(shaft, scene_generate_settings(shaft, p)) == [20, 20, 20]
+    assert held(t_joint, scene_generate_settings(t_joint, picking_settings(PARAMS, t_joint))) == [20, 20, 20]
