@@ -219,8 +219,9 @@ def register(
     # through it (a cup fitted into a box wall, a part floating before the wall behind a desk),
     # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
     # cylinder, its gear in the air), is not there, whatever its fit to the points near it.
-    limit = DEFAULT_MAX_SEEN_THROUGH if params.max_seen_through is None else params.max_seen_through
-    least = DEFAULT_MIN_VISIBLE_SUPPORT if params.min_visible_support is None else params.min_visible_support
+    resolved = with_verification(params, None)
+    limit, least = resolved.max_seen_through, resolved.min_visible_support
+    assert limit is not None and least is not None  # with_verification resolves both
     kept_poses = []
     n_unsupported = 0
     inlier_m = Scales.of(ppf, params).inlier_m

@@ -33,11 +33,11 @@ def score_pose(
     scene_points (nearest-neighbour queries take half scipy's time), built here when None."""
     if len(scene_points) == 0:
         return 0.0
-    facing = _facing(model, T_cam_from_model, stride)
-    if not facing.any():
+    facing = _posed_facing_points(model, T_cam_from_model, stride)
+    if len(facing) == 0:
         return 0.0
     scene_tree = scene_tree or KDTree(np.ascontiguousarray(scene_points, dtype=np.float64))
-    d_model, _ = scene_tree.query(transform_points(T_cam_from_model, model.dense_points_m[::stride][facing]), distance_upper_bound=inlier_m)
+    d_model, _ = scene_tree.query(facing, distance_upper_bound=inlier_m)
     if whole_scene:
         return float(np.mean(np.isfinite(d_model)))
     # Scene points against the model's own tree, in the model frame: built once per model.
@@ -48,8 +48,7 @@ def score_pose(
 def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView, stride: int = SCORE_STRIDE) -> float:
     """Share of the pose's camera-facing surface lying in space the camera saw through
     (visibility.py); 0 when the view is unknown."""
-    facing = _facing(model, T_cam_from_model, stride)
-    points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
+    points = _posed_facing_points(model, T_cam_from_model, stride)
     margin = max(SEEN_THROUGH_MARGIN_REL * model.diameter_m, SEEN_THROUGH_MARGIN_MIN_M)
     return seen_through_share(points, view, margin)
 
@@ -60,12 +59,17 @@ def visible_support(
     """Share of the pose's camera-facing surface the camera should have seen (visibility.py)
     with a scene point of scene_tree (a pykdtree of the cleaned cloud) within inlier_m. Hidden
     means a measurement more than inlier_m in front of the surface."""
-    facing = _facing(model, T_cam_from_model, stride)
-    if not facing.any():
+    points = _posed_facing_points(model, T_cam_from_model, stride)
+    if len(points) == 0:
         return 0.0
-    points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
     d, _ = scene_tree.query(points, distance_upper_bound=inlier_m)
     return visible_support_share(points, np.isfinite(d), view, inlier_m)
+
+
+def _posed_facing_points(model: PPFModel, T_cam_from_model: np.ndarray, stride: int) -> np.ndarray:
+    """(k, 3) camera frame, metres: the dense model points (every stride-th) facing the camera at
+    this pose, moved to it."""
+    return transform_points(T_cam_from_model, model.dense_points_m[::stride][_facing(model, T_cam_from_model, stride)])
 
 
 def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> np.ndarray:
