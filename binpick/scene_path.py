@@ -169,6 +169,10 @@ def register(
     per_instance_ms: list[float] = []
     n_segments = int(labels.max()) + 1 if labels is not None and len(labels) else 0
     n_duplicates = 0
+    # What the camera saw (its z-buffer) and the whole cleaned cloud: segment matching ranks its
+    # finalists by them, and every pose is verified against them below.
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    cloud_tree = KDTree(np.ascontiguousarray(cloud.points_m, dtype=np.float64)) if len(cloud.points_m) else None
     if mode in ("segments", "segments_then_scene"):
         if labels is None:
             raise ValueError(f"registration mode {mode!r} needs segment labels")
@@ -186,7 +190,9 @@ def register(
         def match(seg: int) -> tuple[PartPose | None, float]:
             t = time.perf_counter()
             mask = labels == seg
-            est = match_segment(ppf, cloud.points_m[mask], cloud.normals[mask], params, np.random.default_rng(segment_seeds[seg]))
+            est = match_segment(
+                ppf, cloud.points_m[mask], cloud.normals[mask], params, np.random.default_rng(segment_seeds[seg]), view, cloud_tree,
+            )
             return est, 1000.0 * (time.perf_counter() - t)
 
         with ThreadPoolExecutor(max_workers=SEGMENT_WAVE, thread_name_prefix="binpick-match") as pool:
@@ -210,9 +216,8 @@ def register(
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
         log.info("whole-scene matching added %d poses", len(more))
-    if not poses:
+    if not poses or cloud_tree is None:
         return Registration([], n_segments, n_duplicates, per_instance_ms)
-    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
     if len(ppf.near_symmetries):
         poses = _resolve_near_symmetries(cloud, labels, poses, ppf, params, view)
     # Verification against what the camera saw: a pose whose surface lies where the sensor saw
@@ -225,7 +230,6 @@ def register(
     kept_poses = []
     n_unsupported = 0
     inlier_m = Scales.of(ppf, params).inlier_m
-    cloud_tree = KDTree(np.ascontiguousarray(cloud.points_m, dtype=np.float64))
     for pose in poses:
         share = seen_through(ppf, pose.T_cam_from_model, view)
         if share > limit:

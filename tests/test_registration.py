@@ -272,3 +272,53 @@ def test_a_shaft_fitted_onto_a_plain_cylinder_lacks_visible_support(shaft):
     holes[::2] = np.nan
     sparse = depth_view(holes.reshape(-1, 3), scene.labels.shape, 0.002)
     assert visible_support(model, right, sparse, tree, inlier) > 0.9
+
+
+def _along_y(radius_m: float, y0_m: float, y1_m: float, z_m: float) -> trimesh.Trimesh:
+    cylinder = trimesh.creation.cylinder(radius=radius_m, height=y1_m - y0_m, sections=48)
+    cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
+    cylinder.apply_translation([0.0, (y0_m + y1_m) / 2, z_m])
+    return cylinder
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, ppf, seed):
+    """A T-joint lying on the floor, its branch mostly hidden under a plate, and its segment also
+    holding a neighbour's stub of pipe on the other side (an under-split segment): the T turned
+    half a turn about its run, its branch on the stub, explains the segment's points better than
+    the true pose, but half of that branch hangs over floor the camera saw. With the capture's view
+    the true pose wins; without it, the turned one."""
+    from pykdtree.kdtree import KDTree
+
+    from binpick.geometry.transforms import invert_T
+    from binpick.registration.visibility import DepthView
+    from binpick.scene_path import clean
+
+    rng = np.random.default_rng(seed)
+    turn = rng.uniform(0.0, 2 * np.pi)
+    T_bin_from_spot = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), turn), np.array([*rng.uniform(-0.05, 0.05, 2), 0.0]))
+    T_spot_from_model = make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))  # run along x on the floor, branch along +y
+    stub = _along_y(0.012, -0.025, -0.004, 0.012)  # half the branch's free length, on the -y side
+    plate = trimesh.creation.box(extents=[0.05, 0.04, 0.002])
+    plate.apply_translation([0.0, 0.038, 0.045])  # hides the branch beyond 18 mm of the run's axis
+    distractors = [m.apply_transform(T_bin_from_spot) for m in (stub, plate)]
+    plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})
+    scene = render_scene(t_joint, (T_bin_from_spot @ T_spot_from_model)[None], plain, changed(PARAMS.camera, downscale=2),
+                         ViewParams.of_import(PARAMS.import_capture), rng, distractors=distractors)
+    H, W = scene.labels.shape
+    cloud = clean(scene.xyz_m.reshape(-1, 3), None, (H, W), PARAMS.import_capture, seed=0)
+    labels = scene.labels.reshape(-1)[cloud.pixel_index]
+    local = transform_points(invert_T(scene.T_cam_from_bin @ T_bin_from_spot), cloud.points_m)
+    on_stub = (labels < 0) & (local[:, 1] < -0.004) & (np.abs(local[:, 0]) < 0.015) & (local[:, 2] > 0.003)
+    segment = (labels == 0) | on_stub
+    assert on_stub.sum() > 0.2 * (labels == 0).sum()
+    view = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    cloud_tree = KDTree(np.ascontiguousarray(cloud.points_m, dtype=np.float64))
+    syms = symmetry_transforms(t_joint.symmetry)
+
+    def rot_err(*seen) -> float:
+        est = match_segment(ppf, cloud.points_m[segment], cloud.normals[segment], PARAMS.registration, np.random.default_rng(seed), *seen)
+        return pose_errors(est.T_cam_from_model, scene.T_cam_from_model[0], t_joint.points_m, syms, t_joint.diameter_m)["rot_err_deg"]
+
+    assert rot_err(view, cloud_tree) < 3.0
+    assert rot_err() > 150.0  # the trap is real: the segment's points alone prefer the turned T

@@ -29,14 +29,30 @@ from binpick.registration.constants import (
     TOP_CLUSTERS,
     Scales,
 )
-from binpick.registration.verification import explained_points, refine_icp, score_pose, suppress_by_support
+from binpick.registration.verification import (
+    explained_points,
+    refine_icp,
+    score_pose,
+    seen_through,
+    suppress_by_support,
+    visible_support,
+)
+from binpick.registration.visibility import DepthView
 from binpick.registration.voting import vote
 
 
 def match_segment(
-    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator
+    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
+    view: DepthView | None = None, cloud_tree: KDTree | None = None,
 ) -> PartPose | None:
-    """The best pose of the part on one segment (camera frame points and normals), or None."""
+    """The best pose of the part on one segment (camera frame points and normals), or None.
+
+    With the capture's view and a pykdtree of its whole cleaned cloud (camera frame), the
+    finalists are ranked by their score times what the camera saw of them: the share of their
+    surface in view that is measured, and the share not lying where the camera saw through. A
+    segment holding a part and part of its neighbour fits a wrong turn that takes in the
+    neighbour's points better than the right one; the view tells them apart. The pose keeps its
+    score_pose score (min_score keeps its meaning)."""
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
     scales = Scales.of(model, params)
@@ -64,11 +80,15 @@ def match_segment(
         T = refine_icp(model, T, scene_points, scales.coarse_icp_m, params.icp_iterations, COARSE_STRIDE)
         coarse.append((score_pose(model, T, scene_points, inlier, scene_tree, stride=COARSE_STRIDE), T))
     best: PartPose | None = None
+    best_rank = -1.0
     for _, T in sorted(coarse, key=lambda c: -c[0])[:FINE_CLUSTERS]:
         T = refine_icp(model, T, scene_points, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, scene_points, inlier, scene_tree)
-        if best is None or score > best.score:
-            best = PartPose(T_cam_from_model=T, score=score)
+        rank = score
+        if view is not None and cloud_tree is not None:
+            rank = score * visible_support(model, T, view, cloud_tree, inlier) * (1.0 - seen_through(model, T, view))
+        if rank > best_rank:
+            best, best_rank = PartPose(T_cam_from_model=T, score=score), rank
     return best
 
 
