@@ -209,7 +209,7 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     api_url = f"http://127.0.0.1:{port}/api"
     scheduled = []
     try:
-        # About 2 minutes on an idle 2-core machine; CI's shared machine once took over 8.
+        # About 2 minutes on an idle 2-core machine; one CI run took over 8 minutes.
         deadline = time.monotonic() + 900
         while time.monotonic() < deadline and proc.poll() is None:
             if (project / "data/metrics/spacer/evaluate.json").is_file():
