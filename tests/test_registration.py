@@ -274,13 +274,6 @@ def test_a_shaft_fitted_onto_a_plain_cylinder_lacks_visible_support(shaft):
     assert visible_support(model, right, sparse, tree, inlier) > 0.9
 
 
-def _along_y(radius_m: float, y0_m: float, y1_m: float, z_m: float) -> trimesh.Trimesh:
-    cylinder = trimesh.creation.cylinder(radius=radius_m, height=y1_m - y0_m, sections=48)
-    cylinder.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [1, 0, 0]))
-    cylinder.apply_translation([0.0, (y0_m + y1_m) / 2, z_m])
-    return cylinder
-
-
 @pytest.mark.parametrize("seed", [0, 3])
 def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, ppf, seed):
     """A T-joint lying on the floor, its branch mostly hidden under a plate, and its segment also
@@ -291,6 +284,7 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     from pykdtree.kdtree import KDTree
 
     from binpick.geometry.transforms import invert_T
+    from binpick.parts import _cylinder_along
     from binpick.registration.visibility import DepthView
     from binpick.scene_path import clean
 
@@ -298,7 +292,8 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     turn = rng.uniform(0.0, 2 * np.pi)
     T_bin_from_spot = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), turn), np.array([*rng.uniform(-0.05, 0.05, 2), 0.0]))
     T_spot_from_model = make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))  # run along x on the floor, branch along +y
-    stub = _along_y(0.012, -0.025, -0.004, 0.012)  # half the branch's free length, on the -y side
+    stub = _cylinder_along("y", 0.012, -0.025, -0.004)  # half the branch's free length, on the -y side
+    stub.apply_translation([0.0, 0.0, 0.012])  # lying on the floor, level with the run
     plate = trimesh.creation.box(extents=[0.05, 0.04, 0.002])
     plate.apply_translation([0.0, 0.038, 0.045])  # hides the branch beyond 18 mm of the run's axis
     distractors = [m.apply_transform(T_bin_from_spot) for m in (stub, plate)]
