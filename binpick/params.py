@@ -121,6 +121,9 @@ class PartParams(_Strict):
     pick: dict[str, Any] = {}
     # A grasp file (data/README.md#grasps) with the part's pick points; '' = generated from the CAD model.
     grasps: str = ""
+    # The part's finish, as the sensor models render it (generate.sensor.materials); null = the
+    # generate.sensor.surface of the params.
+    surface: Literal["matte", "machined", "shiny"] | None = None
 
     @field_validator("mesh")
     @classmethod
@@ -202,6 +205,77 @@ class NoiseParams(_Strict):
     dropout_fraction: float = Field(ge=0, lt=1)
 
 
+class SensorModelParams(_Strict):
+    """One 3D sensor class (binpick/generation/sensor.py): its native image, the projector (or
+    second camera) beside it, and the size of each effect; 0 (or false) turns an effect off."""
+
+    width_px: int = Field(ge=16, description="native resolution; the principal point is the image centre")
+    height_px: int = Field(ge=16)
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    working_distance_m: tuple[float, float] = Field(description="the maker's range; the camera is placed inside it")
+    baseline_m: float = Field(ge=0, description="projector (or second camera) offset along the camera's +x")
+    shadows: bool = Field(description="no data where the projector's ray to the surface is blocked")
+    depth_sigma_m: float = Field(ge=0, description="range noise std at zero range, normal incidence")
+    depth_sigma_per_m2: float = Field(ge=0, description="added std per squared metre of range")
+    incidence_noise_gain: float = Field(ge=0, description="std times 1 + gain * a^2 / (90 deg - a)^2 at incidence a")
+    dropout_start_deg: float = Field(ge=0, le=90, description="returns start to drop at this incidence ...")
+    max_incidence_deg: float = Field(gt=0, le=90, description="... and all are gone beyond this one")
+    dropout_fraction: float = Field(ge=0, lt=1, description="random dropout anywhere")
+    mixed_pixel_share: float = Field(ge=0, le=1, description="share of depth-edge pixels that mix both depths")
+    edge_jump_m: float = Field(gt=0, description="a depth step this large between neighbours is an edge")
+    multipath_m: float = Field(ge=0, description="range bias at the bottom of a right-angled concave corner")
+    multipath_radius_m: float = Field(gt=0, description="how far a facing surface reflects the projector onto a point")
+    disparity_step_px: float = Field(ge=0, description="disparity quantisation (needs baseline_m); 0 = none")
+    depth_step_m: float = Field(ge=0, description="range quantisation; 0 = none")
+
+    @model_validator(mode="after")
+    def _check(self) -> SensorModelParams:
+        lo, hi = self.working_distance_m
+        if not 0 < lo <= hi:
+            raise ValueError(f"working_distance_m must be a range 0 < low <= high, got [{lo}, {hi}]")
+        if self.dropout_start_deg > self.max_incidence_deg:
+            raise ValueError("dropout_start_deg must not exceed max_incidence_deg")
+        if self.disparity_step_px > 0 and self.baseline_m <= 0:
+            raise ValueError("disparity_step_px needs a baseline_m above 0")
+        return self
+
+
+class MaterialParams(_Strict):
+    """How a surface finish changes what a sensor returns from it."""
+
+    noise_scale: float = Field(ge=0, description="range noise times this")
+    max_incidence_deg: float = Field(gt=0, le=90, description="returns beyond this incidence are lost (steep metal)")
+    specular_lobe_deg: float = Field(ge=0, lt=90, description="lost where the normal is this close to the projector-camera half vector")
+    dropout_fraction: float = Field(ge=0, lt=1, description="added random dropout on the surface")
+
+
+SURFACES = ("matte", "machined", "shiny")
+
+
+class SensorParams(_Strict):
+    """Which sensor models generation draws from (one per scene) and their definitions.
+    presets [] keeps the plain noise model (generate.noise) with the camera section's camera."""
+
+    presets: list[str]
+    effect_scale: tuple[float, float] = Field(description="each effect's size scaled by a factor drawn in this range per scene")
+    surface: Literal["matte", "machined", "shiny"] = Field(description="the part's finish (a part entry's `surface` sets it)")
+    models: dict[str, SensorModelParams]
+    materials: dict[str, MaterialParams]
+
+    @model_validator(mode="after")
+    def _check(self) -> SensorParams:
+        unknown = [n for n in self.presets if n not in self.models]
+        if unknown:
+            raise ValueError(f"sensor.presets names {unknown}, not in sensor.models (have: {sorted(self.models)})")
+        if self.presets and sorted(self.materials) != sorted(SURFACES):
+            raise ValueError(f"sensor.materials must define exactly {list(SURFACES)}")
+        lo, hi = self.effect_scale
+        if not 0 < lo <= hi:
+            raise ValueError(f"sensor.effect_scale must be a range 0 < low <= high, got [{lo}, {hi}]")
+        return self
+
+
 class PlacementParams(_Strict):
     n_objects_min: int = Field(ge=1)
     n_objects_max: int = Field(ge=1)
@@ -269,6 +343,7 @@ class GenerateParams(_Strict):
     bin: BinParams
     noise: NoiseParams
     clutter: ClutterParams
+    sensor: SensorParams
 
 
 class TrainParams(_Strict):
@@ -635,6 +710,9 @@ def resolve(raw: dict[str, Any], part: str | None = None) -> dict[str, Any]:
             raise ParamsError(f"part {part!r} is not listed under 'parts' (have: {sorted(parts)})")
         for section in PER_PART_SECTIONS:
             resolved[section] = deep_merge(resolved.get(section) or {}, (parts[part] or {}).get(section) or {})
+        surface = (parts[part] or {}).get("surface")
+        if surface is not None and isinstance(resolved.get("generate"), dict) and isinstance(resolved["generate"].get("sensor"), dict):
+            resolved["generate"]["sensor"]["surface"] = surface
     return resolved
 
 

@@ -29,6 +29,7 @@ GENERATE = {
     "noise": {"depth_sigma_m": 0.0002, "depth_sigma_per_m2": 0.0004, "max_incidence_deg": 80.0, "dropout_fraction": 0.01},
     "clutter": {"n_distractors_max": 0, "distractor_size_rel": [0.3, 1.2], "outside_share": 0.5, "bin_scale": [1.0, 1.0],
                 "wall_height_scale": [1.0, 1.0], "camera_tilt_deg_max": 0.0, "camera_distance_scale": [1.0, 1.0], "noise_scale": [1.0, 1.0]},
+    "sensor": {"presets": [], "effect_scale": [1.0, 1.0], "surface": "matte", "models": {}, "materials": {}},
 }
 
 

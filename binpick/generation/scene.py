@@ -12,6 +12,7 @@ from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, re
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
+from binpick.generation.sensor import SensorDraw, apply_sensor_model, intrinsics_of, scaled_model
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
@@ -33,21 +34,26 @@ def render_scene(
     rng: np.random.Generator,
     T_bin_from_camera: np.ndarray | None = None,
     distractors: list[trimesh.Trimesh] | None = None,
+    sensor: SensorDraw | None = None,
 ) -> SyntheticScene:
     """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
     measure visibility and build the network's view. T_bin_from_camera: the camera's pose
     (default: camera.distance_m straight above the bin floor centre); distractors: meshes in the
-    bin frame, rendered with the bin (label -1)."""
+    bin frame, rendered with the bin (label -1); sensor: a sensor model (its camera and effects,
+    generation/sensor.py) instead of the camera section's camera and generate.noise."""
     T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m) if T_bin_from_camera is None else T_bin_from_camera)
     # Poses on a 1e-12 grid: sin, cos and matrix products may differ in the last bit between CPUs
     # (numpy and BLAS dispatch by instruction set); what is rendered should not.
     T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(generate.bin), *(distractors or [])]]
-    intr = Intrinsics.from_params(camera)
+    intr = Intrinsics.from_params(camera) if sensor is None else intrinsics_of(sensor.model, camera.width_px, camera.downscale)
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
-    noisy = apply_sensor_noise(clean, generate.noise, rng)
+    if sensor is None:
+        noisy = apply_sensor_noise(clean, generate.noise, rng)
+    else:
+        noisy = apply_sensor_model(clean, objects + clutter, intr, sensor, generate.sensor.materials[generate.sensor.surface], rng)
     vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
         xyz_m=noisy.xyz_m,
@@ -73,6 +79,10 @@ def generate_scene(
     """Place objects (count drawn from the params unless given), then render the scene."""
     rng = np.random.default_rng(seed)
     T_bin_camera, distractors = None, None
+    sensor = draw_sensor(generate, stream_generator(seed, SENSOR_STREAM)) if generate.sensor.presets else None
+    if sensor is not None:
+        lo, hi = sensor.model.working_distance_m
+        camera = camera.model_copy(update={"distance_m": float(np.clip(camera.distance_m, lo, hi))})
     if generate.clutter.active:
         generate, camera, T_bin_camera, distractors = draw_clutter(generate, camera, part.diameter_m, clutter_generator(seed))
     placement = generate.placement
@@ -82,17 +92,32 @@ def generate_scene(
     T_bin_from_model = placed.T_bin_from_model
     if placement.mode == "physics":
         T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
-    return render_scene(part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors)
+    return render_scene(part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors, sensor)
 
 
 CLUTTER_STREAM = 7_777
+SENSOR_STREAM = 7_778
+
+
+def stream_generator(seed: int | np.random.SeedSequence, stream: int) -> np.random.Generator:
+    """A random stream of a scene's own, beside the scene's: turning clutter or sensor models on
+    changes no other draw (and a caller can redraw the same clutter)."""
+    seq = np.random.default_rng(seed).bit_generator.seed_seq
+    return np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, stream)))  # type: ignore[attr-defined]
 
 
 def clutter_generator(seed: int | np.random.SeedSequence) -> np.random.Generator:
-    """The random stream a scene's clutter is drawn from: its own, beside the scene's, so that
-    turning clutter on changes no other draw (and a caller can redraw the same clutter)."""
-    seq = np.random.default_rng(seed).bit_generator.seed_seq
-    return np.random.default_rng(np.random.SeedSequence(seq.entropy, spawn_key=(*seq.spawn_key, CLUTTER_STREAM)))  # type: ignore[attr-defined]
+    """The random stream a scene's clutter is drawn from."""
+    return stream_generator(seed, CLUTTER_STREAM)
+
+
+def draw_sensor(generate: GenerateParams, rng: np.random.Generator) -> SensorDraw:
+    """One scene's sensor: a preset of generate.sensor.presets, its effects scaled by a factor
+    drawn from generate.sensor.effect_scale."""
+    s = generate.sensor
+    name = s.presets[int(rng.integers(0, len(s.presets)))]
+    model = scaled_model(s.models[name], _scaled(s.effect_scale, rng))
+    return SensorDraw(model, model.fx_px)
 
 
 def _scaled(lo_hi: tuple[float, float], rng: np.random.Generator) -> float:
