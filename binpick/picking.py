@@ -4,7 +4,8 @@ order to take them in. Camera frame, metres; poses are T_cam_from_model, grasps 
 
 A grasp on a detected part is kept when
 - its approach lies within approach_cone_deg of straight down the bin's up axis (the support
-  plane's normal toward the camera; the camera's -z when there is none), or, for a part none of
+  plane's normal toward the camera; the bin box's up axis when the bin is given; the camera's -z
+  when there is neither), or, for a part none of
   whose grasps within that cone is kept, within fallback_cone_deg (tried after them), and
 - the gripper, swept along its approach from the pre-grasp pose to the grasp and back to the
   post-grasp pose, stays clearance_m away from: the captured points (everything the camera
@@ -13,7 +14,8 @@ A grasp on a detected part is kept when
   the bin is given in params), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
 and its contact is where the camera measured a surface: under a suction cup the captured points
-lie on the contact plane (within the seal tolerance) and the plane they span faces the cup,
+lie on the contact plane (within the seal tolerance, widened by the noise the capture shows
+about the pose) and the plane they span faces the cup,
 between a jaw's pads there are captured points. A part's pick is its best-ranked grasp that is
 kept (grasps are tried best first, up to max_candidates_per_part). Parts with a pick are ordered
 by the keys in `order`: `height` (of the part's centre above the support plane, in steps of
@@ -67,11 +69,37 @@ UNSEEN = "contact not where the camera measured the part"
 SEEN_MIN_POINTS = 5
 SEEN_SHARE = 0.7
 SEEN_NOISE_M = 0.001
+# The allowance grows with the noise the capture shows around the pose: SEEN_NOISE_SIGMAS of it
+# when that exceeds SEEN_NOISE_M, so a Kinect-class sensor's 1-3 mm on a lid is not taken for a
+# contact off the surface. The noise is the scatter of the captured points about their own local
+# planes (local_noise_m), not about the posed model: a pose off by a turn leaves its points far
+# from its surface, and that must still refuse the contact, not widen the test. Capped: a seal
+# test looser than a few millimetres tests nothing on a 5 mm cup.
+SEEN_NOISE_SIGMAS = 2.5
+MAX_NOISE_SIGMA_M = 0.003
+# The noise is measured at up to NOISE_SAMPLE captured points near the pose, each with its
+# NOISE_NEIGHBOURS nearest captured points (a few millimetres across at a capture's spacing, where
+# a part's surface is flat to well under the noise) ...
+NOISE_SAMPLE = 200
+NOISE_NEIGHBOURS = 12
+MIN_NOISE_POINTS = 30
+# ... points within this multiple of own_points_m of the posed surface ...
+NOISE_BAND_FACTOR = 3.0
+# ... and a noisy capture's own points reach OWN_NOISE_SIGMAS of it (at least own_points_m): at
+# 3 sigma, a few of a part's thousands of points stood in the gripper's way.
+OWN_NOISE_SIGMAS = 4.0
 # ... and the plane fitted to those points must face the cup: its normal within this of the
 # approach. Over a cup's few millimetres the share test alone passes a contact tilted by 30
 # degrees (a pose turned the wrong way about an edge), where no cup seals; the fitted normal of
 # a measured patch is a few degrees off at the sensor's noise.
 SEEN_MAX_TILT_DEG = 20.0
+# ... measured over the cup, or over a disc of this many noise stds when wider: a 5 mm cup's
+# patch at 3 mm of noise tilts by tens of degrees; 12 mm of it by a few.
+TILT_PATCH_SIGMAS = 4.0
+# A bin box's floor is the support plane unless the plane found in the capture agrees with it
+# within these (then the measured plane is used: it is where the parts lie today).
+BIN_PLANE_AGREEMENT_DEG = 10.0
+BIN_PLANE_AGREEMENT_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -150,15 +178,33 @@ def thin(points: np.ndarray, grid_m: float) -> np.ndarray:
     return points[voxel_downsample_indices(points, grid_m)]
 
 
-def support_frame(floor_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
-    """up (3,) unit, camera frame, and the plane (4,) with that normal (None when there is no plane)."""
+def support_frame(floor_plane: np.ndarray, bin_box: BinBoxObstacle | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """up (3,) unit, camera frame, and the support plane (4,) with that normal (None when there is none).
+
+    With a bin box, up is the box's z axis (toward the camera) and the plane its floor (bin
+    frame z = 0), unless the plane found in the capture agrees with that floor within
+    BIN_PLANE_AGREEMENT_DEG and BIN_PLANE_AGREEMENT_M: on an oblique view the plane found may be
+    the table beside the box, or a wall. Without one, the plane found, else the camera's -z.
+    """
     plane = np.asarray(floor_plane, dtype=np.float64)
+    found = None
     if plane.shape == (4,) and np.all(np.isfinite(plane)):
         n = plane[:3] / np.linalg.norm(plane[:3])
         d = plane[3] / np.linalg.norm(plane[:3])
         if d < 0:  # the normal toward the camera (origin): n . 0 + d > 0
             n, d = -n, -d
-        return n, np.append(n, d)
+        found = np.append(n, d)
+    if bin_box is not None:
+        T = np.asarray(bin_box.T_cam_from_bin, dtype=np.float64)
+        up, origin = T[:3, 2] / np.linalg.norm(T[:3, 2]), T[:3, 3]
+        if -up @ origin < 0:  # toward the camera
+            up = -up
+        box_plane = np.append(up, -up @ origin)
+        if found is not None and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG)) and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M:
+            return found[:3], found
+        return up, box_plane
+    if found is not None:
+        return found[:3], found
     return np.array([0.0, 0.0, -1.0]), None
 
 
@@ -188,7 +234,7 @@ def plan_picks(
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
-    up, plane = support_frame(floor_plane)
+    up, plane = support_frame(floor_plane, bin_box)
     cos_cone = np.cos(np.radians(params.approach_cone_deg))
     widest_deg = params.approach_cone_deg if params.fallback_cone_deg is None else params.fallback_cone_deg
     cos_widest = np.cos(np.radians(widest_deg))
@@ -196,7 +242,7 @@ def plan_picks(
     grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
 
     part_points = np.asarray(part_points_m, dtype=np.float64).reshape(-1, 3)
-    own_of = _OwnPoints(part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), params.own_points_m)
+    own_of = _OwnPoints(part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m)
     # Every k-th point of the (evenly spread) sample, k the points per PART_OBSTACLE_GRID_M square
     # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
     model_sample = part_points[:: max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
@@ -210,7 +256,8 @@ def plan_picks(
     # Midpoint splits, nodes not shrunk to their points: 14-16 ms to build over the 100,000
     # obstacle points of an 8-part T-joint bin instead of 37-39 ms, and ball queries no slower.
     tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False) if len(obstacles) else None
-    reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + params.own_points_m if len(model_sample) else 0.0
+    captured_tree = KDTree(image_coordinates(captured)) if len(captured) >= NOISE_NEIGHBOURS else None
+    reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + own_of.reach_m if len(model_sample) else 0.0
 
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
     heights = centres @ up + (plane[3] if plane is not None else 0.0)
@@ -225,10 +272,14 @@ def plan_picks(
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
         own = np.zeros(len(obstacles), bool)
+        noise_m = 0.0
         if len(captured):
             near = _captured_near(tree, len(captured), centres[i], reach)
             if len(near):
-                own[near[own_of(transform_points(invert_T(T), captured[near]))]] = True
+                nearest, off_surface = own_of.distances(transform_points(invert_T(T), captured[near]))
+                noise_m = local_noise_m(captured, captured_tree, captured[near[np.isfinite(off_surface)]])
+                limit = max(params.own_points_m, OWN_NOISE_SIGMAS * noise_m)
+                own[near[(off_surface <= limit) & (nearest <= limit + own_of.spacing_m)]] = True
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
         cos_approach = tools[:, :3, 2] @ -up if len(tools) else np.zeros(0)
         in_cone = cos_approach >= cos_cone - 1e-12
@@ -242,7 +293,7 @@ def plan_picks(
         for g in np.concatenate(tiers).astype(np.int64):
             n_tried += 1
             T_tool = tools[g]
-            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params):
+            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
@@ -273,9 +324,45 @@ def plan_picks(
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
 
+def image_coordinates(points_m: np.ndarray) -> np.ndarray:
+    """(n, 2) x / z, y / z of camera-frame points (n, 3): where they lie in the image."""
+    return np.ascontiguousarray(points_m[:, :2] / points_m[:, 2:3])
+
+
+def local_noise_m(points_m: np.ndarray, image_tree: KDTree | None, at_m: np.ndarray) -> float:
+    """The depth noise of a capture about the points at_m (a robust std, metres, at most
+    MAX_NOISE_SIGMA_M; 0 with fewer than MIN_NOISE_POINTS of them).
+
+    points_m : (n, 3) the capture, camera frame; image_tree a k-d tree of its image_coordinates;
+    at_m (k, 3) where to measure. A sensor's noise moves a point along its ray, not across the
+    image, so at each of up to NOISE_SAMPLE points of at_m (evenly strided) the inverse depths
+    of its NOISE_NEIGHBOURS nearest points in the image are fitted as a plane (1 / z is linear in
+    x / z and y / z on a plane) and their residual std, times z^2, is the depth noise there. The
+    median of the variances over the points is robust to edges.
+    """
+    if image_tree is None or len(at_m) < MIN_NOISE_POINTS:
+        return 0.0
+    probe = at_m[:: max(1, len(at_m) // NOISE_SAMPLE)]
+    _, idx = image_tree.query(image_coordinates(probe), k=NOISE_NEIGHBOURS)
+    nbrs = points_m[idx]  # (s, k, 3)
+    inverse_depth = 1.0 / nbrs[..., 2]  # (s, k)
+    design = np.concatenate([np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1)  # (s, k, 3)
+    normal = np.einsum("ski,skj->sij", design, design)
+    if np.any(np.abs(np.linalg.det(normal)) < 1e-18):
+        keep = np.abs(np.linalg.det(normal)) >= 1e-18
+        design, inverse_depth, normal, probe = design[keep], inverse_depth[keep], normal[keep], probe[keep]
+        if len(probe) == 0:
+            return 0.0
+    coef = np.linalg.solve(normal, np.einsum("ski,sk->si", design, inverse_depth)[..., None])[..., 0]
+    residual = inverse_depth - np.einsum("ski,si->sk", design, coef)
+    variance = np.sum(residual**2, axis=1) / (NOISE_NEIGHBOURS - 3) * probe[:, 2] ** 4
+    return float(min(MAX_NOISE_SIGMA_M, np.sqrt(np.median(variance))))
+
+
 class _OwnPoints:
-    """Which points (model frame) lie on the part's surface: within own_m of the tangent plane
-    of their nearest sample point, that point no farther than own_m plus the sample's spacing.
+    """Distances of points (model frame) to the part's surface. A point is its own when it lies
+    within own_m of the tangent plane of its nearest sample point, that point no farther than
+    own_m plus the sample's spacing.
     Asked of the distance to the nearest sample point alone, the answer would follow the sample's
     density: the ingest's 20,000 points lie 2 mm apart on the 0.44 m gear shaft, and a thinned
     sample's 8 mm left most of a target's measured surface as obstacles under the cup."""
@@ -294,16 +381,21 @@ class _OwnPoints:
         self.spacing_m = 2.0 * spacing
         self.reach_m = own_m + self.spacing_m
 
-    def __call__(self, points_m: np.ndarray) -> np.ndarray:
-        """(k,) bool for points (k, 3), model frame."""
+    def distances(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For points (k, 3), model frame: (k,) the distance to the nearest sample point and (k,)
+        the distance to its tangent plane; both inf where the nearest point lies beyond
+        own_m plus the spacing, or the plane beyond own_m."""
+        nearest, plane = np.full(len(points_m), np.inf), np.full(len(points_m), np.inf)
         if self.tree is None or len(points_m) == 0:
-            return np.zeros(len(points_m), bool)
+            return nearest, plane
         d, j = self.tree.query(points_m, distance_upper_bound=self.reach_m)
         near = np.isfinite(d)
-        out = np.zeros(len(points_m), bool)
         jn = j[near]
-        out[near] = np.abs(np.einsum("ij,ij->i", points_m[near] - self.points_m[jn], self.normals[jn])) <= self.own_m
-        return out
+        off = np.abs(np.einsum("ij,ij->i", points_m[near] - self.points_m[jn], self.normals[jn]))
+        keep = off <= self.own_m
+        idx = np.flatnonzero(near)[keep]
+        nearest[idx], plane[idx] = d[near][keep], off[keep]
+        return nearest, plane
 
 
 def _name(cause: str) -> str:
@@ -335,8 +427,12 @@ def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: flo
     return near[near < n_captured]
 
 
-def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams) -> bool:
-    """Whether the captured points show the surface the grasp's contact needs (see the module's docstring)."""
+def _contact_seen(
+    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams, noise_m: float = 0.0
+) -> bool:
+    """Whether the captured points show the surface the grasp's contact needs (see the module's
+    docstring); noise_m: the capture's noise about the pose (surface_noise_m), which widens the
+    seal tolerance and the tilt a measured patch may show."""
     if tree is None or len(captured) == 0:
         return False
     c = T_cam_from_tool[:3, 3]
@@ -349,11 +445,23 @@ def _contact_seen(T_cam_from_tool: np.ndarray, kind: str, width_m: float, captur
         return False
     local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
     if kind == "suction":
-        if np.mean(np.abs(local[:, 2]) <= params.suction.max_deviation_m + SEEN_NOISE_M) < SEEN_SHARE:
+        seal_m = params.suction.max_deviation_m + max(SEEN_NOISE_M, SEEN_NOISE_SIGMAS * noise_m)
+        if np.mean(np.abs(local[:, 2]) <= seal_m) < SEEN_SHARE:
             return False
-        # The normal of the measured patch: the direction of least spread of its points.
+        # The normal of the measured patch: the direction of least spread of its points within
+        # the seal tolerance. Noise tilts it: a plane fitted to n points over a disc of radius r
+        # has a slope std of 2 sigma / (r sqrt(n)), so on a noisy capture the patch is taken
+        # wider than the cup, and SEEN_NOISE_SIGMAS of the slope std is allowed on top.
+        patch_m = max(reach, TILT_PATCH_SIGMAS * noise_m)
+        if patch_m > reach:
+            near = _captured_near(tree, len(captured), c, patch_m)
+            local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
+        local = local[np.abs(local[:, 2]) <= seal_m]
+        if len(local) < SEEN_MIN_POINTS:
+            return False
         normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
-        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG)))
+        tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(local)))))
+        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
     between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
     return int(between.sum()) >= SEEN_MIN_POINTS
 

@@ -1,0 +1,121 @@
+"""Picks on what a real camera returns: the contact and seal checks scale with the noise the
+capture shows about the pose (a Kinect-class sensor's millimetres are not a contact off the
+part, a contact on the wrong surface still is), and a bin box given in params sets the bin's up
+axis when the view is oblique."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+from pykdtree.kdtree import KDTree
+
+from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
+from binpick.io.grasps import GraspSet, tool_frame
+from binpick.params import SymmetryParams
+from binpick.parts import make_part_model
+from binpick.picking import UNSEEN, BinBoxObstacle, image_coordinates, local_noise_m, plan_picks, support_frame
+
+EXTENTS = np.array([0.06, 0.05, 0.02])
+FLOOR = np.array([0.0, 0.0, -1.0, 0.6])  # a Kinect-class camera 0.6 m above the floor
+NOISE_M = 0.003  # a Kinect v1 class sensor at about 1 m (noise and disparity steps)
+
+
+@pytest.fixture(scope="module")
+def settings(params):
+    return params.pick
+
+
+@pytest.fixture(scope="module")
+def box_part():
+    return make_part_model("box", trimesh.creation.box(extents=EXTENTS), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+
+
+def top_grasp() -> GraspSet:
+    return GraspSet("suction", ["top"], tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1))
+
+
+def lying(T_cam_from_floor: np.ndarray) -> np.ndarray:
+    """T_cam_from_model of the box lying on a floor (its frame: z up toward the camera)."""
+    return T_cam_from_floor @ make_T(np.eye(3), np.array([0.0, 0.0, EXTENTS[2] / 2]))
+
+
+def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Generator, half_m: np.ndarray = EXTENTS[:2] / 2) -> np.ndarray:
+    """The box's top face (model +z; its middle 2 half_m) on a 1 mm grid, with Gaussian noise along the camera's rays."""
+    a, b = np.meshgrid(np.arange(-half_m[0], half_m[0], 0.001), np.arange(-half_m[1], half_m[1], 0.001))
+    pts = transform_points(T_cam_from_model, np.column_stack([a.ravel(), b.ravel(), np.full(a.size, EXTENTS[2] / 2)]))
+    rays = pts / np.linalg.norm(pts, axis=1, keepdims=True)
+    return pts + rays * rng.normal(0.0, noise_m, (len(pts), 1))
+
+
+def plan(box_part, settings, T, captured, floor=FLOOR, bin_box=None, grasps=None):
+    return plan_picks(T[None], np.array([0.9]), top_grasp() if grasps is None else grasps, box_part.points_m, box_part.normals,
+                      box_part.centre_m, captured, floor, settings, bin_box)
+
+
+@pytest.mark.parametrize("sigma_m", [0.0003, 0.001, 0.002])
+def test_the_local_noise_of_a_plane_is_its_noise(sigma_m):
+    rng = np.random.default_rng(1)
+    a, b = np.meshgrid(np.arange(-0.05, 0.05, 0.001), np.arange(-0.05, 0.05, 0.001))
+    R = axis_angle_to_R(np.array([1.0, 1.0, 0.0]) / np.sqrt(2), np.radians(25.0))
+    pts = np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T + [0, 0, 0.6]
+    pts += (R @ [0, 0, 1.0]) * rng.normal(0, sigma_m, (len(pts), 1))
+    tree = KDTree(image_coordinates(pts))
+    assert local_noise_m(pts, tree, pts[:2000]) == pytest.approx(sigma_m, rel=0.2)
+    assert local_noise_m(pts, tree, pts[:10]) == 0.0  # too few to tell
+
+
+def test_a_noisy_capture_of_the_right_surface_is_a_contact(box_part, settings):
+    rng = np.random.default_rng(2)
+    T = lying(make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6])))
+    captured = measured_top(T, NOISE_M, rng)
+    result = plan(box_part, settings, T, captured)
+    assert result.picks, result.unpicked
+
+
+@pytest.mark.parametrize("wrong", ["lower", "tilted"])
+def test_a_contact_on_the_wrong_surface_is_refused_at_that_noise(box_part, settings, wrong):
+    """At the same noise: the surface measured 15 mm below the pose's contact (the pose floats
+    above its part), or a patch around the contact turned 60 degrees from the cup (a pose turned
+    about an edge)."""
+    rng = np.random.default_rng(3)
+    T = lying(make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6])))
+    if wrong == "lower":
+        captured = measured_top(T, NOISE_M, rng) + [0.0, 0.0, 0.015]
+    else:
+        turn = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(60.0)), np.zeros(3))
+        contact = make_T(np.eye(3), T[:3, 3] + T[:3, 2] * EXTENTS[2] / 2)
+        captured = measured_top(contact @ turn @ np.linalg.inv(contact) @ T, NOISE_M, rng, np.array([0.008, 0.008]))
+    refused = plan(box_part, settings, T, captured)
+    assert not refused.picks and UNSEEN in refused.unpicked[0][1]
+
+
+@pytest.mark.parametrize("tilt_deg", [30.0, 45.0])
+def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, settings, tilt_deg):
+    """An oblique camera: the bin's floor tilted by tilt_deg from the image plane. The plane found
+    in the capture is a wall (or none): the bin box's z axis is the up axis, and the part lying on
+    the bin floor is taken straight down that axis."""
+    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg))
+    T_cam_from_bin = make_T(R, np.array([0.0, 0.0, 0.6]))
+    box = BinBoxObstacle(T_cam_from_bin, np.array([-0.2, -0.15, 0.005]), np.array([0.2, 0.15, 0.15]))
+    T = lying(T_cam_from_bin)
+    captured = measured_top(T, 0.0003, np.random.default_rng(4))
+    bin_up = R[:, 2]
+    wall = np.append(R[:, 0], -(R[:, 0] @ (T_cam_from_bin[:3, 3] + 0.2 * R[:, 0])))  # the +x wall's plane
+    for found in (np.full(4, np.nan), wall):
+        up, plane = support_frame(found, box)
+        assert up == pytest.approx(bin_up, abs=1e-9)
+        assert plane is not None and plane[:3] @ T_cam_from_bin[:3, 3] + plane[3] == pytest.approx(0.0, abs=1e-9)
+        result = plan(box_part, settings, T, captured, found, box)
+        assert result.up_cam == pytest.approx(bin_up, abs=1e-9)
+        assert len(result.picks) == 1
+        approach = result.picks[0].T_cam_from_grasp[:3, 2]
+        assert approach @ -bin_up == pytest.approx(1.0, abs=1e-9)
+        assert result.picks[0].height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-6)
+    # Without the box, the camera's axis: the straight-down grasp is tilt_deg off it.
+    alone = plan(box_part, settings, T, captured, np.full(4, np.nan))
+    assert alone.up_cam == pytest.approx([0.0, 0.0, -1.0])
+    # A plane found in the capture that agrees with the box's floor (the measured floor) is kept.
+    measured_floor = np.append(bin_up, -(bin_up @ T_cam_from_bin[:3, 3]) + 0.004)
+    up, plane = support_frame(measured_floor, box)
+    assert plane == pytest.approx(measured_floor)
