@@ -19,6 +19,15 @@ GRID_CELL_M = 0.005
 # The box reaches this far above the tallest of most points of the region (percentile below).
 HEIGHT_MARGIN_M = 0.02
 HEIGHT_PERCENTILE = 98.0
+# What a fitted box may be before it is taken for the table, the room or a wall, not a bin.
+# Industrial bins and pallet boxes reach about 1.2 x 1.0 x 0.8 m (a Euro pallet box) ...
+MAX_BIN_SIDE_M = 1.5
+MAX_BIN_HEIGHT_M = 1.0
+# ... hold a part across their shorter side and are not tens of parts long ...
+MIN_PARTS_ACROSS = 1.0
+MAX_PARTS_ALONG = 25.0
+# ... and a bin camera looks into the bin: its up axis within this of the camera's view.
+MAX_VIEW_TILT_DEG = 60.0
 
 
 @dataclass(frozen=True)
@@ -110,3 +119,26 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     T[:3, 3] = origin + centre[0] * axes[0] + centre[1] * axes[1]
     top = float(np.percentile(height[height > keep_above_m][member], HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
     return BinBox(T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]), int(member.sum()))
+
+
+def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:
+    """Why a fitted box is unlikely to be the cell's bin (an empty list when nothing is): larger
+    than a bin gets, too small or too long for the part (part_diameter_m; None: not checked),
+    or seen from the side (the camera's view along the optical axis +z, camera frame)."""
+    size = box.inner_max_m - box.inner_min_m
+    side, height = float(max(size[0], size[1])), float(box.inner_max_m[2])
+    problems = []
+    if side > MAX_BIN_SIDE_M:
+        problems.append(f"{side:.2f} m long, more than the {MAX_BIN_SIDE_M:g} m a bin gets")
+    if height > MAX_BIN_HEIGHT_M:
+        problems.append(f"{height:.2f} m high, more than the {MAX_BIN_HEIGHT_M:g} m a bin gets")
+    if part_diameter_m is not None:
+        if float(min(size[0], size[1])) < MIN_PARTS_ACROSS * part_diameter_m:
+            problems.append(f"{min(size[0], size[1]):.2f} m across, narrower than the part ({part_diameter_m:.3f} m)")
+        if side > MAX_PARTS_ALONG * part_diameter_m:
+            problems.append(f"{side / part_diameter_m:.0f} part diameters long (at most {MAX_PARTS_ALONG:g})")
+    up = box.T_cam_from_bin[:3, 2]
+    tilt = float(np.degrees(np.arccos(np.clip(-up[2] / np.linalg.norm(up), -1.0, 1.0))))
+    if tilt > MAX_VIEW_TILT_DEG:
+        problems.append(f"its floor tilted {tilt:.0f} degrees from the camera's view (at most {MAX_VIEW_TILT_DEG:g})")
+    return problems

@@ -373,17 +373,19 @@ def _listed_capture(p: Params, params: Path, capture: str, root: Path) -> tuple[
 def fit_bin(
     capture: str = typer.Option(..., help="a capture listed in params.yaml that shows the cell's bin"),
     apply: bool = typer.Option(False, "--apply", help="write the box into the capture's params entry (import_capture)"),
+    force: bool = typer.Option(False, "--force", help="keep a box that does not look like a bin for the part and the camera"),
     params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
     """Fit the bin as a box from one capture (support plane, then the region standing on it where
     the camera looks, its smallest enclosing rectangle and height); write a recording to check it
     (data/results/<capture>/bin.rrd) and print the import_capture settings that crop to it. Keep
     them in the capture's entry (--apply), or in the import_capture section for every capture of
-    the cell."""
+    the cell. A box larger than a bin gets, too small or long for the part, or seen from the side
+    is refused (exit 1) unless --force."""
     import numpy as np
     import yaml
 
-    from binpick.bin_fit import fit_bin_box
+    from binpick.bin_fit import fit_bin_box, implausible
     from binpick.geometry.pointcloud import fit_plane_ransac
     from binpick.geometry.transforms import invert_T, transform_points
     from binpick.io.capture import load_capture
@@ -416,6 +418,18 @@ def fit_bin(
     size = 1000 * (box.inner_max_m - box.inner_min_m)
     typer.echo(f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
                f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}")
+    part_model = root / "data" / "models" / entry.part / "part.npz"
+    diameter = None
+    if part_model.is_file():
+        from binpick.io.part_model import load_part_model
+
+        diameter = load_part_model(part_model).diameter_m
+    problems = implausible(box, diameter)
+    if problems:
+        message = f"{root / entry.file}: the fitted box does not look like a bin: {'; '.join(problems)}"
+        if not force:
+            _fail(message + " (check the recording; --force keeps it)")
+        log.warning("%s (kept: --force)", message)
     snippet = {"import_capture": box.as_import_settings()}
     if apply:
         from binpick.params import set_capture_overrides

@@ -96,3 +96,22 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
     centres = transform_points(invert_T(box.T_cam_from_bin), np.array([p.T_cam_from_model[:3, :3] @ cup.centre_m + p.T_cam_from_model[:3, 3] for p in result.poses]).reshape(-1, 3))
     assert np.all((centres >= box.inner_min_m - 1e-9) & (centres <= box.inner_max_m + 1e-9))
     assert all(p.extra["seen_through"] <= DEFAULT_MAX_SEEN_THROUGH for p in result.poses)  # no network: the prior
+
+
+def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
+    from binpick.bin_fit import BinBox, implausible
+
+    def box(size_m, height_m, tilt_deg=0.0):
+        R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi + np.radians(tilt_deg))  # z toward the camera
+        half = np.asarray(size_m) / 2
+        return BinBox(make_T(R, np.array([0.0, 0.0, 0.8])), np.array([-half[0], -half[1], 0.004]), np.array([half[0], half[1], height_m]), 1000)
+
+    assert implausible(box([0.4, 0.3], 0.15), 0.12) == []
+    assert implausible(box([0.4, 0.3], 0.15, tilt_deg=45.0), 0.12) == []  # an oblique camera
+    # The fit of one oblique IC-BIN frame: 2.2 x 0.9 x 1.1 m, for a 0.12 m cup.
+    problems = implausible(box([2.2, 0.9], 1.1), 0.12)
+    assert len(problems) == 2 and "2.20 m long" in problems[0] and "1.10 m high" in problems[1]
+    assert "28 part diameters long" in implausible(box([1.4, 0.9], 0.3), 0.05)[0]
+    assert "narrower than the part" in implausible(box([0.3, 0.08], 0.1), 0.12)[0]
+    assert "tilted 70 degrees" in implausible(box([0.4, 0.3], 0.15, tilt_deg=70.0), 0.12)[0]
+    assert implausible(box([1.0, 0.8], 0.5), None) == []  # no part model: only the bin's own limits
