@@ -93,6 +93,12 @@ OWN_NOISE_SIGMAS = 4.0
 # degrees (a pose turned the wrong way about an edge), where no cup seals; the fitted normal of
 # a measured patch is a few degrees off at the sensor's noise.
 SEEN_MAX_TILT_DEG = 20.0
+# On a sparse capture (a VGA sensor at 0.7 m, a downsampled z-buffer: points 2-3 mm apart) a 5 mm
+# cup covers one to four points; the contact is then judged over a disc of this many point
+# spacings, enough to hold SEEN_MIN_POINTS and more.
+SEEN_SPACINGS = 2.5
+# Captured points whose nearest-neighbour distances give the capture's spacing.
+SPACING_PROBES = 2000
 # ... measured over the cup, or over a disc of this many noise stds when wider: a 5 mm cup's
 # patch at 3 mm of noise tilts by tens of degrees; 12 mm of it by a few.
 TILT_PATCH_SIGMAS = 4.0
@@ -257,6 +263,7 @@ def plan_picks(
     # obstacle points of an 8-part T-joint bin instead of 37-39 ms, and ball queries no slower.
     tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False) if len(obstacles) else None
     captured_tree = KDTree(image_coordinates(captured)) if len(captured) >= NOISE_NEIGHBOURS else None
+    spacing_m = point_spacing_m(captured)
     reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + own_of.reach_m if len(model_sample) else 0.0
 
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
@@ -293,7 +300,7 @@ def plan_picks(
         for g in np.concatenate(tiers).astype(np.int64):
             n_tried += 1
             T_tool = tools[g]
-            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m):
+            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
@@ -322,6 +329,16 @@ def plan_picks(
             unpicked.append((i, f"every grasp in reach collides: with {hits}" + (f"; {n_out} outside the approach cone" if n_out else "")))
     picks.sort(key=lambda p: _rank_key(p, params))
     return PickPlan(picks, unpicked, rejected, up, n_tried)
+
+
+def point_spacing_m(points_m: np.ndarray) -> float:
+    """The typical distance (metres) between neighbouring points (n, 3): the median
+    nearest-neighbour distance of up to SPACING_PROBES evenly strided points; 0 for fewer than 2."""
+    if len(points_m) < 2:
+        return 0.0
+    probe = points_m[:: max(1, len(points_m) // SPACING_PROBES)]
+    d, _ = KDTree(np.ascontiguousarray(points_m)).query(np.ascontiguousarray(probe), k=2)
+    return float(np.median(d[:, 1]))
 
 
 def image_coordinates(points_m: np.ndarray) -> np.ndarray:
@@ -428,16 +445,18 @@ def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: flo
 
 
 def _contact_seen(
-    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams, noise_m: float = 0.0
+    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams,
+    noise_m: float = 0.0, spacing_m: float = 0.0,
 ) -> bool:
     """Whether the captured points show the surface the grasp's contact needs (see the module's
-    docstring); noise_m: the capture's noise about the pose (surface_noise_m), which widens the
-    seal tolerance and the tilt a measured patch may show."""
+    docstring); noise_m: the capture's noise about the pose (local_noise_m), which widens the
+    seal tolerance and the tilt a measured patch may show; spacing_m: the capture's point
+    spacing, which widens a suction contact's disc on a sparse capture (SEEN_SPACINGS)."""
     if tree is None or len(captured) == 0:
         return False
     c = T_cam_from_tool[:3, 3]
     if kind == "suction":
-        reach = params.suction.cup_radius_m
+        reach = max(params.suction.cup_radius_m, SEEN_SPACINGS * spacing_m)
     else:
         reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
     near = _captured_near(tree, len(captured), c, reach)

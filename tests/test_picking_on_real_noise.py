@@ -40,9 +40,10 @@ def lying(T_cam_from_floor: np.ndarray) -> np.ndarray:
     return T_cam_from_floor @ make_T(np.eye(3), np.array([0.0, 0.0, EXTENTS[2] / 2]))
 
 
-def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Generator, half_m: np.ndarray = EXTENTS[:2] / 2) -> np.ndarray:
-    """The box's top face (model +z; its middle 2 half_m) on a 1 mm grid, with Gaussian noise along the camera's rays."""
-    a, b = np.meshgrid(np.arange(-half_m[0], half_m[0], 0.001), np.arange(-half_m[1], half_m[1], 0.001))
+def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Generator, half_m: np.ndarray = EXTENTS[:2] / 2,
+                 spacing_m: float = 0.001) -> np.ndarray:
+    """The box's top face (model +z; its middle 2 half_m) on a grid of spacing_m, with Gaussian noise along the camera's rays."""
+    a, b = np.meshgrid(np.arange(-half_m[0], half_m[0], spacing_m), np.arange(-half_m[1], half_m[1], spacing_m))
     pts = transform_points(T_cam_from_model, np.column_stack([a.ravel(), b.ravel(), np.full(a.size, EXTENTS[2] / 2)]))
     rays = pts / np.linalg.norm(pts, axis=1, keepdims=True)
     return pts + rays * rng.normal(0.0, noise_m, (len(pts), 1))
@@ -71,6 +72,18 @@ def test_a_noisy_capture_of_the_right_surface_is_a_contact(box_part, settings):
     captured = measured_top(T, NOISE_M, rng)
     result = plan(box_part, settings, T, captured)
     assert result.picks, result.unpicked
+
+
+def test_a_sparse_capture_of_the_right_surface_is_a_contact_and_of_the_wrong_one_is_not(box_part, settings):
+    """Points 4 mm apart (a VGA sensor's downsampled view): a 5 mm cup covers about five of them,
+    too few to judge; the contact is judged over a few spacings instead. The surface 15 mm below
+    the pose is still refused."""
+    rng = np.random.default_rng(5)
+    T = lying(make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6])))
+    top = measured_top(T, 0.0005, rng, spacing_m=0.004)
+    assert plan(box_part, settings, T, top).picks
+    lower = plan(box_part, settings, T, top + [0.0, 0.0, 0.015])
+    assert not lower.picks and UNSEEN in lower.unpicked[0][1]
 
 
 @pytest.mark.parametrize("wrong", ["lower", "tilted"])
