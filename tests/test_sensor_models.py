@@ -7,7 +7,6 @@ import trimesh
 from binpick.generation.camera import Intrinsics, Render, render
 from binpick.generation.scene import generate_scene
 from binpick.generation.sensor import (
-    SensorDraw,
     apply_sensor_model,
     concavity,
     mix_edge_pixels,
@@ -96,7 +95,7 @@ def test_multipath_biases_a_concave_corner_and_nothing_else():
     assert c[inner_top].max() == 0.0
     # Applied: the corner reads long by up to multipath_m, the plain floor not at all.
     model = plain_model(multipath_m=0.002, multipath_radius_m=radius)
-    out = apply_sensor_model(clean, meshes, cam, SensorDraw(model, cam.fx), MATTE, np.random.default_rng(0))
+    out = apply_sensor_model(clean, meshes, cam, model, MATTE, np.random.default_rng(0))
     longer = np.linalg.norm(out.xyz_m, axis=-1) - np.linalg.norm(clean.xyz_m, axis=-1)
     assert 0.0006 < longer[near_corner].mean() <= 0.002 + 1e-6
     assert np.abs(longer[far]).max() < 1e-6
@@ -146,7 +145,7 @@ def test_dropout_and_noise_follow_the_incidence_angle():
         n = np.array([np.sin(a), 0.0, -np.cos(a)], np.float32)
         normals = np.broadcast_to(n, xyz.shape).copy()
         centre = (slice(80, 120), slice(80, 120))  # rays within 3 degrees of the axis
-        out = apply_sensor_model(Render(xyz, normals, np.zeros((H, W), np.int32)), [], intr, SensorDraw(model, 400.0), MATTE,
+        out = apply_sensor_model(Render(xyz, normals, np.zeros((H, W), np.int32)), [], intr, model, MATTE,
                                  np.random.default_rng(2))
         ok = np.isfinite(out.xyz_m[..., 2])
         shares.append(ok[centre].mean())
@@ -173,12 +172,12 @@ def test_a_shiny_part_loses_its_highlight_and_a_matte_one_does_not():
     assert xyz[brightest][0] == pytest.approx(0.05, abs=0.5 / 200)
     model = plain_model(baseline_m=0.1)
     shiny = PARAMS.generate.sensor.materials["shiny"].model_copy(update={"dropout_fraction": 0.0, "max_incidence_deg": 90.0})
-    out = apply_sensor_model(Render(xyz, normals, labels), [], intr, SensorDraw(model, 200.0), shiny, np.random.default_rng(0))
+    out = apply_sensor_model(Render(xyz, normals, labels), [], intr, model, shiny, np.random.default_rng(0))
     lost = ~np.isfinite(out.xyz_m[..., 2])
     assert lost[brightest] and lost.sum() == (cos_h >= np.cos(np.radians(shiny.specular_lobe_deg))).sum()
-    matte = apply_sensor_model(Render(xyz, normals, labels), [], intr, SensorDraw(model, 200.0), MATTE, np.random.default_rng(0))
+    matte = apply_sensor_model(Render(xyz, normals, labels), [], intr, model, MATTE, np.random.default_rng(0))
     assert np.isfinite(matte.xyz_m[..., 2]).all()
-    background = apply_sensor_model(Render(xyz, normals, labels - 1), [], intr, SensorDraw(model, 200.0), shiny, np.random.default_rng(0))
+    background = apply_sensor_model(Render(xyz, normals, labels - 1), [], intr, model, shiny, np.random.default_rng(0))
     assert np.isfinite(background.xyz_m[..., 2]).all()  # the material is the part's alone
 
 

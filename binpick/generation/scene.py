@@ -12,11 +12,11 @@ from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, re
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
-from binpick.generation.sensor import SensorDraw, apply_sensor_model, intrinsics_of, scaled_model
+from binpick.generation.sensor import apply_sensor_model, intrinsics_of, scaled_model
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
-from binpick.params import CameraParams, GenerateParams
+from binpick.params import CameraParams, GenerateParams, SensorModelParams
 from binpick.view import ViewParams, labelled_view
 
 log = logging.getLogger(__name__)
@@ -34,7 +34,7 @@ def render_scene(
     rng: np.random.Generator,
     T_bin_from_camera: np.ndarray | None = None,
     distractors: list[trimesh.Trimesh] | None = None,
-    sensor: SensorDraw | None = None,
+    sensor: SensorModelParams | None = None,
 ) -> SyntheticScene:
     """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
     measure visibility and build the network's view. T_bin_from_camera: the camera's pose
@@ -47,7 +47,7 @@ def render_scene(
     T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(generate.bin), *(distractors or [])]]
-    intr = Intrinsics.from_params(camera) if sensor is None else intrinsics_of(sensor.model, camera.width_px, camera.downscale)
+    intr = Intrinsics.from_params(camera) if sensor is None else intrinsics_of(sensor, camera.width_px, camera.downscale)
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
     if sensor is None:
@@ -81,7 +81,7 @@ def generate_scene(
     T_bin_camera, distractors = None, None
     sensor = draw_sensor(generate, stream_generator(seed, SENSOR_STREAM)) if generate.sensor.presets else None
     if sensor is not None:
-        lo, hi = sensor.model.working_distance_m
+        lo, hi = sensor.working_distance_m
         camera = camera.model_copy(update={"distance_m": float(np.clip(camera.distance_m, lo, hi))})
     if generate.clutter.active:
         generate, camera, T_bin_camera, distractors = draw_clutter(generate, camera, part.diameter_m, clutter_generator(seed))
@@ -111,13 +111,12 @@ def clutter_generator(seed: int | np.random.SeedSequence) -> np.random.Generator
     return stream_generator(seed, CLUTTER_STREAM)
 
 
-def draw_sensor(generate: GenerateParams, rng: np.random.Generator) -> SensorDraw:
+def draw_sensor(generate: GenerateParams, rng: np.random.Generator) -> SensorModelParams:
     """One scene's sensor: a preset of generate.sensor.presets, its effects scaled by a factor
     drawn from generate.sensor.effect_scale."""
     s = generate.sensor
     name = s.presets[int(rng.integers(0, len(s.presets)))]
-    model = scaled_model(s.models[name], _scaled(s.effect_scale, rng))
-    return SensorDraw(model, model.fx_px)
+    return scaled_model(s.models[name], _scaled(s.effect_scale, rng))
 
 
 def _scaled(lo_hi: tuple[float, float], rng: np.random.Generator) -> float:

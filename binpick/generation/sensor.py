@@ -17,8 +17,6 @@ metres; organized arrays are (H, W, ...), NaN where there is no return.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import open3d as o3d
 from numba import njit
@@ -36,15 +34,6 @@ CONCAVITY_MAX_PX = 12
 # The concavity these samples give at the bottom of a right-angled concave corner (0.25-0.32 on
 # rendered corners at 1-2 mm pixels): the point where multipath reaches its full multipath_m.
 CORNER_CONCAVITY = 0.3
-
-
-@dataclass(frozen=True)
-class SensorDraw:
-    """One scene's sensor: the model with each effect's size scaled, and the native focal length
-    (pixels) its disparity is measured at."""
-
-    model: SensorModelParams
-    fx_native_px: float
 
 
 def intrinsics_of(model: SensorModelParams, reference_width_px: int, reference_downscale: int) -> Intrinsics:
@@ -197,7 +186,7 @@ def apply_sensor_model(
     clean: Render,
     meshes_cam: list[tuple[np.ndarray, np.ndarray]],
     intr: Intrinsics,
-    sensor: SensorDraw,
+    model: SensorModelParams,
     part_material: MaterialParams,
     rng: np.random.Generator,
 ) -> Render:
@@ -210,22 +199,21 @@ def apply_sensor_model(
     incidence term); quantisation. Every draw covers the whole frame, in a fixed order, so the
     same seed gives the same frame.
     """
-    m = sensor.model
     H, W = clean.labels.shape
     xyz, normals, labels = clean.xyz_m.copy(), clean.normals.copy(), clean.labels.astype(np.int32)
-    projector = np.array([m.baseline_m, 0.0, 0.0])
+    projector = np.array([model.baseline_m, 0.0, 0.0])
     is_part = labels >= 0
     gone = np.zeros((H, W), bool)
-    if m.shadows and m.baseline_m > 0:
+    if model.shadows and model.baseline_m > 0:
         gone |= projector_shadow(xyz, meshes_cam, projector)
 
     with np.errstate(invalid="ignore"):
         angle = np.degrees(np.arccos(np.clip(incidence_cos(xyz, normals), -1.0, 1.0)))
-        max_incidence = np.where(is_part, min(m.max_incidence_deg, part_material.max_incidence_deg), m.max_incidence_deg)
-        start = np.minimum(m.dropout_start_deg, max_incidence)
+        max_incidence = np.where(is_part, min(model.max_incidence_deg, part_material.max_incidence_deg), model.max_incidence_deg)
+        start = np.minimum(model.dropout_start_deg, max_incidence)
         ramp = np.clip((angle - start) / np.maximum(max_incidence - start, 1e-6), 0.0, 1.0)
         ramp = np.where(angle > max_incidence, 1.0, ramp)
-        p_drop = 1.0 - (1.0 - ramp) * (1.0 - m.dropout_fraction) * (1.0 - np.where(is_part, part_material.dropout_fraction, 0.0))
+        p_drop = 1.0 - (1.0 - ramp) * (1.0 - model.dropout_fraction) * (1.0 - np.where(is_part, part_material.dropout_fraction, 0.0))
         draw_drop = rng.random((H, W))
         gone |= ~(draw_drop >= p_drop)  # NaN (no return) counts as gone
         if part_material.specular_lobe_deg > 0:
@@ -235,27 +223,27 @@ def apply_sensor_model(
     normals[gone] = np.nan
     labels[gone] = -1
 
-    if m.multipath_m > 0:
+    if model.multipath_m > 0:
         # Longer range (the light took a detour): the point moves away along its ray.
-        bias = np.minimum(1.0, concavity(xyz, normals, m.multipath_radius_m, intr.fx) / CORNER_CONCAVITY) * m.multipath_m
+        bias = np.minimum(1.0, concavity(xyz, normals, model.multipath_radius_m, intr.fx) / CORNER_CONCAVITY) * model.multipath_m
         ranges = np.linalg.norm(xyz, axis=-1)
         with np.errstate(invalid="ignore"):
             xyz *= ((ranges + bias) / ranges)[..., None].astype(np.float32)
-    if m.mixed_pixel_share > 0:
-        xyz, labels = mix_edge_pixels(xyz, labels, m.edge_jump_m, m.mixed_pixel_share, rng)
+    if model.mixed_pixel_share > 0:
+        xyz, labels = mix_edge_pixels(xyz, labels, model.edge_jump_m, model.mixed_pixel_share, rng)
 
     ranges = np.linalg.norm(xyz, axis=-1)
     with np.errstate(invalid="ignore"):
         a = np.radians(np.clip(angle, 0.0, 89.0))
-        incidence_term = 1.0 + m.incidence_noise_gain * a**2 / (np.pi / 2 - a) ** 2
-        sigma = (m.depth_sigma_m + m.depth_sigma_per_m2 * ranges**2) * np.where(is_part, part_material.noise_scale, 1.0) * incidence_term
+        incidence_term = 1.0 + model.incidence_noise_gain * a**2 / (np.pi / 2 - a) ** 2
+        sigma = (model.depth_sigma_m + model.depth_sigma_per_m2 * ranges**2) * np.where(is_part, part_material.noise_scale, 1.0) * incidence_term
         draw = rng.standard_normal((H, W), dtype=np.float32)
         xyz *= (1.0 + draw * sigma / ranges)[..., None].astype(np.float32)
-        if m.disparity_step_px > 0:
+        if model.disparity_step_px > 0:
             z = xyz[..., 2]
-            xyz *= (quantise_disparity(z, sensor.fx_native_px, m.baseline_m, m.disparity_step_px) / z)[..., None]
-        if m.depth_step_m > 0:
+            xyz *= (quantise_disparity(z, model.fx_px, model.baseline_m, model.disparity_step_px) / z)[..., None]
+        if model.depth_step_m > 0:
             z = xyz[..., 2]
-            xyz *= ((np.round(z / m.depth_step_m) * m.depth_step_m) / z)[..., None]
+            xyz *= ((np.round(z / model.depth_step_m) * model.depth_step_m) / z)[..., None]
     labels[~np.isfinite(xyz[..., 2])] = -1
     return Render(xyz_m=xyz.astype(np.float32), normals=normals, labels=labels)
