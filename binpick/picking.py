@@ -57,8 +57,9 @@ OBSTACLE_GRID_M = 0.001
 # smallest primitive (a 5 mm cup) cannot slip between its points, whatever the part's size (a
 # fixed count of 1,500 left 7.7 mm between the points of the 0.44 m gear shaft).
 PART_OBSTACLE_GRID_M = 0.003
-# Sample points whose nearest-neighbour distances give the sample's spacing (for own points).
-OWN_SPACING_PROBES = 2000
+# Points whose nearest-neighbour distances give a point set's spacing (point_spacing_m): the
+# part's surface sample (own points) and the capture (contacts on sparse captures).
+SPACING_PROBES = 2000
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
@@ -97,8 +98,6 @@ SEEN_MAX_TILT_DEG = 20.0
 # cup covers one to four points; the contact is then judged over a disc of this many point
 # spacings, enough to hold SEEN_MIN_POINTS and more.
 SEEN_SPACINGS = 2.5
-# Captured points whose nearest-neighbour distances give the capture's spacing.
-SPACING_PROBES = 2000
 # ... measured over the cup, or over a disc of this many noise stds when wider: a 5 mm cup's
 # patch at 3 mm of noise tilts by tens of degrees; 12 mm of it by a few.
 TILT_PATCH_SIGMAS = 4.0
@@ -331,13 +330,15 @@ def plan_picks(
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
 
-def point_spacing_m(points_m: np.ndarray) -> float:
+def point_spacing_m(points_m: np.ndarray, tree: KDTree | None = None) -> float:
     """The typical distance (metres) between neighbouring points (n, 3): the median
-    nearest-neighbour distance of up to SPACING_PROBES evenly strided points; 0 for fewer than 2."""
+    nearest-neighbour distance of up to SPACING_PROBES evenly strided points; 0 for fewer than 2.
+    tree: a k-d tree of points_m already built (else one is)."""
     if len(points_m) < 2:
         return 0.0
     probe = points_m[:: max(1, len(points_m) // SPACING_PROBES)]
-    d, _ = KDTree(np.ascontiguousarray(points_m)).query(np.ascontiguousarray(probe), k=2)
+    tree = KDTree(np.ascontiguousarray(points_m)) if tree is None else tree
+    d, _ = tree.query(np.ascontiguousarray(probe), k=2)
     return float(np.median(d[:, 1]))
 
 
@@ -365,11 +366,11 @@ def local_noise_m(points_m: np.ndarray, image_tree: KDTree | None, at_m: np.ndar
     inverse_depth = 1.0 / nbrs[..., 2]  # (s, k)
     design = np.concatenate([np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1)  # (s, k, 3)
     normal = np.einsum("ski,skj->sij", design, design)
-    if np.any(np.abs(np.linalg.det(normal)) < 1e-18):
-        keep = np.abs(np.linalg.det(normal)) >= 1e-18
-        design, inverse_depth, normal, probe = design[keep], inverse_depth[keep], normal[keep], probe[keep]
-        if len(probe) == 0:
-            return 0.0
+    # Neighbours all on one image line (a one-pixel-wide strip) fit no plane.
+    keep = np.abs(np.linalg.det(normal)) >= 1e-18
+    design, inverse_depth, normal, probe = design[keep], inverse_depth[keep], normal[keep], probe[keep]
+    if len(probe) == 0:
+        return 0.0
     coef = np.linalg.solve(normal, np.einsum("ski,sk->si", design, inverse_depth)[..., None])[..., 0]
     residual = inverse_depth - np.einsum("ski,si->sk", design, coef)
     variance = np.sum(residual**2, axis=1) / (NOISE_NEIGHBOURS - 3) * probe[:, 2] ** 4
@@ -389,13 +390,9 @@ class _OwnPoints:
         # pykdtree: nearest-neighbour queries only, half scipy's time (a query per target part).
         tree = KDTree(np.ascontiguousarray(points_m, dtype=np.float64)) if len(points_m) else None
         self.tree, self.points_m = tree, points_m
-        spacing = 0.0
-        if tree is not None and len(points_m) > 1:
-            probe = points_m[:: max(1, len(points_m) // OWN_SPACING_PROBES)]
-            spacing = float(np.median(tree.query(probe, k=2)[0][:, 1]))
         # The sample's spacing: an even random sample's median nearest-neighbour distance is
         # about half of it.
-        self.spacing_m = 2.0 * spacing
+        self.spacing_m = 2.0 * point_spacing_m(points_m, tree)
         self.reach_m = own_m + self.spacing_m
 
     def distances(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
