@@ -42,6 +42,22 @@ def params():
     return load_params(ROOT / "params.yaml", "t_joint")
 
 
+@pytest.fixture(scope="session")
+def pick_settings(params):
+    """The pick section of the project's params (t_joint resolved)."""
+    return params.pick
+
+
+def box_part_model(extents_m):
+    """A box part of these extents (3,), metres, model frame at its centre, no symmetry."""
+    import trimesh
+
+    from binpick.params import SymmetryParams
+    from binpick.parts import make_part_model
+
+    return make_part_model("box", trimesh.creation.box(extents=extents_m), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+
+
 def copy_project(root: Path, params_text: str | None = None) -> Path:
     """A copy of the project's code, pipeline and built-in part in `root` (a git repository), with
     params.yaml's text (default: the project's own), for tests that run the real entry points."""

@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
-from conftest import ROOT
+from conftest import ROOT, box_part_model
 
 from binpick.errors import InputError
 from binpick.geometry.symmetry import symmetry_transforms
@@ -30,13 +30,8 @@ FLOOR = np.array([0.0, 0.0, -1.0, 0.5])  # camera 0.5 m above the floor, looking
 
 
 @pytest.fixture(scope="module")
-def settings(params):
-    return params.pick
-
-
-@pytest.fixture(scope="module")
 def box_part():
-    return make_part_model("box", trimesh.creation.box(extents=EXTENTS), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    return box_part_model(EXTENTS)
 
 
 def lying(x: float, y: float, yaw_deg: float = 0.0) -> np.ndarray:
@@ -52,8 +47,8 @@ def seen_surface(T: np.ndarray, part) -> np.ndarray:
     return pts[np.einsum("ij,ij->i", nrm, -pts) > 0]
 
 
-def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     assert len(grasps) > 0
     half = EXTENTS / 2
     for T in grasps.T_model_from_tool:
@@ -64,18 +59,18 @@ def test_suction_grasps_lie_on_flat_faces_with_inward_approach(box_part, setting
         # The cup's lip fits on the face: its centre about its radius from every edge (the
         # check samples the lip in 12 sectors: 0.69 radii at least).
         others = [k for k in range(3) if k != face]
-        assert np.all(np.abs(p[others]) <= half[others] - 0.65 * settings.suction.cup_radius_m)
+        assert np.all(np.abs(p[others]) <= half[others] - 0.65 * pick_settings.suction.cup_radius_m)
     # Best first: the face centres of the two largest faces are nearest the centre of mass.
     assert np.linalg.norm(grasps.T_model_from_tool[0][:3, 3]) < 0.011
 
 
-def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(settings):
+def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(pick_settings):
     """A 0.5 m box with the ingest's 20,000 points holds about 2 points per disc of a 5 mm cup,
     too few to see its lip: the patches are read from a denser sample of the mesh, and the grasps
     lie on the faces with the approach into them."""
     extents = np.array([0.5, 0.3, 0.2])
     big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
-    grasps = suction_grasps(big, settings)
+    grasps = suction_grasps(big, pick_settings)
     assert len(grasps) >= 10
     for T in grasps.T_model_from_tool:
         p, z = T[:3, 3], T[:3, 2]
@@ -83,13 +78,13 @@ def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(settings):
         assert abs(abs(p[face]) - extents[face] / 2) < 1e-4 and np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)
 
 
-def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(settings):
+def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings):
     """A rod of 12 facets declared a solid of revolution: its side grasps approach along the
     cylinder's own normal (straight at the axis), not their facet's, which lies up to 15 degrees
     around from it."""
     rod = make_part_model("rod", trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12), SymmetryParams(kind="revolution"), 20000,
                           np.random.default_rng(0), "m")
-    grasps = suction_grasps(rod, settings)
+    grasps = suction_grasps(rod, pick_settings)
     side = [T for T in grasps.T_model_from_tool if abs(T[2, 2]) < 0.5]
     assert len(side) >= 5
     for T in side:
@@ -97,20 +92,20 @@ def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(settings):
         assert np.degrees(np.arccos(np.clip(-T[:3, 2] @ (radial / np.linalg.norm(radial)), -1, 1))) < 1.0
 
 
-def test_jaw_grasps_close_across_the_box(box_part, settings):
-    grasps = jaw_grasps(box_part, settings)
+def test_jaw_grasps_close_across_the_box(box_part, pick_settings):
+    grasps = jaw_grasps(box_part, pick_settings)
     assert len(grasps) > 0
     for T, width in zip(grasps.T_model_from_tool, grasps.width_m, strict=True):
         closing = np.abs(T[:3, 0])
         axis = int(np.argmax(closing))
         assert closing[axis] > 0.99
         assert width == pytest.approx(EXTENTS[axis], abs=1e-4)
-        assert width < settings.jaw.opening_max_m
+        assert width < pick_settings.jaw.opening_max_m
         assert abs(T[:3, 2] @ T[:3, 0]) < 1e-9  # approach across the closing axis
         # The fingers, opened to approach, clear the part.
         local = (box_part.points_m - T[:3, 3]) @ T[:3, :3]
-        opening = min(settings.jaw.opening_max_m, width + 2 * settings.jaw.open_margin_m)
-        assert signed_distance(local, jaw_primitives(settings.jaw, opening)).min() > 0
+        opening = min(pick_settings.jaw.opening_max_m, width + 2 * pick_settings.jaw.open_margin_m)
+        assert signed_distance(local, jaw_primitives(pick_settings.jaw, opening)).min() > 0
 
 
 def test_signed_distance_and_floor_height_of_primitives():
@@ -126,11 +121,11 @@ def test_signed_distance_and_floor_height_of_primitives():
     assert lowest_height([cyl], T, np.array([0.0, 0.0, 1.0, 0.0])) == pytest.approx(0.12)
 
 
-def test_covering_spheres_hold_every_point_near_the_gripper(settings):
+def test_covering_spheres_hold_every_point_near_the_gripper(pick_settings):
     """The collision check measures only points inside the covering spheres: every point within
     the margin of the swept gripper (by the exact signed distance) must lie in one of them."""
     rng = np.random.default_rng(3)
-    for body in (swept(jaw_primitives(settings.jaw, 0.03), 0.05), swept([Cylinder(0.005, -0.02, 0.0), Cylinder(0.015, -0.17, -0.02)], 0.05)):
+    for body in (swept(jaw_primitives(pick_settings.jaw, 0.03), 0.05), swept([Cylinder(0.005, -0.02, 0.0), Cylinder(0.015, -0.17, -0.02)], 0.05)):
         for margin in (0.002, 0.05):
             points = rng.uniform([-0.15, -0.15, -0.35], [0.15, 0.15, 0.1], size=(200000, 3))
             near = points[signed_distance(points, body) <= margin]
@@ -139,10 +134,10 @@ def test_covering_spheres_hold_every_point_near_the_gripper(settings):
             assert len(near) > 100 and inside.all()
 
 
-def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.01, -0.02, yaw_deg=30.0)
-    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
     assert len(plan.picks) == 1 and not plan.unpicked
     pick = plan.picks[0]
     grasp = grasps.T_model_from_tool[pick.grasp_index]
@@ -151,127 +146,127 @@ def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, 
     # approach straight down the camera's view (+z), pre-grasp straight above it.
     assert pick.T_cam_from_grasp[2, 3] == pytest.approx(0.5 - EXTENTS[2], abs=1e-4)
     assert pick.T_cam_from_grasp[:3, 2] == pytest.approx([0.0, 0.0, 1.0], abs=1e-3)
-    assert pick.T_cam_from_pregrasp[:3, 3] == pytest.approx(pick.T_cam_from_grasp[:3, 3] - [0, 0, settings.pregrasp_distance_m], abs=1e-4)
-    assert pick.clearance_m > settings.clearance_m
+    assert pick.T_cam_from_pregrasp[:3, 3] == pytest.approx(pick.T_cam_from_grasp[:3, 3] - [0, 0, pick_settings.pregrasp_distance_m], abs=1e-4)
+    assert pick.clearance_m > pick_settings.clearance_m
     assert pick.height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-4)
 
 
-def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, settings):
+def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settings):
     """One obstacle point beside the tool, 60 mm above the grasp, at a known distance from the
     tool's cylinder (radius tool_radius_m): the pick reports that distance as its clearance, in
     each range the widening search covers, and the cap when nothing is near (no floor given)."""
-    grasps = suction_grasps(box_part, settings)
+    grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
     seen = seen_surface(T, box_part)
     no_floor = np.full(4, np.nan)
-    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen, no_floor, settings).picks[0]
+    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen, no_floor, pick_settings).picks[0]
     assert alone.clearance_m == pytest.approx(0.05)  # the cap
     G = alone.T_cam_from_grasp
     for gap in (0.006, 0.015, 0.035):
-        point = G[:3, 3] - 0.06 * G[:3, 2] + (settings.suction.tool_radius_m + gap) * G[:3, 0]
-        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.vstack([seen, point]), no_floor, settings)
+        point = G[:3, 3] - 0.06 * G[:3, 2] + (pick_settings.suction.tool_radius_m + gap) * G[:3, 0]
+        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.vstack([seen, point]), no_floor, pick_settings)
         assert plan.picks[0].grasp_id == alone.grasp_id
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
 
 
-def test_a_gripper_into_a_neighbour_is_refused(box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_a_gripper_into_a_neighbour_is_refused(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     target = lying(0.0, 0.0)
     # A neighbour resting across the target's top, 25 mm above it: every top grasp's tool hits it.
     above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))
     T = np.stack([target, above])
     captured = np.concatenate([seen_surface(target, box_part), seen_surface(above, box_part)])
-    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
+    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
     assert [p.pose_index for p in plan.picks] == [1]  # the top one is free
     (index, reason), = plan.unpicked
     assert index == 0 and "part 1" in reason
     assert any(r.pose_index == 0 and "1" in r.reason.split(", ") for r in plan.rejected)
 
 
-def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
     captured = seen_surface(T, box_part)
-    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
+    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
     assert len(free.picks) == 1 and not free.rejected
     # Measured walls (points of two vertical planes) above the part, closer together than the
     # tool is wide: no grasp on its top can be reached.
     ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.47, 60))
     wall = np.concatenate([np.column_stack([np.full(ys.size, x), ys.ravel(), zs.ravel()]) for x in (-0.01, 0.01)])
-    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, settings)
+    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, pick_settings)
     assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
     # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
     # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
     box = BinBoxObstacle(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
-    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings, box)
+    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings, box)
     assert not walled.picks and BIN in walled.unpicked[0][1]
 
 
-def test_a_large_parts_measured_surface_is_its_own_not_an_obstacle(settings):
+def test_a_large_parts_measured_surface_is_its_own_not_an_obstacle(pick_settings):
     """A 0.5 m box lying under the camera, its top face measured on a 1 mm grid with 0.3 mm of
     noise: those points are the target's own, whatever its sample's density (20,000 points lie
     5.6 mm apart on it, farther than own_points_m), and the cup comes down on the top face. A
     point 10 mm above the face under the grasp is not its own: that grasp is refused."""
     extents = np.array([0.5, 0.3, 0.2])
     big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
-    grasps = suction_grasps(big, settings)
+    grasps = suction_grasps(big, pick_settings)
     floor = np.array([0.0, 0.0, -1.0, 0.8])
     T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.8 - extents[2] / 2]))
     xs, ys = np.meshgrid(np.arange(-0.25, 0.25, 0.001), np.arange(-0.15, 0.15, 0.001))
     top = np.column_stack([xs.ravel(), ys.ravel(), 0.6 + np.random.default_rng(1).normal(0.0, 0.0003, xs.size)])
-    plan = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, top, floor, settings)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, top, floor, pick_settings)
     assert len(plan.picks) == 1 and not plan.rejected
     G = plan.picks[0].T_cam_from_grasp
     assert G[2, 3] == pytest.approx(0.6, abs=1e-4)
     above = G[:3, 3] - 0.01 * G[:3, 2]
-    again = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, np.vstack([top, above]), floor, settings)
+    again = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, np.vstack([top, above]), floor, pick_settings)
     assert again.picks[0].grasp_id != plan.picks[0].grasp_id
     assert any(r.grasp_id == plan.picks[0].grasp_id and r.reason == CAPTURED for r in again.rejected)
 
 
-def test_a_pose_with_too_much_surface_seen_through_is_picked_last(box_part, settings):
+def test_a_pose_with_too_much_surface_seen_through_is_picked_last(box_part, pick_settings):
     """Two free parts: the higher one's pose has more of its surface where the camera saw through
     it than pick.max_seen_through: its pick comes after the lower, trusted one, and says so; a
     pose without a measured share (verification off) is trusted."""
-    grasps = suction_grasps(box_part, settings)
+    grasps = suction_grasps(box_part, pick_settings)
     low = lying(-0.05, 0.0)
     high = make_T(low[:3, :3], np.array([0.05, 0.0, 0.5 - EXTENTS[2] / 2 - 0.03]))
     T = np.stack([high, low])
     captured = np.concatenate([seen_surface(t, box_part) for t in T])
-    limit = settings.max_seen_through
-    plan = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings,
+    limit = pick_settings.max_seen_through
+    plan = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings,
                       seen_through=np.array([limit + 0.01, limit - 0.01]))
     assert [(p.pose_index, p.trusted) for p in plan.picks] == [(1, True), (0, False)]
-    unknown = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings,
+    unknown = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings,
                          seen_through=np.array([np.nan, np.nan]))
     assert [(p.pose_index, p.trusted) for p in unknown.picks] == [(0, True), (1, True)]  # highest first
 
 
-def test_parts_come_highest_first_then_by_score(box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     low_good, low_bad = lying(-0.06, 0.0), lying(0.06, 0.0)
     high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
     T = np.stack([low_bad, low_good, high])
     captured = np.concatenate([seen_surface(t, box_part) for t in T])
-    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, settings)
+    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
     assert [p.pose_index for p in plan.picks] == [2, 1, 0]
     by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR,
-                          settings.model_copy(update={"order": ["score", "height"]}))
+                          pick_settings.model_copy(update={"order": ["score", "height"]}))
     assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
 
 
-def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, settings):
+def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, pick_settings):
     """A pose turned so that its grasp lies in the air (nothing measured there) gets no pick."""
-    grasps = suction_grasps(box_part, settings)
+    grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
     measured = seen_surface(T, box_part)
     # The part measured 15 mm lower than its pose says: the pose's top face is in the air.
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, pick_settings)
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
-def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, settings):
+def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, pick_settings):
     """Measured points on the cup's contact plane within its seal tolerance are not enough: a
     patch tilted 30 degrees from the approach (a pose turned the wrong way about an edge) has
     three quarters of the cup's points that close to the plane, and no cup seals on it."""
@@ -285,20 +280,20 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, s
         return contact + np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T
 
     for tilt_deg, picked in ((0.0, True), (8.0, True), (30.0, False)):
-        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.normals, box_part.centre_m, patch(tilt_deg), FLOOR, settings)
+        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.normals, box_part.centre_m, patch(tilt_deg), FLOOR, pick_settings)
         assert bool(plan.picks) == picked, tilt_deg
         if not picked:
             assert "not where the camera measured" in plan.unpicked[0][1]
 
 
-def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, settings):
+def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, pick_settings):
     only_side = GraspSet("suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1))
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
     assert not plan.picks and "cone" in plan.unpicked[0][1]
 
 
-def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_nothing(box_part, settings):
+def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_nothing(box_part, pick_settings):
     """A box leaning 50 degrees about its long axis (against a wall, say): one face approaches 40
     degrees from straight down, another 50. Measured points hovering over the 40-degree face
     block it, so only the fallback cone reaches the part, along the 50-degree face's inward
@@ -315,10 +310,10 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
     centre_40 = T[:3, 3] + at_40 * EXTENTS[1] / 2
     lid = centre_40 + 0.03 * at_40 + a.reshape(-1, 1) * [1.0, 0.0, 0.0] + b.reshape(-1, 1) * across
     captured = np.concatenate([seen_surface(T, box_part), lid])
-    grasps = suction_grasps(box_part, settings)
+    grasps = suction_grasps(box_part, pick_settings)
 
     def plan(fallback_deg):
-        cones = settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
+        cones = pick_settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
         return plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, cones)
 
     (pick,) = plan(60.0).picks
@@ -328,7 +323,7 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
     assert not narrow.picks and CAPTURED in narrow.unpicked[0][1]
 
 
-def test_symmetry_expands_grasps_and_drops_repeats(settings):
+def test_symmetry_expands_grasps_and_drops_repeats(pick_settings):
     g = GraspSet("suction", ["a", "b"], np.stack([tool_frame(np.array([0.01, 0, 0.0]), np.array([0, 0, -1.0])),
                                                   tool_frame(np.array([0.0, 0.0, 0.0]), np.array([0, 0, -1.0]))]), np.zeros(2))
     sym = symmetry_transforms(SymmetryParams(kind="n_fold", axis=(0.0, 0.0, 1.0), order=4))
@@ -338,8 +333,8 @@ def test_symmetry_expands_grasps_and_drops_repeats(settings):
     assert out.T_model_from_tool[2][:3, 3] == pytest.approx([0.0, 0.01, 0.0], abs=1e-12)
 
 
-def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part, settings):
-    sets = {"suction": suction_grasps(box_part, settings), "jaw": jaw_grasps(box_part, settings)}
+def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part, pick_settings):
+    sets = {"suction": suction_grasps(box_part, pick_settings), "jaw": jaw_grasps(box_part, pick_settings)}
     path = tmp_path / "grasps.json"
     save_grasps(path, "box", sets, "generated")
     back = load_grasps(path)
@@ -362,10 +357,10 @@ def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part
         assert "\n" not in str(info.value) and str(path) in str(info.value)
 
 
-def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, settings):
-    grasps = suction_grasps(box_part, settings)
+def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, settings)
+    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
     T_base_from_cam = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 1.1), np.array([0.4, -0.1, 0.8]))
     path = tmp_path / "picks.json"
     save_picks(path, "c", "box", "suction", plan, T_base_from_cam)

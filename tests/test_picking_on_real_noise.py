@@ -7,13 +7,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import trimesh
+from conftest import box_part_model
 from pykdtree.kdtree import KDTree
 
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.io.grasps import GraspSet, tool_frame
-from binpick.params import SymmetryParams
-from binpick.parts import make_part_model
 from binpick.picking import UNSEEN, BinBoxObstacle, image_coordinates, local_noise_m, plan_picks, support_frame
 
 EXTENTS = np.array([0.06, 0.05, 0.02])
@@ -22,13 +20,8 @@ NOISE_M = 0.003  # a Kinect v1 class sensor at about 1 m (noise and disparity st
 
 
 @pytest.fixture(scope="module")
-def settings(params):
-    return params.pick
-
-
-@pytest.fixture(scope="module")
 def box_part():
-    return make_part_model("box", trimesh.creation.box(extents=EXTENTS), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    return box_part_model(EXTENTS)
 
 
 def top_grasp() -> GraspSet:
@@ -49,9 +42,9 @@ def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Ge
     return pts + rays * rng.normal(0.0, noise_m, (len(pts), 1))
 
 
-def plan(box_part, settings, T, captured, floor=FLOOR, bin_box=None, grasps=None):
+def plan(box_part, pick_settings, T, captured, floor=FLOOR, bin_box=None, grasps=None):
     return plan_picks(T[None], np.array([0.9]), top_grasp() if grasps is None else grasps, box_part.points_m, box_part.normals,
-                      box_part.centre_m, captured, floor, settings, bin_box)
+                      box_part.centre_m, captured, floor, pick_settings, bin_box)
 
 
 @pytest.mark.parametrize("sigma_m", [0.0003, 0.001, 0.002])
@@ -66,28 +59,28 @@ def test_the_local_noise_of_a_plane_is_its_noise(sigma_m):
     assert local_noise_m(pts, tree, pts[:10]) == 0.0  # too few to tell
 
 
-def test_a_noisy_capture_of_the_right_surface_is_a_contact(box_part, settings):
+def test_a_noisy_capture_of_the_right_surface_is_a_contact(box_part, pick_settings):
     rng = np.random.default_rng(2)
     T = lying(make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6])))
     captured = measured_top(T, NOISE_M, rng)
-    result = plan(box_part, settings, T, captured)
+    result = plan(box_part, pick_settings, T, captured)
     assert result.picks, result.unpicked
 
 
-def test_a_sparse_capture_of_the_right_surface_is_a_contact_and_of_the_wrong_one_is_not(box_part, settings):
+def test_a_sparse_capture_of_the_right_surface_is_a_contact_and_of_the_wrong_one_is_not(box_part, pick_settings):
     """Points 4 mm apart (a VGA sensor's downsampled view): a 5 mm cup covers about five of them,
     too few to judge; the contact is judged over a few spacings instead. The surface 15 mm below
     the pose is still refused."""
     rng = np.random.default_rng(5)
     T = lying(make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6])))
     top = measured_top(T, 0.0005, rng, spacing_m=0.004)
-    assert plan(box_part, settings, T, top).picks
-    lower = plan(box_part, settings, T, top + [0.0, 0.0, 0.015])
+    assert plan(box_part, pick_settings, T, top).picks
+    lower = plan(box_part, pick_settings, T, top + [0.0, 0.0, 0.015])
     assert not lower.picks and UNSEEN in lower.unpicked[0][1]
 
 
 @pytest.mark.parametrize("wrong", ["lower", "tilted"])
-def test_a_contact_on_the_wrong_surface_is_refused_at_that_noise(box_part, settings, wrong):
+def test_a_contact_on_the_wrong_surface_is_refused_at_that_noise(box_part, pick_settings, wrong):
     """At the same noise: the surface measured 15 mm below the pose's contact (the pose floats
     above its part), or a patch around the contact turned 60 degrees from the cup (a pose turned
     about an edge)."""
@@ -99,12 +92,12 @@ def test_a_contact_on_the_wrong_surface_is_refused_at_that_noise(box_part, setti
         turn = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(60.0)), np.zeros(3))
         contact = make_T(np.eye(3), T[:3, 3] + T[:3, 2] * EXTENTS[2] / 2)
         captured = measured_top(contact @ turn @ np.linalg.inv(contact) @ T, NOISE_M, rng, np.array([0.008, 0.008]))
-    refused = plan(box_part, settings, T, captured)
+    refused = plan(box_part, pick_settings, T, captured)
     assert not refused.picks and UNSEEN in refused.unpicked[0][1]
 
 
 @pytest.mark.parametrize("tilt_deg", [30.0, 45.0])
-def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, settings, tilt_deg):
+def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, pick_settings, tilt_deg):
     """An oblique camera: the bin's floor tilted by tilt_deg from the image plane. The plane found
     in the capture is a wall (or none): the bin box's z axis is the up axis, and the part lying on
     the bin floor is taken straight down that axis."""
@@ -119,14 +112,14 @@ def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, settings
         up, plane = support_frame(found, box)
         assert up == pytest.approx(bin_up, abs=1e-9)
         assert plane is not None and plane[:3] @ T_cam_from_bin[:3, 3] + plane[3] == pytest.approx(0.0, abs=1e-9)
-        result = plan(box_part, settings, T, captured, found, box)
+        result = plan(box_part, pick_settings, T, captured, found, box)
         assert result.up_cam == pytest.approx(bin_up, abs=1e-9)
         assert len(result.picks) == 1
         approach = result.picks[0].T_cam_from_grasp[:3, 2]
         assert approach @ -bin_up == pytest.approx(1.0, abs=1e-9)
         assert result.picks[0].height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-6)
     # Without the box, the camera's axis: the straight-down grasp is tilt_deg off it.
-    alone = plan(box_part, settings, T, captured, np.full(4, np.nan))
+    alone = plan(box_part, pick_settings, T, captured, np.full(4, np.nan))
     assert alone.up_cam == pytest.approx([0.0, 0.0, -1.0])
     # A plane found in the capture that agrees with the box's floor (the measured floor) is kept.
     measured_floor = np.append(bin_up, -(bin_up @ T_cam_from_bin[:3, 3]) + 0.004)
