@@ -75,7 +75,8 @@ class Render:
     labels: np.ndarray
 
 
-def _scene(meshes: list[tuple[np.ndarray, np.ndarray]]) -> o3d.t.geometry.RaycastingScene:
+def raycasting_scene(meshes: list[tuple[np.ndarray, np.ndarray]]) -> o3d.t.geometry.RaycastingScene:
+    """An Open3D ray-casting scene of meshes (vertices (v, 3), faces (f, 3)), in their own frame."""
     scene = o3d.t.geometry.RaycastingScene()
     for vertices, faces in meshes:
         scene.add_triangles(
@@ -137,7 +138,7 @@ def render(
         sel = np.flatnonzero(mask)
     if len(sel) and meshes_cam:
         rays = _rays(intr).reshape(-1, 6)
-        hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))  # type: ignore[call-overload]
+        hit = raycasting_scene(meshes_cam).cast_rays(o3d.core.Tensor(rays if len(sel) == H * W else rays[sel]))  # type: ignore[call-overload]
         label_of = np.asarray(list(mesh_labels) + [-1], dtype=np.int32)
         # Embree picks its kernels by CPU instruction set, so hit distances may differ in their
         # last bits between CPUs; a 0.1 micrometre grid (far below any sensor's noise) makes them
@@ -238,7 +239,7 @@ def visible_fractions(
         v0, v1, u0, u1 = box
         s = max(1, int(np.sqrt((v1 - v0) * (u1 - u0) / VISIBILITY_SAMPLES)))
         rays = np.ascontiguousarray(rays_all[v0:v1:s, u0:u1:s])
-        alone = np.isfinite(_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()  # type: ignore[call-overload]
+        alone = np.isfinite(raycasting_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()  # type: ignore[call-overload]
         if alone:
             out[i] = min(1.0, np.count_nonzero(labels[v0:v1:s, u0:u1:s] == i) / alone)
     return out

@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 from numba import njit
 
-from binpick.generation.camera import Intrinsics, Render, _scene
+from binpick.generation.camera import Intrinsics, Render, raycasting_scene
 from binpick.params import MaterialParams, SensorModelParams
 
 # A projector ray that stops this much short of the point it was cast to is blocked: above the
@@ -72,7 +72,7 @@ def projector_shadow(xyz_m: np.ndarray, meshes_cam: list[tuple[np.ndarray, np.nd
     to_point = flat[valid] - projector_m
     distance = np.linalg.norm(to_point, axis=1)
     rays = np.concatenate([np.broadcast_to(projector_m, to_point.shape), to_point / distance[:, None]], axis=1).astype(np.float32)
-    t_hit = _scene(meshes_cam).cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))["t_hit"].numpy()  # type: ignore[call-overload]
+    t_hit = raycasting_scene(meshes_cam).cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))["t_hit"].numpy()  # type: ignore[call-overload]
     shadow[valid] = t_hit < distance - SHADOW_TOLERANCE_M
     return shadow.reshape(xyz_m.shape[:2])
 
