@@ -606,17 +606,19 @@ def bench_clutter_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),
     scenes: int = typer.Option(4, min=1, help="cluttered scenes per part"),
     part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw, three-way pipe and IC-BIN coffee cup)"),
+    tilt_deg_max: float = typer.Option(45.0, min=0.0, max=59.0, help="the camera's largest tilt from the bin's up axis, degrees"),
     params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
     """Pose precision/recall and wrong poses outside the bin on bins with distractors and tilted
-    views, through the real scene path, against the scoring without bin crop and verification."""
+    views (per band of tilt too), through the real scene path, against the scoring without bin
+    crop and verification."""
     from binpick.bench.clutter import DEFAULT_PARTS, bench_clutter
     from binpick.params import load_params
 
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_clutter(load_params(params), names, scenes, _checkpoints(root, names))
+        result = bench_clutter(load_params(params), names, scenes, _checkpoints(root, names), tilt_deg_max=tilt_deg_max)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)
@@ -630,10 +632,12 @@ def bench_picking_cmd(
     max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
     part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"),
     gripper: str = typer.Option(None, help="suction or jaw (default: pick.gripper)"),
+    tilt_deg_max: float = typer.Option(45.0, min=0.0, max=59.0, help="each bin's camera is tilted from the bin's up axis by up to this, degrees"),
     params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
     """Empty simulated bins one pick at a time through the real scene path; every pick checked
-    against the simulator's true state (right part touched, path free)."""
+    against the simulator's true state (right part touched, path free). Bins are seen from
+    straight above to tilt_deg_max, per band of tilt in `by_tilt`."""
     from binpick.bench.picking import DEFAULT_PARTS, bench_picking
     from binpick.params import load_params
 
@@ -644,7 +648,7 @@ def bench_picking_cmd(
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), _checkpoints(root, names), gripper)
+        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), _checkpoints(root, names), gripper, tilt_deg_max=tilt_deg_max)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)

@@ -49,6 +49,23 @@ def test_clutter_bench_reports_both_scorings():
     for key in ("pose_precision", "pose_recall", "false_poses_outside_bin", "n_scenes"):
         assert key in part and f"baseline_{key}" in part and key in result and f"baseline_{key}" in result
     assert part["n_scenes"] == 1 and part["pose_recall"] >= 0.5 and part["false_poses_outside_bin"] == 0
+    # The one scene is counted in the band of tilt its camera was drawn in (0 to 45 degrees).
+    (band, figures), = result["by_tilt"].items()
+    assert 0 <= int(band.split("-")[0]) < 45 and figures["n_scenes"] == 1
+
+
+def test_a_tilted_bench_camera_looks_at_the_bin_centre_at_its_tilt():
+    from binpick.bench.clutter import camera_tilt_deg, tilt_band
+    from binpick.generation.scene import tilted_camera
+    from binpick.geometry.transforms import invert_T, transform_points
+
+    for tilt_deg, heading in ((0.0, 0.3), (30.0, 1.0), (45.0, 4.0)):
+        T_bin_from_camera = tilted_camera(0.8, np.radians(tilt_deg), heading)
+        assert camera_tilt_deg(T_bin_from_camera) == pytest.approx(tilt_deg, abs=1e-9)
+        # The bin floor centre lies on the camera's axis, 0.8 m away.
+        centre_cam = transform_points(invert_T(T_bin_from_camera), np.zeros((1, 3)))[0]
+        np.testing.assert_allclose(centre_cam, [0.0, 0.0, 0.8], atol=1e-12)
+    assert [tilt_band(t) for t in (0.0, 14.9, 15.0, 44.0)] == ["0-15", "0-15", "15-30", "30-45"]
 
 
 def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
@@ -61,6 +78,8 @@ def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
     # Every attempt is accounted for: good, wrong part, collision or no pick.
     assert part["n_attempts"] >= part["parts_settled"] * part["clearance_rate"]
     assert part["clearance_rate"] >= 2 / 3 and part["wrong_part_picks"] + part["collisions"] <= 1
+    (band, figures), = result["by_tilt"].items()
+    assert result["tilt_deg_max"] == 45.0 and figures["n_attempts"] == part["n_attempts"]
 
 
 def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):

@@ -5,7 +5,9 @@ registration with verification), against the scoring without the checks this ben
 
 Per part: pose_precision and pose_recall (parts at least half visible, ADD(-S) < 0.1 d, as the
 register stage counts them), false_poses_outside_bin (wrong poses whose centre lies outside the
-bin's inner footprint), n_scenes; then the same over all parts.
+bin's inner footprint), n_scenes; then the same over all parts, and over all parts per band of
+the camera's tilt from the bin's up axis (`by_tilt`: 0-15, 15-30, 30-45 degrees, ...): the
+camera is tilted up to `tilt_deg_max` (45 by default), as a cell camera mounted beside the bin is.
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_p
 NOISE_SCALE_MAX = 2.0
 CLUTTER: dict[str, object] = {"n_distractors_max": 8, "distractor_size_rel": (0.3, 1.2), "outside_share": 0.5, "bin_scale": (0.9, 1.2),
            "wall_height_scale": (0.6, 1.4), "camera_tilt_deg_max": 20.0, "camera_distance_scale": (0.95, 1.2), "noise_scale": (0.5, NOISE_SCALE_MAX)}
+# Oblique views as cells mount cameras: beside the bin, looking in at up to 45 degrees.
+TILT_DEG_MAX = 45.0
+TILT_BAND_DEG = 15.0
 
 
 def _cup(n_points: int) -> PartModel | None:
@@ -51,9 +56,10 @@ def _cup(n_points: int) -> PartModel | None:
     return make_part_model(CUP, mesh, SymmetryParams(), n_points, np.random.default_rng(0), unit)
 
 
-def scaled_settings(settings: Params, part: PartModel) -> Params:
+def scaled_settings(settings: Params, part: PartModel, tilt_deg_max: float | None = None) -> Params:
     """The project's settings with the bin, camera distance and grids scaled to a part larger than
-    the default bin was made for (the gear shaft is 0.44 m long), and clutter on."""
+    the default bin was made for (the gear shaft is 0.44 m long), and clutter on, the camera
+    tilted up to tilt_deg_max (default: CLUTTER's)."""
     g, cam, imp = settings.generate, settings.camera.model_copy(update={"downscale": 2}), settings.import_capture
     d = part.diameter_m
     inner_x = max(g.bin.inner_x_m, 2.2 * d)
@@ -66,7 +72,7 @@ def scaled_settings(settings: Params, part: PartModel) -> Params:
     plane_threshold = max(imp.plane_threshold_m, 3.0 * sigma)
     generate = g.model_copy(update={
         "bin": g.bin.model_copy(update={"inner_x_m": inner_x, "inner_y_m": inner_y, "wall_height_m": max(g.bin.wall_height_m, 0.4 * d)}),
-        "clutter": g.clutter.model_copy(update=CLUTTER),
+        "clutter": g.clutter.model_copy(update={**CLUTTER, **({} if tilt_deg_max is None else {"camera_tilt_deg_max": tilt_deg_max})}),
     })
     return settings.model_copy(update={
         "generate": generate, "camera": cam.model_copy(update={"distance_m": distance}),
@@ -97,9 +103,11 @@ def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
             "false_poses_outside_bin": sum(r["outside"] for r in rows), "n_scenes": float(len(rows))}
 
 
-def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, checkpoints: dict[str, Path], seed: int = 0) -> dict[str, object]:
+def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, checkpoints: dict[str, Path], seed: int = 0,
+                  tilt_deg_max: float = TILT_DEG_MAX) -> dict[str, object]:
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
-    without one are registered over the whole scene, no network)."""
+    without one are registered over the whole scene, no network); tilt_deg_max: the camera's
+    largest tilt from the bin's up axis, degrees."""
     from binpick.bench.parts import bench_parts
 
     wanted = list(names or DEFAULT_PARTS)
@@ -111,8 +119,9 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
     per_part: dict[str, dict[str, float]] = {}
     all_new: list[dict[str, float]] = []
     all_base: list[dict[str, float]] = []
+    by_band: dict[str, list[dict[str, float]]] = {}
     for part in parts:
-        p = scaled_settings(settings, part)
+        p = scaled_settings(settings, part, tilt_deg_max)
         ppf = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration)
         segmenter = None
         if part.name in checkpoints and checkpoints[part.name].is_file():
@@ -132,7 +141,7 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
             H, W = scene.labels.shape
             xyz = scene.xyz_m.reshape(-1, 3)
             # The bin actually drawn for this scene (clutter scales it): the one in the scene's frame.
-            inner_x, inner_y = _drawn_bin(p, part, seed * 1000 + k)
+            inner_x, inner_y, tilt_deg = _drawn_bin(p, part, seed * 1000 + k)
             for models, rows in ((new, rows_new), (base, rows_base)):
                 try:
                     poses = process(xyz, None, (H, W), models, SceneSeeds.of(seed, f"clutter-{part.name}-{k}")).registration.poses
@@ -140,6 +149,7 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
                     log.warning("%s scene %d: %s", part.name, k, exc)
                     poses = []
                 rows.append(_score(poses, scene, ppf, part, inner_x, inner_y))
+            by_band.setdefault(tilt_band(tilt_deg), []).append(rows_new[-1])
         per_part[part.name] = {**_summary(rows_new), **{f"baseline_{k}": v for k, v in _summary(rows_base).items()},
                                "segmentation": 1.0 if segmenter is not None else 0.0, "diameter_mm": 1000.0 * part.diameter_m}
         all_new += rows_new
@@ -148,13 +158,26 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
     return {
         "machine": machine(), "parts": per_part,
         **_summary(all_new), **{f"baseline_{k}": v for k, v in _summary(all_base).items()},
+        "by_tilt": {band: _summary(rows) for band, rows in sorted(by_band.items(), key=lambda kv: float(kv[0].split("-")[0]))},
         "min_visible_fraction": MIN_VISIBLE_FRACTION, "clutter": {k: list(v) if isinstance(v, tuple) else v for k, v in CLUTTER.items()},
     }
 
 
-def _drawn_bin(p: Params, part: PartModel, seed: int) -> tuple[float, float]:
-    """The inner bin size generate_scene drew for this seed (it draws clutter from its own stream)."""
+def _drawn_bin(p: Params, part: PartModel, seed: int) -> tuple[float, float, float]:
+    """The inner bin size generate_scene drew for this seed (it draws clutter from its own
+    stream) and the camera's tilt from the bin's up axis, degrees."""
     from binpick.generation.scene import clutter_generator, draw_clutter
 
-    generate, _, _, _ = draw_clutter(p.generate, p.camera, part.diameter_m, clutter_generator(seed))
-    return generate.bin.inner_x_m, generate.bin.inner_y_m
+    generate, _, T_bin_camera, _ = draw_clutter(p.generate, p.camera, part.diameter_m, clutter_generator(seed))
+    return generate.bin.inner_x_m, generate.bin.inner_y_m, camera_tilt_deg(T_bin_camera)
+
+
+def camera_tilt_deg(T_bin_from_camera: np.ndarray) -> float:
+    """Degrees between the camera's viewing axis (its +z) and straight down the bin's up axis."""
+    return float(np.degrees(np.arccos(np.clip(-T_bin_from_camera[2, 2], -1.0, 1.0))))
+
+
+def tilt_band(tilt_deg: float) -> str:
+    """The band of TILT_BAND_DEG a tilt falls in, as "lo-hi" degrees ("0-15", "15-30", ...)."""
+    lo = int(tilt_deg // TILT_BAND_DEG) * int(TILT_BAND_DEG)
+    return f"{lo}-{lo + int(TILT_BAND_DEG)}"

@@ -16,7 +16,9 @@ clearance_rate (parts removed / parts settled in the bins), wrong_part_picks (pi
 part), collisions (picks on a part whose path hits something), cycle_s_median (reading the
 capture file to the ordered picks, on this machine), n_bins, n_attempts; besides them
 attempts_without_a_pick (captures where no part had a reachable, collision-free grasp: failures)
-and executed_pick_success_rate (good picks / picks made).
+and executed_pick_success_rate (good picks / picks made). Each bin is seen by a camera tilted from
+the bin's up axis, the tilts spread evenly over 0 to tilt_deg_max (45 by default) across a part's
+bins, each about its own horizontal axis; `by_tilt` gives the keys over all parts per band of tilt.
 """
 
 from __future__ import annotations
@@ -32,12 +34,12 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from binpick.bench import machine
-from binpick.bench.clutter import scaled_settings
+from binpick.bench.clutter import TILT_DEG_MAX, scaled_settings, tilt_band
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
-from binpick.generation.scene import render_scene, settle_in_bin
+from binpick.generation.scene import render_scene, settle_in_bin, tilted_camera
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
@@ -189,7 +191,7 @@ def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects:
 
 
 def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_parts: int, seed: np.random.SeedSequence, folder: Path,
-               cycles: list[float], truth: TrueSurface) -> Tally:
+               cycles: list[float], truth: TrueSurface, T_bin_from_camera: np.ndarray) -> Tally:
     rng = np.random.default_rng(seed)
     g = p.generate
     placed = place_objects(part.points_m, n_parts, g.bin, g.placement, rng)
@@ -202,7 +204,7 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
     failures = 0
     capture = folder / "capture.zdf"
     while len(T_bin) and failures < MAX_FAILURES_IN_A_ROW:
-        scene = render_scene(part, T_bin, g, p.camera, view, rng)
+        scene = render_scene(part, T_bin, g, p.camera, view, rng, T_bin_from_camera)
         H, W = scene.labels.shape
         save_zdf_v1(capture, scene.xyz_m * 1000.0)
         t0 = time.perf_counter()
@@ -249,18 +251,21 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
 
 
 def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_per_bin: tuple[int, int], checkpoints: dict[str, Path],
-                  gripper: str | None = None, seed: int = 0) -> dict[str, object]:
+                  gripper: str | None = None, seed: int = 0, tilt_deg_max: float = TILT_DEG_MAX) -> dict[str, object]:
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
-    without one are registered over the whole scene); gripper: overrides pick.gripper."""
+    without one are registered over the whole scene); gripper: overrides pick.gripper;
+    tilt_deg_max: the largest tilt of a bin's camera from the bin's up axis, degrees."""
     from binpick.bench.parts import bench_parts
 
     parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
     kind = gripper or settings.pick.gripper
     per_part: dict[str, dict[str, float]] = {}
     out: dict[str, object] = {"machine": machine(), "gripper": kind, "parts_per_bin": list(parts_per_bin),
-                              "touch_m": TOUCH_M, "touch_deg": TOUCH_DEG, "penetration_m": PENETRATION_M, "parts": per_part}
+                              "touch_m": TOUCH_M, "touch_deg": TOUCH_DEG, "penetration_m": PENETRATION_M, "tilt_deg_max": tilt_deg_max,
+                              "parts": per_part}
     total = Tally()
     all_cycles: list[float] = []
+    by_band: dict[str, tuple[Tally, list[float], list[int]]] = {}
     for part in parts:
         p = picking_settings(settings, part)
         p = p.model_copy(update={"pick": p.pick.model_copy(update={"gripper": kind})})
@@ -273,16 +278,26 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
         with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
             for b in range(n_bins):
                 bin_seed = derive_seed(seed, "bench-picking", part.name, b)
-                n = int(np.random.default_rng(bin_seed).integers(parts_per_bin[0], parts_per_bin[1] + 1))
-                one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles, truth)
-                log.info("%s bin %d: %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
-                         part.name, b, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
+                draw = np.random.default_rng(bin_seed)
+                n = int(draw.integers(parts_per_bin[0], parts_per_bin[1] + 1))
+                # Tilts spread evenly over the range across the bins, each at a random heading.
+                tilt_deg = tilt_deg_max * (b + float(draw.uniform())) / n_bins
+                T_bin_from_camera = tilted_camera(p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi)))
+                first_cycle = len(cycles)
+                one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles, truth, T_bin_from_camera)
+                log.info("%s bin %d (camera tilted %.0f degrees): %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
+                         part.name, b, tilt_deg, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
                 tally.add(one)
+                band = by_band.setdefault(tilt_band(tilt_deg), (Tally(), [], [0]))
+                band[0].add(one)
+                band[1].extend(cycles[first_cycle:])
+                band[2][0] += 1
         per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if models.segmenter is not None else 0.0,
                                    "diameter_mm": 1000.0 * part.diameter_m}
         total.add(tally)
         all_cycles += cycles
     out.update(_keys(total, all_cycles, n_bins * len(parts)))
+    out["by_tilt"] = {name: _keys(t, c, n[0]) for name, (t, c, n) in sorted(by_band.items(), key=lambda kv: float(kv[0].split("-")[0]))}
     return out
 
 

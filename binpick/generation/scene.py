@@ -124,6 +124,14 @@ def _scaled(lo_hi: tuple[float, float], rng: np.random.Generator) -> float:
     return float(rng.uniform(lo, hi)) if hi > lo else float(lo)
 
 
+def tilted_camera(distance_m: float, tilt_rad: float, heading_rad: float) -> np.ndarray:
+    """T_bin_from_camera (4, 4): the camera distance_m from the bin floor centre, looking at it,
+    its axis tilted by tilt_rad from straight down, about the horizontal axis at heading_rad
+    (bin frame, from +x towards +y)."""
+    R = axis_angle_to_R(np.array([np.cos(heading_rad), np.sin(heading_rad), 0.0]), tilt_rad)
+    return make_T(R, np.zeros(3)) @ T_bin_from_cam(distance_m)
+
+
 def draw_clutter(
     generate: GenerateParams, camera: CameraParams, diameter_m: float, rng: np.random.Generator
 ) -> tuple[GenerateParams, CameraParams, np.ndarray, list[trimesh.Trimesh]]:
@@ -141,9 +149,7 @@ def draw_clutter(
     distance = camera.distance_m * _scaled(c.camera_distance_scale, rng)
     camera = camera.model_copy(update={"distance_m": distance})
     tilt = np.radians(float(rng.uniform(0.0, c.camera_tilt_deg_max))) if c.camera_tilt_deg_max > 0 else 0.0
-    heading = float(rng.uniform(0.0, 2.0 * np.pi))
-    R = axis_angle_to_R(np.array([np.cos(heading), np.sin(heading), 0.0]), tilt)
-    T_bin_camera = make_T(R, np.zeros(3)) @ T_bin_from_cam(distance)
+    T_bin_camera = tilted_camera(distance, tilt, float(rng.uniform(0.0, 2.0 * np.pi)))
     meshes = []
     n = int(rng.integers(0, c.n_distractors_max + 1)) if c.n_distractors_max else 0
     X, Y, W = bin_params.inner_x_m, bin_params.inner_y_m, bin_params.wall_thickness_m
