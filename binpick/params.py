@@ -577,6 +577,22 @@ class ZividCameraParams(_Strict):
     gain: float = Field(gt=0)
 
 
+class LearnParams(_Strict):
+    """Learning from the cell (binpick.learning): captures whose poses passed verification with
+    margin label themselves; a part's network is fine-tuned on them plus its synthetic scenes
+    once enough reviewed ones are new, and served only when it is no worse on both."""
+
+    # A pose is trusted when its verification score clears register.min_score by this much.
+    trust_margin: float = Field(ge=0, le=1)
+    min_new_scenes: int = Field(ge=1, description="reviewed captures not yet learnt from before the scheduled retraining fine-tunes")
+    heldout_share: float = Field(gt=0, lt=1, description="share of the reviewed captures kept out of fine-tuning to judge it")
+    finetune_epochs: int = Field(ge=1)
+    finetune_learning_rate: float = Field(gt=0)
+    # The fine-tuned network may lose at most this much precision or recall on either test set.
+    max_drop: float = Field(ge=0, le=1)
+    serve_alias: str = Field(min_length=1, description="MLflow registry alias of the network the service serves")
+
+
 class ServiceParams(_Strict):
     """`binpick service`: the resident pick service (flows/service.py)."""
 
@@ -638,6 +654,7 @@ class Params(_Strict):
     render_demo: RenderDemoParams
     pick: PickParams
     service: ServiceParams
+    learn: LearnParams
     zivid_camera: ZividCameraParams
     tracking: TrackingParams
     orchestration: OrchestrationParams

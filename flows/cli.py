@@ -23,6 +23,8 @@ if TYPE_CHECKING:
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=__doc__)
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each writes its measurements as JSON.")
 app.add_typer(bench_app, name="bench")
+learn_app = typer.Typer(no_args_is_help=True, help="Learning from the cell: review labelled captures, fine-tune on them.")
+app.add_typer(learn_app, name="learn")
 log = logging.getLogger("binpick")
 
 
@@ -332,6 +334,62 @@ def requests(
             continue
         t, c = info["timings_s"], info["counts"]
         typer.echo(f"{folder.name}  {info['part']}: {c['n_picks']:.0f} picks of {c['n_parts']:.0f} parts, {t['total_s']:.2f} s")
+
+
+@learn_app.command("review")
+def learn_review_cmd(
+    part: str = typer.Option(..., help="the part whose labelled captures to review"),
+    approve: bool = typer.Option(False, "--approve", help="approve every pending labelled capture (except --reject ones)"),
+    reject: list[str] = typer.Option(None, help="a pending capture whose labels are wrong (with --approve)"),
+) -> None:
+    """Show the labelled captures nobody has reviewed (a rerun recording), then approve them,
+    rejecting wrong ones: only approved captures are learnt from."""
+    import sys
+
+    from flows.learn import review
+
+    if reject and not approve:
+        _fail("--reject goes with --approve (look first: run without either)")
+    root = project_root()
+    try:
+        result = review(root, part, approve, list(reject or []))
+    except BinpickError as exc:
+        _fail(str(exc))
+    if approve:
+        typer.echo(f"{part}: approved {len(result.approved)}, rejected {len(result.rejected)}"
+                   + (f" ({', '.join(result.rejected)})" if result.rejected else "") + "; recorded in data/real/" + f"{part}/reviewed.json")
+    elif result.recording is None:
+        typer.echo(f"{part}: no labelled capture is waiting for review")
+    else:
+        typer.echo(f"{part}: {len(result.pending)} labelled captures to review ({', '.join(result.pending)}). Look at them with\n"
+                   f"  {Path(sys.executable).parent / 'rerun'} {result.recording.relative_to(root)}\n"
+                   f"then `binpick learn review --part {part} --approve [--reject CAPTURE ...]`")
+
+
+@learn_app.command("finetune")
+def learn_finetune_cmd(
+    part: str = typer.Option(..., help="the part whose network to fine-tune"),
+    force: bool = typer.Option(False, "--force", help="fine-tune even if fewer than learn.min_new_scenes approved captures are new"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Fine-tune the part's served network on its synthetic scenes plus the approved captures;
+    serve the result (MLflow alias learn.serve_alias) only when it is no worse on held-back
+    captures and on the synthetic test scenes."""
+    from binpick.params import load_params
+    from flows.learn import finetune
+
+    root = project_root()
+    try:
+        result = finetune(root, load_params(params if params.is_absolute() else root / params, part), part, force)
+    except BinpickError as exc:
+        _fail(str(exc))
+    if not result["finetuned"]:
+        typer.echo(f"{part}: {result['new']} of {result['approved']} approved captures are new; not fine-tuned (see learn.min_new_scenes, or --force)")
+        return
+    figures = ", ".join(f"{k}: {result[f'before_{k}']:.2f} -> {result[f'after_{k}']:.2f}"
+                        for k in ("real_precision", "real_recall", "synthetic_precision", "synthetic_recall"))
+    typer.echo(f"{part}: fine-tuned on {result['n_train_real']} captures, judged on {result['n_heldout_real']}: {figures}; "
+               + (f"served (version {result['version']})" if result["served"] else "worse, not served"))
 
 
 @app.command()

@@ -56,6 +56,7 @@ from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.poses import save_poses
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene_path import PartModels, SceneSeeds, process
+from flows.learn import served_checkpoint
 
 log = logging.getLogger("binpick.service")
 
@@ -90,11 +91,12 @@ def load_parts(root: Path, params_path: Path) -> dict[str, Served]:
             log.warning("not serving %s: its models are not built (run make repro)", name)
             continue
         p = load_params(params_path, name)
-        checkpoint = root / "data" / "fpcc" / name / "model.pt"
-        models = PartModels.load(p, needed[0], needed[1], checkpoint if checkpoint.is_file() else None, needed[2])
+        # The fine-tuned network when `binpick learn finetune` found it no worse (flows/learn.py).
+        checkpoint = served_checkpoint(root, name)
+        models = PartModels.load(p, needed[0], needed[1], checkpoint, needed[2])
         served[name] = Served(models, p, np.asarray(p.pick.T_base_from_cam) if p.pick.T_base_from_cam is not None else None)
-        log.info("serving %s (%s, %d %s grasps)", name, "segmentation + registration" if models.segmenter else "registration only",
-                 len(models.grasps or []), p.pick.gripper)
+        log.info("serving %s (%s, %d %s grasps)", name, f"segmentation ({checkpoint.name}) + registration" if models.segmenter and checkpoint else
+                 "registration only", len(models.grasps or []), p.pick.gripper)
     if not served:
         raise BinpickError(f"no part of {params_path} has built models to serve: run `make repro` first")
     return served

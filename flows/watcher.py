@@ -1,7 +1,9 @@
 """The watcher: every part in data/parts/ gets an up-to-date, evaluated model without anyone
 touching anything. New mesh files are added to params.yaml (files whose names cannot be used are
 refused, named in the summary); each part whose DVC stages are not up to date runs the training
-flow; a part that fails is set aside until its mesh or entry changes, and the others go on."""
+flow; a part that fails is set aside until its mesh or entry changes, and the others go on.
+Then each trained part whose approved real captures (flows/learn.py) reach learn.min_new_scenes
+new ones is fine-tuned on them, and served only when no worse."""
 
 
 import json
@@ -78,6 +80,25 @@ def unit_note(root: Path, part: str) -> str | None:
 
 
 @flow(name="watch-parts", flow_run_name="watch-parts")
+@task(name="finetune-part")
+def finetune_part(root: Path, part: str) -> str | None:
+    """Fine-tune the part on its approved real captures when enough are new; what happened, in
+    words, or None when it waits for more."""
+    from binpick.errors import BinpickError
+    from binpick.params import load_params
+    from flows.learn import finetune
+
+    try:
+        result = finetune(root, load_params(root / "params.yaml", part), part, progress=False)
+    except BinpickError as exc:
+        return f"fine-tuning failed: {exc}"
+    if not result["finetuned"]:
+        return None
+    return (f"fine-tuned on {result['n_train_real']} real captures: {'served' if result['served'] else 'worse, not served'} "
+            f"(held-back real P/R {result['after_real_precision']:.2f}/{result['after_real_recall']:.2f}, "
+            f"before {result['before_real_precision']:.2f}/{result['before_real_recall']:.2f})")
+
+
 def watch_parts(root: Path) -> Outcome:
     """Register new parts, then train and evaluate each part that is not up to date."""
     root = Path(root)
@@ -95,5 +116,10 @@ def watch_parts(root: Path) -> Outcome:
         note = unit_note(root, part)
         if note:
             outcome.notes[part] = note
+    for part in sorted(plan.pipeline.parts):
+        if part not in outcome.failed and (root / "data" / "fpcc" / part / "model.pt").is_file():
+            learnt = finetune_part(root, part)
+            if learnt:
+                outcome.notes[part] = "; ".join(filter(None, [outcome.notes.get(part), learnt]))
     get_run_logger().info("%s", outcome.summary("trained"))
     return outcome

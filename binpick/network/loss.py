@@ -13,19 +13,22 @@ import torch.nn.functional as F
 def centre_score_targets(points: torch.Tensor, labels: torch.Tensor, d_max_m: float, form: str) -> torch.Tensor:
     """Ground-truth centre score of each point, (N,) in [0, 1].
 
-    points (N, 3) metres; labels (N,) int64 instance indices (>= 0). The centre of an instance is
-    the mean of its points. linear: 1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
+    points (N, 3) metres; labels (N,) int64 instance indices (>= 0; a negative label, a point
+    the loss ignores, gets 0). The centre of an instance is the mean of its points. linear:
+    1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
     """
-    n_inst = int(labels.max()) + 1
-    sums = torch.zeros(n_inst, 3, dtype=points.dtype, device=points.device).index_add_(0, labels, points)
-    counts = torch.bincount(labels, minlength=n_inst).clamp_min(1).to(points.dtype)
+    known = labels >= 0
+    own = labels.clamp_min(0)
+    n_inst = int(labels.max()) + 1 if bool(known.any()) else 1
+    sums = torch.zeros(n_inst, 3, dtype=points.dtype, device=points.device).index_add_(0, own[known], points[known])
+    counts = torch.bincount(own[known], minlength=n_inst).clamp_min(1).to(points.dtype)
     centres = sums / counts[:, None]
-    ratio = (points - centres[labels]).norm(dim=1) / d_max_m
+    ratio = (points - centres[own]).norm(dim=1) / d_max_m
     if form == "squared":
         ratio = ratio**2
     elif form != "linear":
         raise ValueError(f"unknown centre score form {form!r}")
-    return (1.0 - ratio).clamp(0.0, 1.0)
+    return torch.where(known, (1.0 - ratio).clamp(0.0, 1.0), torch.zeros_like(ratio))
 
 
 def fpcc_loss(
@@ -43,17 +46,29 @@ def fpcc_loss(
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Loss of one batch.
 
-    embedding (B, N, D), centre (B, N) predicted; points (B, N, 3) metres; labels (B, N) int64.
-    Pairs farther apart than 2 * d_max (a true, not a squared, distance) are ignored.
+    embedding (B, N, D), centre (B, N) predicted; points (B, N, 3) metres; labels (B, N) int64,
+    negative for a point the loss ignores (a captured scene's unexplained points: input, not
+    target). Pairs farther apart than 2 * d_max (a true, not a squared, distance) are ignored.
     """
     B, N, _ = embedding.shape
     emb_terms, ctr_terms = [], []
     for b in range(B):
         target = centre_score_targets(points[b], labels[b], d_max_m, form)
-        ctr_terms.append(F.smooth_l1_loss(centre[b], target))
-        m = min(n_anchors, N)
-        anchors = torch.randperm(N, generator=generator, device="cpu")[:m].to(embedding.device)
-        valid = torch.cdist(points[b, anchors], points[b]) <= 2.0 * d_max_m  # (m, N)
+        known = labels[b] >= 0
+        if bool(known.all()):
+            ctr_terms.append(F.smooth_l1_loss(centre[b], target))
+            m = min(n_anchors, N)
+            anchors = torch.randperm(N, generator=generator, device="cpu")[:m].to(embedding.device)
+        else:
+            index = torch.nonzero(known).squeeze(1)
+            if not len(index):  # nothing to learn from in this crop: no gradient, no term
+                ctr_terms.append(centre[b].sum() * 0.0)
+                emb_terms.append(embedding[b].sum() * 0.0)
+                continue
+            ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
+            order = torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))]
+            anchors = index[order.to(index.device)]
+        valid = (torch.cdist(points[b, anchors], points[b]) <= 2.0 * d_max_m) & known[None, :]  # (m, N)
         attention = (target[anchors, None] + target[None, :]).clamp(max=1.0)  # (m, N)
         same = labels[b, anchors, None] == labels[b][None, :]
         d_f = torch.cdist(embedding[b, anchors], embedding[b])  # (m, N)

@@ -112,24 +112,32 @@ def train_fpcc(
     on_epoch: Callable[[int, dict[str, float], FPCC], None] | None = None,
     device: torch.device | None = None,
     progress: bool = True,
+    init_state: dict | None = None,
 ) -> tuple[FPCC, dict[str, float]]:
     """Train, keeping `last.pt` (resume point) and `best.pt` (lowest validation loss) in checkpoint_dir.
 
     Returns the best network and its metrics. A `last.pt` written with the same config, settings,
     seed and data resumes. The checkpoints hold the inference settings of the part (no calibrated
-    clustering yet).
+    clustering yet). init_state: a checkpoint's entries (read_checkpoint) to fine-tune: its
+    network and weights are the start instead of fresh ones.
     """
     device = device or default_device()
     checkpoint_dir = Path(checkpoint_dir)
     checkpoint_dir.mkdir(parents=True, exist_ok=True)
     torch.manual_seed(seed)
-    config = FPCCConfig(
-        backbone=params.backbone, k_neighbours=params.k_neighbours, width=params.width, embedding_dim=params.embedding_dim
-    )
+    if init_state is None:
+        config = FPCCConfig(
+            backbone=params.backbone, k_neighbours=params.k_neighbours, width=params.width, embedding_dim=params.embedding_dim
+        )
+    else:
+        config = FPCCConfig(**init_state["config"])
     model = FPCC(config).to(device)
+    if init_state is not None:
+        model.load_state_dict(init_state["model"])
     optimiser = torch.optim.Adam(model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
     settings = InferenceSettings(part=part, part_diameter_m=part_diameter_m, features=params.features, d_max_m=d_max_m, train=params)
-    extra = {**settings.to_extra(), "seed": seed, "data_fingerprint": train.fingerprint() + val.fingerprint()}
+    extra = {**settings.to_extra(), "seed": seed, "data_fingerprint": train.fingerprint() + val.fingerprint(),
+             **({"finetuned_from": init_state.get("sha256", "")} if init_state is not None else {})}
 
     start_epoch, best_val, best_epoch = 0, math.inf, -1
     last = checkpoint_dir / LAST
@@ -142,7 +150,7 @@ def train_fpcc(
             log.warning("%s; starting this training from scratch", exc)
             last.unlink()
     if state is not None:
-        same_run = all(state["extra"].get(k) == extra[k] for k in ("train_params", "seed", "data_fingerprint", "d_max_m"))
+        same_run = all(state["extra"].get(k) == extra.get(k) for k in ("train_params", "seed", "data_fingerprint", "d_max_m", "finetuned_from"))
         if state["config"] == config.to_dict() and same_run:
             model.load_state_dict(state["model"])
             optimiser.load_state_dict(state["optimiser"])
