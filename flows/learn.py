@@ -186,9 +186,9 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     """Fine-tune the part's served network when enough approved captures are new (or force);
     serve the result only when it is no worse. params: resolved for the part. Returns what was
     measured and decided."""
-    from binpick.network.checkpoint import read_checkpoint
+    from binpick.network.checkpoint import read_checkpoint, write_finetuned
     from binpick.network.infer import default_device
-    from binpick.network.train import BEST, Views, load_views, train_fpcc
+    from binpick.network.train import BEST, Views, finetune_fpcc, load_views
     from binpick.seeding import derive_int
 
     lp = params.learn
@@ -212,22 +212,15 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
                            "both need at least one (approve more captures)")
     scenes = root / "data" / "scenes" / part
     synthetic_train, synthetic_val = load_views(scenes / "train"), load_views(scenes / "val")
-    real = [load_labelled_capture(p) for p in train]
-    views = Views(points=synthetic_train.points + [c.points_m for c in real], normals=synthetic_train.normals + [c.normals for c in real],
-                  labels=synthetic_train.labels + [c.labels.astype(np.int64) for c in real])
-    settings = state["extra"]
-    train_params = params.train.model_copy(update={"epochs": lp.finetune_epochs, "learning_rate": lp.finetune_learning_rate,
-                                                    "patience_epochs": lp.finetune_epochs})
+    real = Views.of_captures([load_labelled_capture(p) for p in train])
     work = root / "data" / "work" / part / "finetune"
-    device = default_device()
     log.info("%s: fine-tuning %s on %d synthetic + %d real scenes, judging on %d held-back captures", part, current.name,
              len(synthetic_train), len(real), len(test))
-    train_fpcc(views, synthetic_val, train_params, float(settings["d_max_m"]), derive_int(params.seed, "finetune", part), work, part,
-               float(settings["part_diameter_m"]), device=device, progress=progress, init_state=state)
+    best = finetune_fpcc(state, synthetic_train + real, synthetic_val, params.train, lp.finetune_epochs, lp.finetune_learning_rate,
+                         derive_int(params.seed, "finetune", part), work, default_device(), progress)
     candidate = work / "candidate.pt"
     base_sha = read_checkpoint(root / "data" / "fpcc" / part / "model.pt")["sha256"]
-    _carry_settings(state, work / BEST, candidate, base_sha, sorted(learnt | {p.stem for p in train}),
-                    sorted((seen - learnt) | {p.stem for p in test}))
+    write_finetuned(best, candidate, state, base_sha, sorted(learnt | {p.stem for p in train}), sorted((seen - learnt) | {p.stem for p in test}))
     before = score(current, params, scenes / "test", test)
     after = score(candidate, params, scenes / "test", test)
     serve = no_worse(before, after, lp.max_drop)
@@ -243,36 +236,20 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     return outcome
 
 
-def _carry_settings(base_state: dict, trained: Path, out: Path, base_sha256: str, learnt: list[str], judged: list[str]) -> None:
-    """The fine-tuned weights with the served network's calibrated clustering and verification
-    thresholds (fine-tuning does not move them far; the next `train` stage recalibrates), the
-    model.pt it descends from (base_sha256), the captures it has learnt from and those held
-    back to judge it."""
-    from binpick.network.checkpoint import read_checkpoint, write_state
-
-    state = read_checkpoint(trained)
-    carried = {k: base_state["extra"][k] for k in ("clustering", "verification") if k in base_state["extra"]}
-    state["extra"] = {**state["extra"], **carried, "finetuned_from": base_sha256, "real_scenes": learnt, "real_heldout": judged}
-    state.pop("sha256", None)
-    write_state(out, state)
-
-
 def score(checkpoint: Path, params: Params, synthetic_test: Path, real_test: list[Path]) -> dict[str, float]:
     """Precision and recall of the network on the held-back captures (their labelled points
     alone: ignored points count for neither side) and on the synthetic test scenes."""
     from binpick.io.scene import list_scenes, load_scene
-    from binpick.metrics.segmentation import SegmentationCounts, scene_counts
-    from binpick.network.evaluate import scene_seed, segment_and_count
+    from binpick.metrics.segmentation import SegmentationCounts
+    from binpick.network.evaluate import capture_counts, scene_seed, segment_and_count
     from binpick.network.infer import load_segmenter
 
     segmenter = load_segmenter(checkpoint, params.segment)
     iou = params.evaluate.iou_threshold
     real = SegmentationCounts()
     for i, path in enumerate(real_test):
-        c = load_labelled_capture(path)
-        pred = segmenter.segment(c.points_m, c.normals, np.random.default_rng(scene_seed(params.seed, f"real-{path.stem}", i)))
-        known = c.labels != IGNORE
-        real = real.add(scene_counts(pred[known], c.labels[known].astype(np.int64), iou, params.segment.min_points))
+        rng = np.random.default_rng(scene_seed(params.seed, f"real-{path.stem}", i))
+        real = real.add(capture_counts(segmenter, load_labelled_capture(path), params.segment, iou, rng))
     synthetic = SegmentationCounts()
     for i, path in enumerate(list_scenes(synthetic_test)):
         _, counts = segment_and_count(segmenter, load_scene(path), params.segment, iou, params.seed, i)

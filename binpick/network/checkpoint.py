@@ -161,6 +161,18 @@ def write_with_verification(source: str | Path, out: str | Path, max_seen_throug
     write_state(out, state)
 
 
+def write_finetuned(trained: str | Path, out: str | Path, base_state: dict[str, Any], base_sha256: str, learnt: list[str], judged: list[str]) -> None:
+    """Write the fine-tuned checkpoint at trained to out with the calibrated clustering and
+    verification thresholds of the network it was fine-tuned from (base_state: fine-tuning does
+    not move them far; the next full training recalibrates), the SHA-256 of the trained network
+    it descends from, and the captures it learnt from and was judged by."""
+    state = read_checkpoint(trained)
+    carried = {k: base_state["extra"][k] for k in ("clustering", "verification") if k in base_state["extra"]}
+    state["extra"] = {**state["extra"], **carried, "finetuned_from": base_sha256, "real_scenes": learnt, "real_heldout": judged}
+    state.pop("sha256", None)
+    write_state(out, state)
+
+
 def read_settings(path: str | Path) -> InferenceSettings:
     """A checkpoint's inference settings, without building its network."""
     return InferenceSettings.from_extra(read_checkpoint(path)["extra"], path)

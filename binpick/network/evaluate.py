@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.scene import SyntheticScene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.infer import Segmenter
@@ -27,3 +28,13 @@ def segment_and_count(
     rng = np.random.default_rng(scene_seed(seed, segmenter.settings.part, index))
     labels = segmenter.segment(scene.view_points_m, scene.view_normals, rng)
     return labels, scene_counts(labels, scene.view_labels, iou_threshold, segment.min_points)
+
+
+def capture_counts(segmenter: Segmenter, capture: LabelledCapture, segment: SegmentParams, iou_threshold: float,
+                   rng: np.random.Generator) -> SegmentationCounts:
+    """Segment a labelled capture's points and match the instances against its labels on the
+    labelled points alone: ignored points count for neither side, so a segment on a part nobody
+    posed is neither right nor wrong."""
+    pred = segmenter.segment(capture.points_m, capture.normals, rng)
+    known = capture.labels >= 0
+    return scene_counts(pred[known], capture.labels[known].astype(np.int64), iou_threshold, segment.min_points)

@@ -46,6 +46,15 @@ class Views:
         """(points, normals, labels) of each scene."""
         return list(zip(self.points, self.normals, self.labels, strict=False))
 
+    @classmethod
+    def of_captures(cls, captures: list) -> Views:
+        """The views of labelled captures (binpick.io.labelled_capture): their cleaned points,
+        as the network sees a capture, with their labels (ignored points: negative)."""
+        return cls([c.points_m for c in captures], [c.normals for c in captures], [c.labels.astype(np.int64) for c in captures])
+
+    def __add__(self, other: Views) -> Views:
+        return Views(self.points + other.points, self.normals + other.normals, self.labels + other.labels)
+
     def fingerprint(self) -> str:
         """A hash of the content: a checkpoint resumes only on the data it was trained on."""
         h = hashlib.sha256()
@@ -214,3 +223,16 @@ def train_fpcc(
     model.load_state_dict(best_state["model"])
     model.eval()
     return model, {**best_state["metrics"], "epochs_run": float(epochs_run)}
+
+
+def finetune_fpcc(init_state: dict, train: Views, val: Views, params: TrainParams, epochs: int, learning_rate: float, seed: int,
+                  checkpoint_dir: str | Path, device: torch.device | None = None, progress: bool = True) -> Path:
+    """Fine-tune the network of a checkpoint's entries (read_checkpoint) for `epochs` at
+    `learning_rate` on train (synthetic views plus labelled captures, whose ignored points add
+    nothing to the loss), keeping the lowest validation loss on val. Returns the path of that
+    best checkpoint in checkpoint_dir (its clustering not yet calibrated: write_finetuned)."""
+    extra = init_state["extra"]
+    tuned = params.model_copy(update={"epochs": epochs, "learning_rate": learning_rate, "patience_epochs": epochs})
+    train_fpcc(train, val, tuned, float(extra["d_max_m"]), seed, checkpoint_dir, str(extra["part"]), float(extra["part_diameter_m"]),
+               device=device, progress=progress, init_state=init_state)
+    return Path(checkpoint_dir) / BEST
