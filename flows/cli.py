@@ -712,6 +712,31 @@ def bench_picking_cmd(
     _write_json(out, result)
 
 
+@bench_app.command("sensors")
+def bench_sensors_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    part: list[str] = typer.Option(None, help="parts (default: t_joint)"),
+    train_scenes: int = typer.Option(48, min=2, help="synthetic training scenes per network"),
+    val_scenes: int = typer.Option(6, min=1, help="validation scenes per network"),
+    test_scenes: int = typer.Option(6, min=1, help="cluttered test bins per test sensor"),
+    captures: int = typer.Option(12, min=1, help="captures of the fine-tuning sensor the cell labels itself"),
+    finetune_sensor: str = typer.Option("kinect_v1", help="the sensor model the cell's captures come from"),
+    leave_one_out: bool = typer.Option(True, help="train a network without each preset and test it on that preset"),
+    params: Path = typer.Option(Path("params.yaml")),
+) -> None:
+    """Networks trained on today's camera, on the randomised sensor models and without each
+    preset, tested on every preset; then the today network fine-tuned on captures it labelled
+    itself. Figures from our renderer (README "Sensor models" says what it leaves out)."""
+    from binpick.bench.sensors import bench_sensors
+    from binpick.params import load_params
+
+    try:
+        result = bench_sensors(load_params(params), part or ["t_joint"], train_scenes, val_scenes, test_scenes, captures, finetune_sensor, leave_one_out)
+    except (BinpickError, ValueError) as exc:
+        _fail(str(exc))
+    _write_json(out, result)
+
+
 @bench_app.command("scene")
 def bench_scene_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),

@@ -1,0 +1,232 @@
+"""Sensor-gap benchmark: what training on one camera model costs on another, and what the
+randomised sensor models and fine-tuning on the cell's own captures win back.
+
+Per part, networks are trained on synthetic bins (in memory, the project's train section, at the
+sizes given) rendered with:
+- `today`: the camera section's camera and generate.noise (what the project trained on before
+  the sensor models);
+- `randomised`: a preset drawn per scene from every sensor model in generate.sensor.models;
+- `without_<preset>`: every preset but that one (leave-one-out).
+Each is tested on cluttered bins (bench clutter's distractors and camera tilts up to 45 degrees)
+rendered with every preset and with today's camera, through the real scene path. Keys per
+`<train>@<test>` pair: pose_precision, pose_recall, false_poses_outside_bin (as bench clutter),
+pick_success_rate (the first pick of each capture judged as bench picking judges it: the right
+part touched, the gripper's path free of the other parts and the bin; a capture without a pick
+counts as a failure), seg_precision, seg_recall (the network's instances on the scene's view).
+
+Fine-tuning (`finetune`): the `today` network segments captures of sensor B (bench clutter bins
+rendered with that preset), its poses verified with margin label them (binpick.learning), it is
+fine-tuned on its synthetic scenes plus those captures (binpick learn's recipe) and tested again on
+the B test bins and today's; `gap_closed_<key>` is the share of the gap between today@B and
+randomised@B (a network that saw B) that fine-tuning closed.
+
+All figures are on our renderer with our sensor models: the effects those models leave out
+(README "Sensor models") are not measured here.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from binpick.bench import machine
+from binpick.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, scaled_settings
+from binpick.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models
+from binpick.errors import BinpickError
+from binpick.generation.bin import bin_meshes
+from binpick.generation.scene import clutter_generator, draw_clutter, generate_scene
+from binpick.geometry.transforms import transform_points
+from binpick.io.part_model import PartModel
+from binpick.io.scene import SyntheticScene
+from binpick.learning import label_capture
+from binpick.metrics.segmentation import SegmentationCounts
+from binpick.network.checkpoint import read_checkpoint, write_finetuned
+from binpick.network.evaluate import segment_and_count
+from binpick.network.train import BEST, Views, finetune_fpcc, train_fpcc
+from binpick.params import Params
+from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.seeding import derive_int, derive_seed
+from binpick.view import ViewParams
+
+log = logging.getLogger(__name__)
+
+TODAY = "today"
+RANDOMISED = "randomised"
+BIN_SAMPLE_SPACING_M = 0.004
+
+
+def _generate(p: Params, presets: list[str], clutter: bool):
+    g = p.generate
+    return g.model_copy(update={
+        "sensor": g.sensor.model_copy(update={"presets": list(presets)}),
+        "clutter": g.clutter.model_copy(update={**CLUTTER, "camera_tilt_deg_max": TILT_DEG_MAX}) if clutter else g.clutter.off(),
+    })
+
+
+def _scene_seed(seed: int, part: str, tag: str, index: int) -> np.random.SeedSequence:
+    return derive_seed(seed, "bench-sensors", part, tag, index)
+
+
+def _render(part: PartModel, p: Params, presets: list[str], clutter: bool, tag: str, n: int, seed: int) -> list[tuple[SyntheticScene, np.random.SeedSequence]]:
+    g = _generate(p, presets, clutter)
+    view = ViewParams.of_import(p.import_capture)
+    out = []
+    for i in range(n):
+        s = _scene_seed(seed, part.name, tag, i)
+        out.append((generate_scene(part, g, p.camera, view, s), s))
+    return out
+
+
+def _views(scenes: list[tuple[SyntheticScene, np.random.SeedSequence]]) -> Views:
+    seen = [s for s, _ in scenes if len(s.view_points_m)]
+    return Views([s.view_points_m for s in seen], [s.view_normals for s in seen], [s.view_labels.astype(np.int64) for s in seen])
+
+
+def _train(part: PartModel, p: Params, presets: list[str], n_train: int, n_val: int, seed: int, work: Path, tag: str) -> tuple[Path, Views]:
+    """A network trained on n_train scenes of these presets ([] = today's camera), clustering
+    calibrated on n_val: its checkpoint and its synthetic training views."""
+    from binpick.network.calibrate import recalibrate
+
+    train = _views(_render(part, p, presets, False, f"{tag}-train", n_train, seed))
+    val = _views(_render(part, p, presets, False, f"{tag}-val", n_val, seed))
+    folder = work / tag
+    d_max = p.train.d_max_m if p.train.d_max_m is not None else part.diameter_m / 2.0
+    log.info("%s: training %s on %d scenes", part.name, tag, len(train))
+    train_fpcc(train, val, p.train, d_max, derive_int(seed, "bench-sensors-train", part.name, tag), folder, part.name, part.diameter_m, progress=False)
+    out = folder / "model.pt"
+    recalibrate(folder / BEST, out, val, p.segment, p.evaluate.iou_threshold, np.random.default_rng(derive_int(seed, "calibrate", part.name, tag)))
+    return out, train + val
+
+
+def _with_network(models: PartModels, p: Params, checkpoint: Path) -> PartModels:
+    """The part's models (PPF model and grasps built once) with this network segmenting."""
+    from binpick.network.infer import load_segmenter
+
+    segmenter = load_segmenter(checkpoint, p.segment)
+    return replace(models, segmenter=segmenter, register_params=with_verification(p.registration, segmenter.settings))
+
+
+def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes: list[tuple[SyntheticScene, np.random.SeedSequence]],
+          truth: TrueSurface, seed: int) -> dict[str, float]:
+    """The keys of one train/test pair over its test scenes."""
+    models = _with_network(base, p, checkpoint)
+    assert models.segmenter is not None
+    ppf = models.ppf
+    rows: list[dict[str, float]] = []
+    seg = SegmentationCounts()
+    good = 0
+    for k, (scene, s) in enumerate(scenes):
+        drawn, _, _, _ = draw_clutter(_generate(p, [], True), p.camera, part.diameter_m, clutter_generator(s))
+        H, W = scene.labels.shape
+        try:
+            result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-{part.name}-{k}"))
+            poses, plan = result.registration.poses, result.picks
+        except BinpickError as exc:
+            log.warning("%s test scene %d: %s", part.name, k, exc)
+            poses, plan = [], None
+        rows.append(_score(poses, scene, ppf, part, drawn.bin.inner_x_m, drawn.bin.inner_y_m))
+        seg = seg.add(segment_and_count(models.segmenter, scene, p.segment, p.evaluate.iou_threshold, seed, k)[1])
+        if plan is not None and plan.picks:
+            first = plan.picks[0]
+            target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
+            bins = np.concatenate([_surface(m) for m in bin_meshes(drawn.bin)])
+            if target is not None and not _path_hits(first, p.pick.gripper, p, target, scene.T_cam_from_model, part,
+                                                     transform_points(scene.T_cam_from_bin, bins)):
+                good += 1
+    summary = seg.summary()
+    return {**_summary(rows), "pick_success_rate": good / len(scenes) if scenes else 0.0,
+            "seg_precision": summary["precision"], "seg_recall": summary["recall"]}
+
+
+def _surface(mesh) -> np.ndarray:
+    import trimesh
+
+    return trimesh.sample.sample_surface_even(mesh, max(100, int(mesh.area / BIN_SAMPLE_SPACING_M**2)), seed=0)[0]
+
+
+def _finetuned(part: PartModel, p: Params, built: PartModels, base: Path, synthetic: Views, captures: list[tuple[SyntheticScene, np.random.SeedSequence]],
+               seed: int, work: Path) -> tuple[Path, dict[str, float]]:
+    """The base network fine-tuned on the captures it labelled itself (binpick learn's recipe)."""
+    models = _with_network(built, p, base)
+    labelled = []
+    n_trusted = 0
+    for k, (scene, _) in enumerate(captures):
+        H, W = scene.labels.shape
+        try:
+            result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-capture-{part.name}-{k}"))
+        except BinpickError as exc:
+            log.warning("%s capture %d: %s", part.name, k, exc)
+            continue
+        c = label_capture(result.cloud, result.registration.poses, models.ppf.dense_points_m, part.diameter_m, p.registration.min_score,
+                          p.learn.trust_margin, p.import_capture.voxel_size_m)
+        if len(c.T_cam_from_model):
+            labelled.append(c)
+            n_trusted += len(c.T_cam_from_model)
+    state = read_checkpoint(base)
+    folder = work / "finetune"
+    best = finetune_fpcc(state, synthetic + Views.of_captures(labelled), synthetic, p.train, p.learn.finetune_epochs, p.learn.finetune_learning_rate,
+                         derive_int(seed, "bench-sensors-finetune", part.name), folder, progress=False)
+    out = folder / "model.pt"
+    write_finetuned(best, out, state, state["sha256"], [f"capture-{k}" for k in range(len(labelled))], [])
+    return out, {"n_captures": float(len(captures)), "n_labelled_captures": float(len(labelled)), "n_trusted_poses": float(n_trusted)}
+
+
+def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, n_test: int, n_captures: int, finetune_sensor: str,
+                  leave_one_out: bool = True, seed: int = 0) -> dict[str, object]:
+    """settings: the project's params (its train section sizes the networks, its bin and camera
+    are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
+    network; n_test: cluttered test bins per test sensor; n_captures: captures of
+    finetune_sensor the cell labels itself."""
+    from binpick.bench.parts import bench_parts
+
+    out: dict[str, object] = {"machine": machine(), "n_train": n_train, "n_val": n_val, "n_test": n_test, "n_captures": n_captures,
+                              "tilt_deg_max": TILT_DEG_MAX, "renderer_only": True, "parts": {}}
+    presets = sorted(settings.generate.sensor.models)
+    if finetune_sensor not in presets:
+        raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")
+    for part in bench_parts(names, n_points=settings.ingest.n_surface_points):
+        name = part.name
+        p = scaled_settings(settings, part, TILT_DEG_MAX)
+        truth = TrueSurface(part, p.pick.suction.cup_radius_m)
+        built = bench_models(part, p, None)
+        tests = {TODAY: _render(part, p, [], True, "test-today", n_test, seed),
+                 **{q: _render(part, p, [q], True, f"test-{q}", n_test, seed) for q in presets}}
+        pairs: dict[str, dict[str, float]] = {}
+        with tempfile.TemporaryDirectory(prefix="binpick-sensors-") as tmp:
+            work = Path(tmp)
+            today, today_views = _train(part, p, [], n_train, n_val, seed, work, TODAY)
+            randomised, _ = _train(part, p, presets, n_train, n_val, seed, work, RANDOMISED)
+            for train_name, checkpoint in ((TODAY, today), (RANDOMISED, randomised)):
+                for test_name, scenes in tests.items():
+                    pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed)
+                    log.info("%s %s@%s: %s", name, train_name, test_name, {k: round(v, 3) for k, v in pairs[f"{train_name}@{test_name}"].items()})
+            if leave_one_out:
+                for q in presets:
+                    without, _ = _train(part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}")
+                    pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed)
+                    log.info("%s without_%s@%s: %s", name, q, q, {k: round(v, 3) for k, v in pairs[f"without_{q}@{q}"].items()})
+            captures = _render(part, p, [finetune_sensor], True, f"captures-{finetune_sensor}", n_captures, seed)
+            tuned, labelling = _finetuned(part, p, built, today, today_views, captures, seed, work)
+            finetune: dict[str, object] = {"base": TODAY, "sensor": finetune_sensor, **labelling,
+                                           "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed),
+                                           "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed)}
+        before, after, reference = pairs[f"{TODAY}@{finetune_sensor}"], finetune["after@" + finetune_sensor], pairs[f"{RANDOMISED}@{finetune_sensor}"]
+        assert isinstance(after, dict)
+        for key in ("pose_precision", "pose_recall", "pick_success_rate", "seg_precision", "seg_recall"):
+            gap = reference[key] - before[key]
+            finetune[f"gap_closed_{key}"] = (after[key] - before[key]) / gap if gap > 0 else None
+            synthetic_after = finetune["after@" + TODAY]
+            assert isinstance(synthetic_after, dict)
+            finetune[f"synthetic_change_{key}"] = synthetic_after[key] - pairs[f"{TODAY}@{TODAY}"][key]
+        loo = {q: pairs[f"without_{q}@{q}"] for q in presets if f"without_{q}@{q}" in pairs}
+        out["parts"][name] = {  # type: ignore[index]
+            "pairs": pairs, "finetune": finetune, "presets": presets,
+            # The target: a preset never seen against the same preset seen in training.
+            "leave_one_out_gap": {q: {k: pairs[f"{RANDOMISED}@{q}"][k] - v[k] for k in ("pose_precision", "pose_recall", "pick_success_rate")}
+                                  for q, v in loo.items()},
+        }
+    return out
