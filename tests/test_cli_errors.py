@@ -225,3 +225,22 @@ def test_bad_meshes_get_one_line_and_no_model(tmp_path, case):
     proc = _run("-m", "stages.ingest", "--part", "t_joint", "--mesh", str(path), "--out", str(out), "--metrics", str(tmp_path / "m.json"))
     _assert_one_line_error(proc, needle)
     assert not out.exists() and not (tmp_path / "m.json").exists()
+
+
+def test_label_stage_refuses_poses_of_another_part(tmp_path):
+    import json
+
+    poses = tmp_path / "poses.json"
+    poses.write_text(json.dumps({"part": "other", "unit": "m", "frame": "camera", "poses": []}))
+    cloud = tmp_path / "cloud.npz"
+    proc = _run("-m", "stages.label", "--part", "t_joint", "--cloud", str(cloud), "--poses", str(poses), "--ppf", str(tmp_path / "ppf.npz"),
+                "--out", str(tmp_path / "l.npz"))
+    _assert_one_line_error(proc, "cloud.npz", "not found")
+    assert not (tmp_path / "l.npz").exists()
+
+
+def test_learn_commands_name_what_is_missing():
+    proc = _run("-m", "flows.cli", "learn", "review", "--part", "no_such_part")
+    _assert_one_line_error(proc, "no_such_part", "no labelled captures")
+    proc = _run("-m", "flows.cli", "learn", "review", "--part", "t_joint", "--reject", "x")
+    _assert_one_line_error(proc, "--reject goes with --approve")
