@@ -21,7 +21,7 @@ from flows.dvc_tasks import StageFailed, repro_stage
 
 log = logging.getLogger("binpick.flows")
 PART_STAGES = ("ingest", "ppf", "grasps", "generate", "train", "evaluate")
-SCENE_STAGES = ("import_capture", "segment", "register", "pick")
+SCENE_STAGES = ("import_capture", "segment", "register", "label", "pick")
 
 
 @dataclass
@@ -71,7 +71,8 @@ def train_part(part: str, root: Path) -> None:
 
 @flow(name="scene", flow_run_name="scene-{capture}")
 def process_capture(capture: str, root: Path) -> None:
-    """import (+ plane filter) -> segment -> register -> pick for one capture listed in params.yaml."""
+    """import (+ plane filter) -> segment -> register -> label (learning from the cell) -> pick for
+    one capture listed in params.yaml."""
     for stage in SCENE_STAGES:
         repro_stage(f"{stage}@{capture}", root)
 
