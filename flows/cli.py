@@ -722,6 +722,7 @@ def bench_sensors_cmd(
     captures: int = typer.Option(12, min=1, help="captures of the fine-tuning sensor the cell labels itself"),
     finetune_sensor: str = typer.Option("kinect_v1", help="the sensor model the cell's captures come from"),
     leave_one_out: bool = typer.Option(True, help="train a network without each preset and test it on that preset"),
+    trust_margin: float = typer.Option(None, min=0.0, max=1.0, help="the labelling's trust margin (default: learn.trust_margin)"),
     params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
     """Networks trained on today's camera, on the randomised sensor models and without each
@@ -731,7 +732,8 @@ def bench_sensors_cmd(
     from binpick.params import load_params
 
     try:
-        result = bench_sensors(load_params(params), part or ["t_joint"], train_scenes, val_scenes, test_scenes, captures, finetune_sensor, leave_one_out)
+        result = bench_sensors(load_params(params), part or ["t_joint"], train_scenes, val_scenes, test_scenes, captures, finetune_sensor, leave_one_out,
+                               trust_margin=trust_margin)
     except (BinpickError, ValueError) as exc:
         _fail(str(exc))
     _write_json(out, result)

@@ -176,15 +176,19 @@ def _finetuned(part: PartModel, p: Params, built: PartModels, base: Path, synthe
 
 
 def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, n_test: int, n_captures: int, finetune_sensor: str,
-                  leave_one_out: bool = True, seed: int = 0) -> dict[str, object]:
+                  leave_one_out: bool = True, seed: int = 0, trust_margin: float | None = None) -> dict[str, object]:
     """settings: the project's params (its train section sizes the networks, its bin and camera
     are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
     network; n_test: cluttered test bins per test sensor; n_captures: captures of
-    finetune_sensor the cell labels itself."""
+    finetune_sensor the cell labels itself; trust_margin: instead of learn.trust_margin."""
     from binpick.bench.parts import bench_parts
 
+    if trust_margin is not None:
+        settings = settings.model_copy(update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})})
+
     out: dict[str, object] = {"machine": machine(), "n_train": n_train, "n_val": n_val, "n_test": n_test, "n_captures": n_captures,
-                              "tilt_deg_max": TILT_DEG_MAX, "renderer_only": True, "parts": {}}
+                              "tilt_deg_max": TILT_DEG_MAX, "renderer_only": True, "trust_margin": settings.learn.trust_margin,
+                              "parts": {}}
     presets = sorted(settings.generate.sensor.models)
     if finetune_sensor not in presets:
         raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")
