@@ -21,7 +21,6 @@ model.pt, so that `dvc repro` stays reproducible.
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import shutil
 from dataclasses import dataclass, field
@@ -30,8 +29,9 @@ from pathlib import Path
 import numpy as np
 
 from binpick.errors import BinpickError, InputError
-from binpick.io.atomic import atomic_path, write_text
+from binpick.io.atomic import atomic_path
 from binpick.io.labelled_capture import LabelledCapture, list_labelled_captures, load_labelled_capture
+from binpick.io.review_record import load_review_record, save_review_record
 from binpick.learning import IGNORE
 from binpick.params import Params
 
@@ -53,14 +53,7 @@ def file_sha256(path: Path) -> str:
 
 def load_reviewed(folder: Path) -> dict[str, dict]:
     """capture -> {"sha256": of the labelled file reviewed, "approved": bool}."""
-    path = folder / REVIEWED
-    if not path.is_file():
-        return {}
-    try:
-        doc = json.loads(path.read_text())
-        return {str(k): {"sha256": str(v["sha256"]), "approved": bool(v["approved"])} for k, v in doc.items()}
-    except (ValueError, KeyError, TypeError, AttributeError) as exc:
-        raise InputError(path, f"not a review record ({type(exc).__name__}: {exc})") from None
+    return load_review_record(folder / REVIEWED)
 
 
 def approved_captures(folder: Path) -> list[Path]:
@@ -108,7 +101,7 @@ def review(root: Path, part: str, approve: bool = False, reject: list[str] | Non
         ok = p.stem not in (reject or [])
         reviewed[p.stem] = {"sha256": file_sha256(p), "approved": ok}
         (result.approved if ok else result.rejected).append(p.stem)
-    write_text(folder / REVIEWED, json.dumps(dict(sorted(reviewed.items())), indent=1) + "\n")
+    save_review_record(folder / REVIEWED, reviewed)
     return result
 
 
