@@ -79,7 +79,6 @@ def unit_note(root: Path, part: str) -> str | None:
     return f"unit guessed: {unit}" if unit else None
 
 
-@flow(name="watch-parts", flow_run_name="watch-parts")
 @task(name="finetune-part")
 def finetune_part(root: Path, part: str) -> str | None:
     """Fine-tune the part on its approved real captures when enough are new; what happened, in
@@ -99,6 +98,7 @@ def finetune_part(root: Path, part: str) -> str | None:
             f"before {result['before_real_precision']:.2f}/{result['before_real_recall']:.2f})")
 
 
+@flow(name="watch-parts", flow_run_name="watch-parts")
 def watch_parts(root: Path) -> Outcome:
     """Register new parts, then train and evaluate each part that is not up to date."""
     root = Path(root)
