@@ -130,3 +130,15 @@ def test_a_network_worse_on_either_test_is_not_served():
     assert not no_worse(before, {**before, "real_recall": 0.9, "synthetic_precision": 0.94}, 0.0)
     assert no_worse(before, {**before, "synthetic_precision": 0.94}, 0.02)
     assert not no_worse(before, {**before, "real_precision": 0.7}, 0.02)
+
+
+def test_the_watcher_is_a_flow_that_fine_tunes_in_a_task_of_its_own():
+    """`binpick serve` deploys watch_parts as a Prefect flow; the fine-tuning runs as its task (a
+    decorator once slid onto the wrong function and the schedule silently stopped working)."""
+    from prefect import Flow
+    from prefect.tasks import Task
+
+    from flows.watcher import finetune_part, watch_parts
+
+    assert isinstance(watch_parts, Flow) and watch_parts.name == "watch-parts"
+    assert isinstance(finetune_part, Task) and finetune_part.name == "finetune-part"
