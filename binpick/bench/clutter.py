@@ -13,7 +13,9 @@ camera is tilted up to `tilt_deg_max` (45 by default), as a cell camera mounted 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -24,12 +26,13 @@ from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.metrics.pose import MIN_VISIBLE_FRACTION, scene_pose_metrics
-from binpick.params import Params
+from binpick.params import BinParams, Params
 from binpick.registration.model import train_ppf
 from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
+Group = TypeVar("Group")
 
 CUP = "icbin_coffee_cup"
 DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe", CUP)
@@ -141,7 +144,8 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
             H, W = scene.labels.shape
             xyz = scene.xyz_m.reshape(-1, 3)
             # The bin actually drawn for this scene (clutter scales it): the one in the scene's frame.
-            inner_x, inner_y, tilt_deg = _drawn_bin(p, part, seed * 1000 + k)
+            drawn, tilt_deg = drawn_bin(p, part, seed * 1000 + k)
+            inner_x, inner_y = drawn.inner_x_m, drawn.inner_y_m
             for models, rows in ((new, rows_new), (base, rows_base)):
                 try:
                     poses = process(xyz, None, (H, W), models, SceneSeeds.of(seed, f"clutter-{part.name}-{k}")).registration.poses
@@ -158,18 +162,18 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
     return {
         "machine": machine(), "parts": per_part,
         **_summary(all_new), **{f"baseline_{k}": v for k, v in _summary(all_base).items()},
-        "by_tilt": {band: _summary(rows) for band, rows in sorted(by_band.items(), key=lambda kv: float(kv[0].split("-")[0]))},
+        "by_tilt": per_band(by_band, _summary),
         "min_visible_fraction": MIN_VISIBLE_FRACTION, "clutter": {k: list(v) if isinstance(v, tuple) else v for k, v in CLUTTER.items()},
     }
 
 
-def _drawn_bin(p: Params, part: PartModel, seed: int) -> tuple[float, float, float]:
-    """The inner bin size generate_scene drew for this seed (it draws clutter from its own
-    stream) and the camera's tilt from the bin's up axis, degrees."""
+def drawn_bin(p: Params, part: PartModel, seed: int | np.random.SeedSequence) -> tuple[BinParams, float]:
+    """The bin generate_scene drew for this seed (it draws clutter from its own stream) and the
+    camera's tilt from the bin's up axis, degrees."""
     from binpick.generation.scene import clutter_generator, draw_clutter
 
     generate, _, T_bin_camera, _ = draw_clutter(p.generate, p.camera, part.diameter_m, clutter_generator(seed))
-    return generate.bin.inner_x_m, generate.bin.inner_y_m, camera_tilt_deg(T_bin_camera)
+    return generate.bin, camera_tilt_deg(T_bin_camera)
 
 
 def camera_tilt_deg(T_bin_from_camera: np.ndarray) -> float:
@@ -181,3 +185,8 @@ def tilt_band(tilt_deg: float) -> str:
     """The band of TILT_BAND_DEG a tilt falls in, as "lo-hi" degrees ("0-15", "15-30", ...)."""
     lo = int(tilt_deg // TILT_BAND_DEG) * int(TILT_BAND_DEG)
     return f"{lo}-{lo + int(TILT_BAND_DEG)}"
+
+
+def per_band(groups: dict[str, Group], summarise: Callable[[Group], dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Each band's figures (summarise of its group), the bands in order of tilt."""
+    return {band: summarise(group) for band, group in sorted(groups.items(), key=lambda kv: int(kv[0].split("-")[0]))}

@@ -34,7 +34,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from binpick.bench import machine
-from binpick.bench.clutter import TILT_DEG_MAX, scaled_settings, tilt_band
+from binpick.bench.clutter import TILT_DEG_MAX, per_band, scaled_settings, tilt_band
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.physics import SettleSettings, settle
@@ -265,7 +265,7 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
                               "parts": per_part}
     total = Tally()
     all_cycles: list[float] = []
-    by_band: dict[str, tuple[Tally, list[float], list[int]]] = {}
+    by_band: dict[str, list[tuple[Tally, list[float]]]] = {}  # band -> (tally, cycles) of each bin
     for part in parts:
         p = picking_settings(settings, part)
         p = p.model_copy(update={"pick": p.pick.model_copy(update={"gripper": kind})})
@@ -288,17 +288,22 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
                 log.info("%s bin %d (camera tilted %.0f degrees): %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
                          part.name, b, tilt_deg, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
                 tally.add(one)
-                band = by_band.setdefault(tilt_band(tilt_deg), (Tally(), [], [0]))
-                band[0].add(one)
-                band[1].extend(cycles[first_cycle:])
-                band[2][0] += 1
+                by_band.setdefault(tilt_band(tilt_deg), []).append((one, cycles[first_cycle:]))
         per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if models.segmenter is not None else 0.0,
                                    "diameter_mm": 1000.0 * part.diameter_m}
         total.add(tally)
         all_cycles += cycles
     out.update(_keys(total, all_cycles, n_bins * len(parts)))
-    out["by_tilt"] = {name: _keys(t, c, n[0]) for name, (t, c, n) in sorted(by_band.items(), key=lambda kv: float(kv[0].split("-")[0]))}
+    out["by_tilt"] = per_band(by_band, _band_keys)
     return out
+
+
+def _band_keys(bins: list[tuple[Tally, list[float]]]) -> dict[str, float]:
+    """The keys over the bins of one band of tilt."""
+    total = Tally()
+    for one, _ in bins:
+        total.add(one)
+    return _keys(total, [c for _, cycles in bins for c in cycles], len(bins))
 
 
 def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:

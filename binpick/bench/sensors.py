@@ -34,11 +34,11 @@ from pathlib import Path
 import numpy as np
 
 from binpick.bench import machine
-from binpick.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, scaled_settings
+from binpick.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
 from binpick.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
-from binpick.generation.scene import clutter_generator, draw_clutter, generate_scene
+from binpick.generation.scene import generate_scene
 from binpick.geometry.transforms import transform_points
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
@@ -120,7 +120,8 @@ def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes
     seg = SegmentationCounts()
     good = 0
     for k, (scene, s) in enumerate(scenes):
-        drawn, _, _, _ = draw_clutter(_generate(p, [], True), p.camera, part.diameter_m, clutter_generator(s))
+        # The bin generate_scene drew (sensor presets draw from a stream of their own).
+        drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
         H, W = scene.labels.shape
         try:
             result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-{part.name}-{k}"))
@@ -128,12 +129,12 @@ def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes
         except BinpickError as exc:
             log.warning("%s test scene %d: %s", part.name, k, exc)
             poses, plan = [], None
-        rows.append(_score(poses, scene, ppf, part, drawn.bin.inner_x_m, drawn.bin.inner_y_m))
+        rows.append(_score(poses, scene, ppf, part, drawn.inner_x_m, drawn.inner_y_m))
         seg = seg.add(segment_and_count(models.segmenter, scene, p.segment, p.evaluate.iou_threshold, seed, k)[1])
         if plan is not None and plan.picks:
             first = plan.picks[0]
             target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
-            bins = np.concatenate([_surface(m) for m in bin_meshes(drawn.bin)])
+            bins = np.concatenate([_surface(m) for m in bin_meshes(drawn)])
             if target is not None and not _path_hits(first, p.pick.gripper, p, target, scene.T_cam_from_model, part,
                                                      transform_points(scene.T_cam_from_bin, bins)):
                 good += 1
