@@ -34,6 +34,7 @@ from binpick.io.labelled_capture import LabelledCapture, list_labelled_captures,
 from binpick.io.review_record import load_review_record, save_review_record
 from binpick.learning import IGNORE
 from binpick.params import Params
+from stages.common import file_sha256
 
 log = logging.getLogger(__name__)
 
@@ -45,10 +46,6 @@ IGNORED_GREY = np.array([110, 110, 110], np.uint8)
 
 def real_folder(root: Path, part: str) -> Path:
     return root / "data" / "real" / part
-
-
-def file_sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def load_reviewed(folder: Path) -> dict[str, dict]:
@@ -212,7 +209,8 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     best = finetune_fpcc(state, synthetic_train + real, synthetic_val, params.train, lp.finetune_epochs, lp.finetune_learning_rate,
                          derive_int(params.seed, "finetune", part), work, default_device(), progress)
     candidate = work / "candidate.pt"
-    base_sha = read_checkpoint(root / "data" / "fpcc" / part / "model.pt")["sha256"]
+    # The model.pt this line descends from: the served one's base (served_checkpoint checked it), or itself.
+    base_sha = state["extra"]["finetuned_from"] if current.name == SERVED else state["sha256"]
     write_finetuned(best, candidate, state, base_sha, sorted(learnt | {p.stem for p in train}), sorted((seen - learnt) | {p.stem for p in test}))
     before = score(current, params, scenes / "test", test)
     after = score(candidate, params, scenes / "test", test)
