@@ -55,19 +55,13 @@ def fpcc_loss(
     for b in range(B):
         target = centre_score_targets(points[b], labels[b], d_max_m, form)
         known = labels[b] >= 0
-        if bool(known.all()):
-            ctr_terms.append(F.smooth_l1_loss(centre[b], target))
-            m = min(n_anchors, N)
-            anchors = torch.randperm(N, generator=generator, device="cpu")[:m].to(embedding.device)
-        else:
-            index = torch.nonzero(known).squeeze(1)
-            if not len(index):  # nothing to learn from in this crop: no gradient, no term
-                ctr_terms.append(centre[b].sum() * 0.0)
-                emb_terms.append(embedding[b].sum() * 0.0)
-                continue
-            ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
-            order = torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))]
-            anchors = index[order.to(index.device)]
+        index = torch.nonzero(known).squeeze(1)  # every point of a synthetic scene
+        if not len(index):  # nothing to learn from in this crop: no gradient, no term
+            ctr_terms.append(centre[b].sum() * 0.0)
+            emb_terms.append(embedding[b].sum() * 0.0)
+            continue
+        ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
+        anchors = index[torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))].to(index.device)]
         valid = (torch.cdist(points[b, anchors], points[b]) <= 2.0 * d_max_m) & known[None, :]  # (m, N)
         attention = (target[anchors, None] + target[None, :]).clamp(max=1.0)  # (m, N)
         same = labels[b, anchors, None] == labels[b][None, :]
