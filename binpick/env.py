@@ -9,6 +9,8 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+from binpick.layout import Layout
+
 _DEFAULTS = {
     # MLflow ignores DO_NOT_TRACK=1; it wants the word.
     "MLFLOW_DISABLE_TELEMETRY": "true",
@@ -42,5 +44,5 @@ def configure_environment(root: Path | None = None) -> None:
     for key, value in _DEFAULTS.items():
         os.environ.setdefault(key, value)
     root = root or project_root()
-    os.environ.setdefault("PREFECT_HOME", str(root / "data" / "prefect"))
+    os.environ.setdefault("PREFECT_HOME", str(Layout(root).prefect))
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")

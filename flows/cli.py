@@ -14,6 +14,7 @@ import typer
 
 from binpick.env import configure_environment, project_root
 from binpick.errors import BinpickError
+from binpick.layout import Layout
 from binpick.log import setup_logging
 
 if TYPE_CHECKING:
@@ -63,7 +64,7 @@ def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug log
 
 
 @app.command("default-part")
-def default_part(out: Path = typer.Option(Path("data/parts/t_joint.stl"), help="STL to write (millimetres)")) -> None:
+def default_part(out: Path = typer.Option(Layout(Path()).parts_folder / "t_joint.stl", help="STL to write (millimetres)")) -> None:
     """Write the built-in T-joint pipe part as an STL file (millimetres)."""
     from binpick.io.mesh import save_mesh
     from binpick.parts import build_t_joint_mesh
@@ -77,7 +78,7 @@ def review_commands(root: Path, capture: str = "demo") -> list[str]:
     """The commands that open the latest results (loopback only)."""
     bin_dir = Path(sys.executable).parent
     return [
-        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{root / 'data' / 'mlflow' / 'mlflow.db'} --host 127.0.0.1 --port 5000",
+        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{Layout(root).mlflow_store} --host 127.0.0.1 --port 5000",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'picks.rrd'}",
         # rerun binds to every interface unless told otherwise
@@ -315,7 +316,7 @@ def requests(
         capture = next(iter(sorted(folder.glob("capture.*"))), None)
         if capture is None:
             _fail(f"{folder}: the capture was not kept")
-        target = root / "data" / "captures" / "service" / f"{folder.name}{capture.suffix}"
+        target = Layout(root).service_captures / f"{folder.name}{capture.suffix}"
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(capture, target)
         name = folder.name.replace("T", "_", 1)[:64]
@@ -410,7 +411,7 @@ def review(capture: str = typer.Option("demo", help="capture whose recording to 
     """Print the commands that open the latest run in the MLflow UI and the rerun viewer (native or
     in the browser), all bound to 127.0.0.1."""
     root = project_root()
-    rrd = root / "data" / "results" / capture / "scene.rrd"
+    rrd = Layout(root).scene_recording(capture)
     if not rrd.is_file():
         _fail(f"{rrd}: no recording yet (run `make demo` or `dvc repro register@{capture}` first)")
     for cmd in review_commands(root, capture):
@@ -471,12 +472,12 @@ def fit_bin(
         _fail(f"{root / entry.file}: {exc}")
     in_bin = transform_points(invert_T(box.T_cam_from_bin), pts)
     inside = np.all((in_bin >= box.inner_min_m) & (in_bin <= box.inner_max_m), axis=1)
-    rrd = root / "data" / "results" / capture / "bin.rrd"
+    rrd = Layout(root).bin_recording(capture)
     write_bin_recording(rrd, capture, pts, cap.rgb[valid] if cap.rgb is not None else None, inside, box.T_cam_from_bin, box.inner_min_m, box.inner_max_m)
     size = 1000 * (box.inner_max_m - box.inner_min_m)
     typer.echo(f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
                f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}")
-    part_model = root / "data" / "models" / entry.part / "part.npz"
+    part_model = Layout(root).part_model(entry.part)
     diameter = None
     if part_model.is_file():
         from binpick.io.part_model import load_part_model
@@ -507,7 +508,7 @@ def hand_eye(
     setup: str = typer.Option("eye-to-hand", help="eye-to-hand (camera fixed, board on the flange) or eye-in-hand"),
     pattern: str = typer.Option("9x6", help="inner corners of the checkerboard, columns x rows"),
     square_mm: float = typer.Option(25.0, min=0.1, help="side of a checkerboard square"),
-    out: Path = typer.Option(Path("data/hand_eye.json"), help="result to write"),
+    out: Path = typer.Option(Layout(Path()).hand_eye, help="result to write"),
     apply: bool = typer.Option(False, "--apply", help="eye-to-hand: write T_base_from_cam into params.yaml (pick.T_base_from_cam)"),
     params: Path = typer.Option(Path("params.yaml")),
 ) -> None:
@@ -606,9 +607,9 @@ def overlay(
     root = project_root()
     try:
         entry, options = _listed_capture(load_params(params), params, capture, root)
-        drawn = overlay_capture(root / entry.file, options, root / "data" / "results" / capture / "poses.json",
-                                root / "data" / "models" / entry.part / "part.npz", image)
-        target = out or root / "data" / "results" / capture / "overlay.png"
+        layout = Layout(root)
+        drawn = overlay_capture(root / entry.file, options, layout.poses(capture), layout.part_model(entry.part), image)
+        target = out or layout.overlay(capture)
         with atomic_path(target) as tmp:
             Image.fromarray(drawn).save(tmp)
     except BinpickError as exc:
@@ -618,7 +619,7 @@ def overlay(
 
 def _checkpoints(root: Path, names: list[str]) -> dict[str, Path]:
     """Where each part's trained network lives (the benchmarks use those that exist)."""
-    return {n: root / "data" / "fpcc" / n / "model.pt" for n in names}
+    return {n: Layout(root).checkpoint(n) for n in names}
 
 
 def _write_json(out: Path, result: dict) -> None:
@@ -803,7 +804,7 @@ def _trained_part_paths(part: str, checkpoint: Path | None, scenes: Path | None)
     """The part's checkpoint and generated data set, where the train and generate stages put them
     unless given."""
     root = project_root()
-    return checkpoint or root / "data" / "fpcc" / part / "model.pt", scenes or root / "data" / "scenes" / part
+    return checkpoint or Layout(root).checkpoint(part), scenes or Layout(root).scenes(part)
 
 
 @bench_app.command("segment")

@@ -32,6 +32,7 @@ from binpick.errors import BinpickError, InputError
 from binpick.io.atomic import atomic_path
 from binpick.io.labelled_capture import LabelledCapture, list_labelled_captures, load_labelled_capture
 from binpick.io.review_record import load_review_record, save_review_record
+from binpick.layout import Layout
 from binpick.learning import IGNORE
 from binpick.params import Params
 from stages.common import file_sha256
@@ -39,13 +40,8 @@ from stages.common import file_sha256
 log = logging.getLogger(__name__)
 
 REVIEWED = "reviewed.json"
-SERVED = "served.pt"
 REVIEW_RECORDING = "review.rrd"
 IGNORED_GREY = np.array([110, 110, 110], np.uint8)
-
-
-def real_folder(root: Path, part: str) -> Path:
-    return root / "data" / "real" / part
 
 
 def load_reviewed(folder: Path) -> dict[str, dict]:
@@ -78,7 +74,7 @@ def review(root: Path, part: str, approve: bool = False, reject: list[str] | Non
     """Without approve: write a rerun recording of the pending labelled captures of `part` to
     data/work/<part>/review.rrd. With approve: record every pending capture as approved, except
     those named in reject (recorded as rejected)."""
-    folder = real_folder(root, part)
+    folder = Layout(root).real(part)
     if not folder.is_dir():
         raise BinpickError(f"part {part!r} has no labelled captures: run the pipeline on its captures first (`binpick repro`)")
     pending = pending_captures(folder)
@@ -89,7 +85,7 @@ def review(root: Path, part: str, approve: bool = False, reject: list[str] | Non
     if not approve:
         if not pending:
             return Review()
-        out = root / "data" / "work" / part / REVIEW_RECORDING
+        out = Layout(root).work(part) / REVIEW_RECORDING
         write_review_recording(out, part, _part_model(root, part), [(p.stem, load_labelled_capture(p)) for p in pending])
         return Review(recording=out, pending=names)
     reviewed = load_reviewed(folder)
@@ -105,7 +101,7 @@ def review(root: Path, part: str, approve: bool = False, reject: list[str] | Non
 def _part_model(root: Path, part: str):
     from binpick.io.part_model import load_part_model
 
-    return load_part_model(root / "data" / "models" / part / "part.npz")
+    return load_part_model(Layout(root).part_model(part))
 
 
 def write_review_recording(path: Path, part: str, part_model, captures: list[tuple[str, LabelledCapture]]) -> None:
@@ -145,8 +141,7 @@ def served_checkpoint(root: Path, part: str) -> Path | None:
     fine-tuned from the current model.pt, else model.pt; None when the part has no network."""
     from binpick.network.checkpoint import read_checkpoint
 
-    folder = root / "data" / "fpcc" / part
-    base, served = folder / "model.pt", folder / SERVED
+    base, served = Layout(root).checkpoint(part), Layout(root).served_checkpoint(part)
     if not base.is_file():
         return None
     if served.is_file():
@@ -189,7 +184,7 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     # Captures the served network learnt from or was judged by are not new.
     learnt = set(state["extra"].get("real_scenes", []))
     seen = learnt | set(state["extra"].get("real_heldout", []))
-    approved = approved_captures(real_folder(root, part))
+    approved = approved_captures(Layout(root).real(part))
     new = [p.stem for p in approved if p.stem not in seen]
     outcome: dict[str, object] = {"part": part, "served_before": current.name, "approved": len(approved), "new": len(new)}
     if len(new) < lp.min_new_scenes and not force:
@@ -200,17 +195,18 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     if not test or not train:
         raise BinpickError(f"{part}: {len(approved)} approved captures give {len(train)} to learn from and {len(test)} to judge by; "
                            "both need at least one (approve more captures)")
-    scenes = root / "data" / "scenes" / part
+    layout = Layout(root)
+    scenes = layout.scenes(part)
     synthetic_train, synthetic_val = load_views(scenes / "train"), load_views(scenes / "val")
     real = Views.of_captures([load_labelled_capture(p) for p in train])
-    work = root / "data" / "work" / part / "finetune"
+    work = layout.work(part) / "finetune"
     log.info("%s: fine-tuning %s on %d synthetic + %d real scenes, judging on %d held-back captures", part, current.name,
              len(synthetic_train), len(real), len(test))
     best = finetune_fpcc(state, synthetic_train + real, synthetic_val, params.train, lp.finetune_epochs, lp.finetune_learning_rate,
                          derive_int(params.seed, "finetune", part), work, default_device(), progress)
     candidate = work / "candidate.pt"
     # The model.pt this line descends from: the served one's base (served_checkpoint checked it), or itself.
-    base_sha = state["extra"]["finetuned_from"] if current.name == SERVED else state["sha256"]
+    base_sha = state["extra"]["finetuned_from"] if current == layout.served_checkpoint(part) else state["sha256"]
     write_finetuned(best, candidate, state, base_sha, sorted(learnt | {p.stem for p in train}), sorted((seen - learnt) | {p.stem for p in test}))
     before = score(current, params, scenes / "test", test)
     after = score(candidate, params, scenes / "test", test)
@@ -218,7 +214,7 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     outcome.update({"finetuned": True, "served": serve, "n_train_real": len(real), "n_heldout_real": len(test),
                     **{f"before_{k}": v for k, v in before.items()}, **{f"after_{k}": v for k, v in after.items()}})
     if serve:
-        served = root / "data" / "fpcc" / part / SERVED
+        served = layout.served_checkpoint(part)
         with atomic_path(served) as tmp:
             shutil.copyfile(candidate, tmp)
         outcome["version"] = _register(params, part, served, outcome)

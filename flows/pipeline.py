@@ -15,6 +15,7 @@ from prefect import flow, task
 
 from binpick.errors import InputError
 from binpick.io.capture import CAPTURE_SUFFIXES
+from binpick.layout import Layout
 from binpick.params import add_captures, check_project_path, load_raw, part_name_for
 from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, repro_stage
@@ -141,11 +142,10 @@ def process_folder(root: Path, folder: Path, part: str, unit: str = "mm") -> tup
         except StageFailed as exc:
             outcome.failed[name] = exc.reason
             set_aside(root, "captures", name, exc.reason)
-    return outcome, {name: read_metrics(root, "scenes", name, "register.json") for name in outcome.ran}
+    return outcome, {name: read_metrics(Layout(root).scene_metrics(name, "register")) for name in outcome.ran}
 
 
-def read_metrics(root: Path, *parts: str) -> dict[str, float]:
-    path = root.joinpath("data", "metrics", *parts)
+def read_metrics(path: Path) -> dict[str, float]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
@@ -156,11 +156,8 @@ def demo(root: Path, part: str = "t_joint", capture: str = "demo") -> dict[str, 
     train_part(part, root)
     repro_stage("render_demo", root)
     process_capture(capture, root)
+    layout = Layout(root)
     return {
-        "evaluate": read_metrics(root, part, "evaluate.json"),
-        "train": read_metrics(root, part, "train.json"),
-        "register": read_metrics(root, "scenes", capture, "register.json"),
-        "segment": read_metrics(root, "scenes", capture, "segment.json"),
-        "import": read_metrics(root, "scenes", capture, "import.json"),
-        "pick": read_metrics(root, "scenes", capture, "pick.json"),
+        **{stage: read_metrics(layout.part_metrics(part, stage)) for stage in ("evaluate", "train")},
+        **{stage: read_metrics(layout.scene_metrics(capture, stage)) for stage in ("register", "segment", "import", "pick")},
     }

@@ -54,6 +54,7 @@ from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
 from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.poses import save_poses
+from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene_path import PartModels, SceneSeeds, process
 from flows.learn import served_checkpoint
@@ -85,8 +86,8 @@ def load_parts(root: Path, params_path: Path) -> dict[str, Served]:
     base = load_params(params_path)
     served: dict[str, Served] = {}
     for name in base.parts:
-        folder = root / "data" / "models" / name
-        needed = [folder / "part.npz", folder / "ppf.npz", folder / "grasps.json"]
+        layout = Layout(root)
+        needed = [layout.part_model(name), layout.ppf_model(name), layout.grasps(name)]
         if not all(p.is_file() for p in needed):
             log.warning("not serving %s: its models are not built (run make repro)", name)
             continue

@@ -16,13 +16,13 @@ from prefect import flow, task
 from prefect.logging import get_run_logger
 
 from binpick.io.mesh import MESH_SUFFIXES
+from binpick.layout import Layout
 from binpick.params import add_parts, load_raw, part_name_for
 from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, dvc_env
 from flows.pipeline import PART_STAGES, Outcome, safe_file_name, train_part
 
 log = logging.getLogger("binpick.watch")
-PARTS_FOLDER = Path("data") / "parts"
 
 
 @task(name="add-new-parts")
@@ -34,7 +34,7 @@ def add_new_parts(root: Path) -> tuple[list[str], dict[str, str]]:
     names = set(raw.get("parts") or {})
     new: dict[str, str] = {}
     refused: dict[str, str] = {}
-    for mesh in sorted((root / PARTS_FOLDER).iterdir()):
+    for mesh in sorted(Layout(root).parts_folder.iterdir()):
         rel = mesh.relative_to(root).as_posix()
         if mesh.suffix.lower() not in MESH_SUFFIXES or rel in listed:
             continue
@@ -72,7 +72,7 @@ def stale_parts(root: Path, parts: list[str]) -> list[str]:
 def unit_note(root: Path, part: str) -> str | None:
     """'unit guessed: mm' for a part whose unit is `auto`, from its ingest metrics."""
     entry = (load_raw(root / "params.yaml").get("parts") or {}).get(part) or {}
-    path = root / "data" / "metrics" / part / "ingest.json"
+    path = Layout(root).part_metrics(part, "ingest")
     if entry.get("unit", "auto") != "auto" or not path.is_file():
         return None
     unit = json.loads(path.read_text()).get("unit")
@@ -117,7 +117,7 @@ def watch_parts(root: Path) -> Outcome:
         if note:
             outcome.notes[part] = note
     for part in sorted(plan.pipeline.parts):
-        if part not in outcome.failed and (root / "data" / "fpcc" / part / "model.pt").is_file():
+        if part not in outcome.failed and Layout(root).checkpoint(part).is_file():
             learnt = finetune_part(root, part)
             if learnt:
                 outcome.notes[part] = "; ".join(filter(None, [outcome.notes.get(part), learnt]))

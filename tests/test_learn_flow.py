@@ -13,10 +13,11 @@ from binpick.errors import BinpickError
 from binpick.io.labelled_capture import LabelledCapture, save_labelled_capture
 from binpick.io.part_model import save_part_model
 from binpick.io.scene import SyntheticScene, save_scene
+from binpick.layout import Layout
 from binpick.learning import IGNORE
 from binpick.network.checkpoint import read_checkpoint
 from binpick.network.train import train_fpcc
-from flows.learn import SERVED, approved_captures, finetune, heldout, no_worse, pending_captures, real_folder, review, served_checkpoint
+from flows.learn import approved_captures, finetune, heldout, no_worse, pending_captures, review, served_checkpoint
 
 from settings import PARAMS, changed
 
@@ -61,7 +62,7 @@ def project(tmp_path):
     (tmp_path / "work" / "best.pt").replace(tmp_path / "data" / "fpcc" / PART / "model.pt")
     (tmp_path / "data" / "models" / PART).mkdir(parents=True)
     save_part_model(tmp_path / "data" / "models" / PART / "part.npz", box_part_model([0.03, 0.03, 0.002]))
-    folder = real_folder(tmp_path, PART)
+    folder = Layout(tmp_path).real(PART)
     folder.mkdir(parents=True)
     names = [n for n in (f"c{i}" for i in range(40)) if heldout(n, 0.5)][:2] + [n for n in (f"c{i}" for i in range(40)) if not heldout(n, 0.5)][:2]
     for name in names:
@@ -78,7 +79,7 @@ def _settings(tmp_path, **learn):
 
 
 def test_captures_are_learnt_from_only_once_approved_as_they_are(project):
-    folder = real_folder(project, PART)
+    folder = Layout(project).real(PART)
     shown = review(project, PART)
     assert shown.recording is not None and shown.recording.stat().st_size > 0 and len(shown.pending) == 4
     with pytest.raises(BinpickError, match="no pending labelled capture"):
@@ -104,12 +105,12 @@ def test_finetuning_waits_for_enough_new_captures_then_serves_a_network_no_worse
     # Any drop allowed: the fine-tuned network is served, registered and aliased.
     result = finetune(project, _settings(project, max_drop=1.0), PART, progress=False)
     assert result["finetuned"] and result["served"] and result["n_train_real"] == 2 and result["n_heldout_real"] == 2
-    served = project / "data" / "fpcc" / PART / SERVED
+    served = Layout(project).served_checkpoint(PART)
     assert served_checkpoint(project, PART) == served
     extra = read_checkpoint(served)["extra"]
     assert extra["finetuned_from"] == read_checkpoint(base)["sha256"]
     # It learnt from the two captures the hash does not hold back.
-    assert extra["real_scenes"] == sorted(p.stem for p in real_folder(project, PART).glob("*.npz") if not heldout(p.stem, 0.5))
+    assert extra["real_scenes"] == sorted(p.stem for p in Layout(project).real(PART).glob("*.npz") if not heldout(p.stem, 0.5))
     mlflow.set_tracking_uri(f"sqlite:///{project / 'mlflow' / 'mlflow.db'}")
     version = mlflow.MlflowClient().get_model_version_by_alias(f"fpcc-{PART}", PARAMS.learn.serve_alias)
     assert str(version.version) == result["version"]

@@ -43,6 +43,7 @@ from binpick.io.part_model import PartModel, save_part_model
 from binpick.io.ppf_model import save_ppf_model
 from binpick.io.scene import SyntheticScene
 from binpick.io.zdf import save_zdf_v1
+from binpick.layout import Layout
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import GenerateParams, Params
 from binpick.scene_path import PartModels, SceneSeeds, process
@@ -94,16 +95,16 @@ class ServiceProject:
                     doc["parts"][name] = entry
 
         _edit(root / "params.yaml", add_parts)
+        layout = Layout(root)
         for name, m in models.items():
-            folder = root / "data" / "models" / name
-            folder.mkdir(parents=True, exist_ok=True)
-            save_part_model(folder / "part.npz", m.part)
-            save_ppf_model(folder / "ppf.npz", m.ppf)
+            layout.part_folder(name).mkdir(parents=True, exist_ok=True)
+            save_part_model(layout.part_model(name), m.part)
+            save_ppf_model(layout.ppf_model(name), m.ppf)
             assert m.grasps is not None
-            save_grasps(folder / "grasps.json", name, {m.grasps.kind: m.grasps}, "generated")
+            save_grasps(layout.grasps(name), name, {m.grasps.kind: m.grasps}, "generated")
             if name in checkpoints and checkpoints[name].is_file():
-                (root / "data" / "fpcc" / name).mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(checkpoints[name], root / "data" / "fpcc" / name / "model.pt")
+                layout.network_folder(name).mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(checkpoints[name], layout.checkpoint(name))
         self.http_port, self.tcp_port = _free_port(), _free_port()
         self.process: subprocess.Popen | None = None
         self.log_file: IO[str] | None = None
@@ -217,7 +218,8 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
     per: dict[str, dict[str, dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="binpick-bench-scene-") as tmp:
         root = Path(tmp)
-        (root / "data" / "captures").mkdir(parents=True)
+        captures_folder = Layout(root).captures_folder
+        captures_folder.mkdir(parents=True)
         models: dict[str, PartModels] = {}
         entries: dict[str, dict] = {}
         cases: dict[tuple[str, int], list[tuple[Path, SyntheticScene]]] = {}
@@ -226,7 +228,7 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
             models[part.name] = bench_models(part, p, checkpoints.get(part.name))
             entries[part.name] = {"mesh": f"data/parts/{part.name}.stl", "unit": "m", **_overrides(p)}
             for n in BIN_SIZES:
-                cases[(part.name, n)] = _captures(part, p, n, CAPTURES_PER_CASE, root / "data" / "captures", seed)
+                cases[(part.name, n)] = _captures(part, p, n, CAPTURES_PER_CASE, captures_folder, seed)
             for n in BIN_SIZES:
                 steps: dict[str, list[float]] = {k: [] for k in ("import_s", "segment_s", "register_s", "pick_s", "pipeline_s")}
                 rows = []
@@ -311,8 +313,9 @@ def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients:
     models = bench_models(part, p, checkpoint)
     with tempfile.TemporaryDirectory(prefix="binpick-soak-") as tmp:
         root = Path(tmp)
-        (root / "data" / "captures").mkdir(parents=True)
-        captures = [path for path, _ in _captures(part, p, 8, n_captures, root / "data" / "captures", seed)]
+        captures_folder = Layout(root).captures_folder
+        captures_folder.mkdir(parents=True)
+        captures = [path for path, _ in _captures(part, p, 8, n_captures, captures_folder, seed)]
         text = settings_text.replace("keep_requests: 500", "keep_requests: 50")
         service = ServiceProject(root, text, {"t_joint": _overrides(p)}, {"t_joint": models}, {"t_joint": checkpoint} if checkpoint else {})
         failures: list[str] = []

@@ -19,9 +19,11 @@ import yaml
 
 from binpick.errors import InputError
 from binpick.io.atomic import write_text
+from binpick.layout import Layout
 
-PIPELINE_VARS = Path("data") / "pipeline.yaml"
-SET_ASIDE = Path("data") / "set_aside.yaml"
+# Relative to the project root (the message of a stale variables file names it so).
+PIPELINE_VARS = Layout(Path()).pipeline_vars
+SET_ASIDE = Layout(Path()).set_aside
 KINDS = ("parts", "captures")
 
 _HEADER = (

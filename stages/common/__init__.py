@@ -17,6 +17,7 @@ from typing import Any
 from binpick.env import configure_environment, project_root
 from binpick.errors import BinpickError
 from binpick.io.atomic import write_text
+from binpick.layout import Layout
 from binpick.log import setup_logging
 
 log = logging.getLogger("binpick.stage")
@@ -118,7 +119,7 @@ def tracking_uri(configured: str | None) -> str:
         return configured
     if os.environ.get("MLFLOW_TRACKING_URI"):
         return os.environ["MLFLOW_TRACKING_URI"]
-    return f"sqlite:///{project_root() / 'data' / 'mlflow' / 'mlflow.db'}"
+    return f"sqlite:///{Layout(project_root()).mlflow_store}"
 
 
 def artifact_location(configured_uri: str | None) -> str | None:
@@ -137,7 +138,7 @@ def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags:
     import mlflow
 
     if not configured_uri:
-        (project_root() / "data" / "mlflow").mkdir(parents=True, exist_ok=True)
+        Layout(project_root()).mlflow.mkdir(parents=True, exist_ok=True)
     logging.getLogger("alembic").setLevel(logging.WARNING)
     import os
 
