@@ -100,7 +100,12 @@ class Layout:
 
     def verification(self, part: str) -> Path:
         """The pose verification thresholds the verify stage chose for checkpoint()."""
-        return self.network_folder(part) / "verification.json"
+        return self.verification_of(self.checkpoint(part))
+
+    @staticmethod
+    def verification_of(checkpoint: Path) -> Path:
+        """The verification thresholds chosen for the network at `checkpoint` (beside it)."""
+        return checkpoint.with_name("verification.json")
 
     def work(self, part: str) -> Path:
         """Scratch of a part's training and fine-tuning (resume points, recordings)."""

@@ -21,7 +21,7 @@ from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, repro_stage
 
 log = logging.getLogger("binpick.flows")
-PART_STAGES = ("ingest", "ppf", "grasps", "generate", "train", "evaluate")
+PART_STAGES = ("ingest", "ppf", "grasps", "generate", "train", "verify", "evaluate")
 SCENE_STAGES = ("import_capture", "segment", "register", "label", "pick")
 
 

@@ -4,7 +4,7 @@ It loads every trained part of the project once (part model, PPF model, network,
 answers over HTTP/JSON and over a plain TCP line protocol (one JSON request per line, one JSON
 answer per line), on 127.0.0.1 by default. The answer is the picks.json document of the batch
 pipeline (binpick.io.picks), plus the request's id, its timings per step and the poses. The
-scene path is the library's (binpick.scene_path.process), the one the DVC stages and the
+scene path is the library's (binpick.scene.process.process), the one the DVC stages and the
 benchmarks call.
 
 Requests are answered one at a time (two parts' models never fight over the cores); up to
@@ -56,7 +56,7 @@ from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.poses import save_poses
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
-from binpick.scene_path import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, SceneSeeds, process
 from flows.learn import served_checkpoint
 
 log = logging.getLogger("binpick.service")
@@ -94,7 +94,7 @@ def load_parts(root: Path, params_path: Path) -> dict[str, Served]:
         p = load_params(params_path, name)
         # The fine-tuned network when `binpick learn finetune` found it no worse (flows/learn.py).
         checkpoint = served_checkpoint(root, name)
-        models = PartModels.load(p, needed[0], needed[1], checkpoint, needed[2])
+        models = PartModels.load(p, needed[0], needed[1], checkpoint, needed[2], layout.verification(name))
         served[name] = Served(models, p, np.asarray(p.pick.T_base_from_cam) if p.pick.T_base_from_cam is not None else None)
         log.info("serving %s (%s, %d %s grasps)", name, f"segmentation ({checkpoint.name}) + registration" if models.segmenter and checkpoint else
                  "registration only", len(models.grasps or []), p.pick.gripper)

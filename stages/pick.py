@@ -18,7 +18,7 @@ from binpick.io.part_model import load_part_model
 from binpick.io.picks import save_picks
 from binpick.io.poses import load_poses
 from binpick.params import Params, load_params
-from binpick.scene_path import pick
+from binpick.scene.pick import pick
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 from stages.common.recording import write_pick_recording
 

@@ -17,10 +17,10 @@ from binpick.io.cloud import load_cloud, load_segments
 from binpick.io.part_model import load_part_model
 from binpick.io.poses import load_poses, save_poses
 from binpick.io.ppf_model import load_ppf_model
+from binpick.io.verification import load_verification
 from binpick.metrics.pose import scene_pose_metrics
-from binpick.network.checkpoint import read_settings
 from binpick.params import Params, load_params
-from binpick.scene_path import register, with_verification
+from binpick.scene.register import register, with_verification
 from binpick.seeding import derive_seed
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 from stages.common.recording import write_scene_recording
@@ -39,7 +39,7 @@ def run(
     truth_path: Path | None = None,
     metrics_path: Path | None = None,
     rrd_path: Path | None = None,
-    checkpoint: Path | None = None,
+    verification: Path | None = None,
 ) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
     labels = load_segments(segments_path)
@@ -48,8 +48,8 @@ def run(
     ppf = load_ppf_model(ppf_path)
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
-    settings = read_settings(checkpoint) if checkpoint is not None else None
-    result = register(cloud, labels, ppf, with_verification(params.registration, settings), derive_seed(params.seed, "register", name))
+    chosen = load_verification(verification) if verification is not None else None
+    result = register(cloud, labels, ppf, with_verification(params.registration, chosen), derive_seed(params.seed, "register", name))
     register_s = time.perf_counter() - t0
     estimates = result.poses
     metrics: dict[str, float] = {
@@ -108,12 +108,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--truth", default="", help="ground-truth poses (.json), '' for none")
     p.add_argument("--metrics", type=Path)
     p.add_argument("--rrd", type=Path, help="rerun recording to write")
-    p.add_argument("--checkpoint", type=Path, help="the part's network: the pose verification threshold chosen at training")
+    p.add_argument("--verification", type=Path, help="the part's verification thresholds (verify stage); none: register's defaults")
     args = p.parse_args(argv)
     start(args)
     run(
         load_params(args.params, args.part), args.name, args.cloud, args.segments, args.ppf, args.part_model, args.out,
-        Path(args.truth) if args.truth else None, args.metrics, args.rrd, args.checkpoint,
+        Path(args.truth) if args.truth else None, args.metrics, args.rrd, args.verification,
     )
     return 0
 

@@ -30,8 +30,7 @@ SAMPLE_VIEWS = 2
 SAMPLE_EPOCHS = 8
 
 
-def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Path, metrics_path: Path | None = None, progress: bool = True,
-        ppf_path: Path | None = None) -> dict[str, float]:
+def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
     part = load_part_model(part_model_path)
     train_views, val_views = load_views(scenes / "train"), load_views(scenes / "val")
     dm = d_max(params, part.diameter_m)
@@ -76,15 +75,7 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
                  "smallest instance %d points (P/R %.2f/%.2f)", part.name, len(val_views), chosen["centre_threshold"],
                  chosen["embedding_threshold"], chosen["min_instance_points"], chosen["precision"], chosen["recall"])
         metrics.update({f"calibrated_{k}" if k in CALIBRATED else f"val_{k}": v for k, v in chosen.items()})
-        if ppf_path is not None:
-            threshold, support, stats = _choose_verification(params, part, ppf_path, scenes, out)
-            metrics["calibrated_max_seen_through"] = threshold
-            metrics["calibrated_min_visible_support"] = support
-            # What it was chosen on goes to MLflow only: which borderline validation poses ICP's
-            # threads find can differ between runs, and the DVC metrics hold what a rerun reproduces.
-            mlflow.log_metrics({f"verification_{k}": v for k, v in stats.items()})
-        mlflow.log_metrics({k: metrics[k] for k in [f"calibrated_{k}" for k in CALIBRATED] + ["val_precision", "val_recall"]
-                            + [k for k in metrics if k in ("calibrated_max_seen_through", "calibrated_min_visible_support")]})
+        mlflow.log_metrics({k: metrics[k] for k in [f"calibrated_{k}" for k in CALIBRATED] + ["val_precision", "val_recall"]})
         mlflow.log_artifact(str(out), artifact_path="model")
         version = add_model_version(part.name, out, run_, f"train@{part.name}")
         # The run id and version stay in MLflow: the DVC metrics hold only what a rerun reproduces.
@@ -99,26 +90,6 @@ def run(params: Params, part_model_path: Path, scenes: Path, out: Path, work: Pa
     return metrics
 
 
-def _choose_verification(params: Params, part, ppf_path: Path, scenes: Path, checkpoint: Path) -> tuple[float, float, dict[str, float]]:
-    """Choose the part's pose verification thresholds on the validation scenes with the network
-    just trained, and store them in the checkpoint."""
-    from binpick.io.ppf_model import load_ppf_model
-    from binpick.io.scene import list_scenes, load_scene
-    from binpick.network.checkpoint import write_with_verification
-    from binpick.network.infer import load_segmenter
-    from binpick.scene_path import PartModels
-    from binpick.verification_threshold import calibrate_verification
-
-    models = PartModels(part, load_ppf_model(ppf_path), load_segmenter(checkpoint, params.segment), params.import_capture, params.registration)
-    val = [load_scene(p) for p in list_scenes(scenes / "val")]
-    threshold, support, stats = calibrate_verification(val, models, params.seed, part.name)
-    write_with_verification(checkpoint, checkpoint, threshold, support)
-    log.info("%s: pose verification on %d validation scenes: at most %.2f seen through (%d right poses up to %.2f, %d wrong from %.2f), "
-             "at least %.2f visible support (right poses from %.2f, wrong up to %.2f)", part.name, len(val), threshold, stats["n_right"],
-             stats["right_max"], stats["n_wrong"], stats["wrong_min"], support, stats["right_support_min"], stats["wrong_support_max"])
-    return threshold, support, stats
-
-
 @entry
 def main(argv: Sequence[str] | None = None) -> int:
     p = parser(__doc__)
@@ -127,11 +98,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--scenes", required=True, type=Path, help="data set folder of the generate stage")
     p.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt)")
     p.add_argument("--work", required=True, type=Path, help="folder for resumable checkpoints")
-    p.add_argument("--ppf", type=Path, help="the part's PPF model: choose the pose verification threshold on the validation scenes")
     p.add_argument("--metrics", type=Path)
     args = p.parse_args(argv)
     start(args)
-    run(load_params(args.params, args.part), args.model, args.scenes, args.out, args.work, args.metrics, ppf_path=args.ppf)
+    run(load_params(args.params, args.part), args.model, args.scenes, args.out, args.work, args.metrics)
     return 0
 
 

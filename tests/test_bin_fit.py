@@ -70,7 +70,7 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
     from binpick.params import PartParams
     from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
     from binpick.registration.model import train_ppf
-    from binpick.scene_path import register
+    from binpick.scene.register import register
     from binpick.view import ViewParams, view_grid
 
     from settings import changed

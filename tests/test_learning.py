@@ -12,7 +12,7 @@ from binpick.io.labelled_capture import load_labelled_capture, save_labelled_cap
 from binpick.io.poses import PartPose
 from binpick.learning import IGNORE, label_capture, pseudo_labels, trusted
 from binpick.network.loss import fpcc_loss
-from binpick.scene_path import clean
+from binpick.scene.clean import clean
 from binpick.view import ViewParams
 
 from settings import PARAMS, changed

@@ -19,7 +19,7 @@ from binpick.registration.model import near_symmetries, train_ppf
 from binpick.registration.near_symmetry import resolve
 from binpick.registration.verification import refine_icp
 from binpick.registration.visibility import DepthView
-from binpick.scene_path import clean
+from binpick.scene.clean import clean
 
 from settings import PARAMS
 

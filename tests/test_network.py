@@ -351,18 +351,26 @@ def test_cover_reaches_every_point_with_few_passes():
         assert d.max() <= 0.01 + 1e-9
 
 
-def test_the_verification_thresholds_are_stored_with_the_network(tmp_path):
-    """Both thresholds read back as written; a checkpoint written before the support threshold
-    existed reads with none (register then applies its default)."""
-    from binpick.network.checkpoint import InferenceSettings, read_settings, write_with_verification
+def test_older_checkpoints_keep_their_verification_thresholds(tmp_path):
+    """Checkpoints trained before the verify stage carry the thresholds chosen at training: the
+    scene path uses them when the part has no verification.json, verification.json wins when it
+    has; a checkpoint from before the support threshold reads with none (the default applies)."""
+    from binpick.io.verification import Verification, save_verification
+    from binpick.network.checkpoint import InferenceSettings, read_checkpoint, read_settings, write_state
+    from binpick.network.infer import load_segmenter
+    from binpick.scene.process import chosen_verification
 
     model = FPCC(FPCCConfig(k_neighbours=4, width=8, embedding_dim=6)).eval()
     extra = InferenceSettings("toy", 0.06, "normals", 0.02, PARAMS.train).to_extra()
     save_checkpoint(tmp_path / "m.pt", model, None, 3, {"loss": 1.0}, extra)
-    write_with_verification(tmp_path / "m.pt", tmp_path / "both.pt", 0.41, 0.66)
-    both = read_settings(tmp_path / "both.pt")
-    assert (both.max_seen_through, both.min_visible_support) == (0.41, 0.66)
-    write_with_verification(tmp_path / "m.pt", tmp_path / "old.pt", 0.41)
-    old = read_settings(tmp_path / "old.pt")
-    assert (old.max_seen_through, old.min_visible_support) == (0.41, None)
-    assert read_settings(tmp_path / "m.pt").max_seen_through is None
+    for name, chosen in (("both.pt", {"max_seen_through": 0.41, "min_visible_support": 0.66}), ("old.pt", {"max_seen_through": 0.41})):
+        state = read_checkpoint(tmp_path / "m.pt")
+        state["extra"] = {**state["extra"], "verification": chosen}
+        state.pop("sha256")
+        write_state(tmp_path / name, state)
+    assert (read_settings(tmp_path / "old.pt").max_seen_through, read_settings(tmp_path / "old.pt").min_visible_support) == (0.41, None)
+    both = load_segmenter(tmp_path / "both.pt", PARAMS.segment)
+    assert chosen_verification(tmp_path / "absent.json", both) == Verification(0.41, 0.66)
+    save_verification(tmp_path / "verification.json", Verification(0.38, 0.52, "abc"))
+    assert chosen_verification(tmp_path / "verification.json", both) == Verification(0.38, 0.52, "abc")
+    assert chosen_verification(None, load_segmenter(tmp_path / "m.pt", PARAMS.segment)) is None

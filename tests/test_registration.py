@@ -286,7 +286,7 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     from binpick.geometry.transforms import invert_T
     from binpick.parts import _cylinder_along
     from binpick.registration.visibility import DepthView
-    from binpick.scene_path import clean
+    from binpick.scene.clean import clean
 
     rng = np.random.default_rng(seed)
     turn = rng.uniform(0.0, 2 * np.pi)

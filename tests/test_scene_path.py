@@ -12,7 +12,9 @@ from binpick.io.part_model import save_part_model
 from binpick.io.ppf_model import save_ppf_model
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.registration.model import train_ppf
-from binpick.scene_path import PartModels, SceneSeeds, clean, process, register
+from binpick.scene.clean import clean
+from binpick.scene.process import PartModels, SceneSeeds, process
+from binpick.scene.register import register
 from binpick.view import ViewParams
 
 from settings import PARAMS, changed

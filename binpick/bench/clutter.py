@@ -25,10 +25,12 @@ from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.part_model import PartModel
+from binpick.layout import Layout
 from binpick.metrics.pose import MIN_VISIBLE_FRACTION, scene_pose_metrics
 from binpick.params import BinParams, Params
 from binpick.registration.model import train_ppf
-from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.register import with_verification
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
@@ -132,8 +134,8 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
 
             segmenter = load_segmenter(checkpoints[part.name], p.segment)
         mode = p.registration.mode if segmenter is not None else "whole_scene"
-        new = PartModels(part, ppf, segmenter, p.import_capture,
-                         with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None))
+        chosen = chosen_verification(Layout.verification_of(checkpoints[part.name]) if segmenter is not None else None, segmenter)
+        new = PartModels(part, ppf, segmenter, p.import_capture, with_verification(p.registration.model_copy(update={"mode": mode}), chosen))
         base = PartModels(part, ppf, segmenter, p.import_capture.model_copy(update={"crop_to_walls": False}),
                           p.registration.model_copy(update={"mode": mode, "max_seen_through": 1.0, "min_visible_support": 0.0}))
         rows_new: list[dict[str, float]] = []

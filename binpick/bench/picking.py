@@ -47,9 +47,11 @@ from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
+from binpick.layout import Layout
 from binpick.params import Params
 from binpick.registration.model import train_ppf
-from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.register import with_verification
 from binpick.seeding import derive_seed
 from binpick.view import ViewParams
 
@@ -113,7 +115,8 @@ def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartMod
     kind = p.pick.gripper
     grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
     return PartModels(part, ppf, segmenter, p.import_capture,
-                      with_verification(p.registration.model_copy(update={"mode": mode}), segmenter.settings if segmenter is not None else None), grasps, p.pick)
+                      with_verification(p.registration.model_copy(update={"mode": mode}), chosen_verification(checkpoint and Layout.verification_of(checkpoint), segmenter)),
+                      grasps, p.pick)
 
 
 class TrueSurface:

@@ -3,7 +3,7 @@ to end, on organized 1920 x 1200 captures of rendered bins.
 
 `bench_scene`: per part and bin size (8 and 20 parts requested; n_parts_mean says how many the
 bins hold), CAPTURES_PER_CASE captures written as
-Zivid SDK 1.x files; in process (binpick.scene_path.process, models loaded once): import (read +
+Zivid SDK 1.x files; in process (binpick.scene.process.process, models loaded once): import (read +
 clean), segment, register and pick medians, the pipeline's median and 90th percentile, pose
 recall and precision (ADD(-S) < 0.1 d, parts at least half visible); then a `binpick service`
 process started on a temporary project holding the same parts' models: first_answer_s (process
@@ -46,7 +46,7 @@ from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import GenerateParams, Params
-from binpick.scene_path import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, SceneSeeds, process
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
@@ -105,6 +105,8 @@ class ServiceProject:
             if name in checkpoints and checkpoints[name].is_file():
                 layout.network_folder(name).mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(checkpoints[name], layout.checkpoint(name))
+                if Layout.verification_of(checkpoints[name]).is_file():
+                    shutil.copyfile(Layout.verification_of(checkpoints[name]), layout.verification(name))
         self.http_port, self.tcp_port = _free_port(), _free_port()
         self.process: subprocess.Popen | None = None
         self.log_file: IO[str] | None = None

@@ -48,7 +48,8 @@ from binpick.network.checkpoint import read_checkpoint, write_finetuned
 from binpick.network.evaluate import segment_and_count
 from binpick.network.train import BEST, Views, finetune_fpcc, train_fpcc
 from binpick.params import Params
-from binpick.scene_path import PartModels, SceneSeeds, process, with_verification
+from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.register import with_verification
 from binpick.seeding import derive_int, derive_seed
 from binpick.view import ViewParams
 
@@ -107,7 +108,7 @@ def _with_network(models: PartModels, p: Params, checkpoint: Path) -> PartModels
     from binpick.network.infer import load_segmenter
 
     segmenter = load_segmenter(checkpoint, p.segment)
-    return replace(models, segmenter=segmenter, register_params=with_verification(p.registration, segmenter.settings))
+    return replace(models, segmenter=segmenter, register_params=with_verification(p.registration, chosen_verification(None, segmenter)))
 
 
 def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes: list[tuple[SyntheticScene, np.random.SeedSequence]],

@@ -153,14 +153,6 @@ def _verification(max_seen_through: float, min_visible_support: float | None) ->
     return out
 
 
-def write_with_verification(source: str | Path, out: str | Path, max_seen_through: float, min_visible_support: float | None = None) -> None:
-    """Write the checkpoint at source to out with its pose verification thresholds set."""
-    state = read_checkpoint(source)
-    state["extra"] = {**state["extra"], "verification": _verification(max_seen_through, min_visible_support)}
-    state.pop("sha256", None)
-    write_state(out, state)
-
-
 def write_finetuned(trained: str | Path, out: str | Path, base_state: dict[str, Any], base_sha256: str, learnt: list[str], judged: list[str]) -> None:
     """Write the fine-tuned checkpoint at trained to out with the calibrated clustering and
     verification thresholds of the network it was fine-tuned from (base_state: fine-tuning does

@@ -17,7 +17,7 @@ from binpick.registration.model import _align_to_x
 
 # One voting at a time in the process: both kernels already spread over every core, and numba's
 # fallback thread pool (workqueue, where OpenMP is missing) aborts on launches from two threads.
-# Segments matched on threads (scene_path) overlap the rest of their matching instead.
+# Segments matched on threads (binpick/scene/register.py) overlap the rest of their matching instead.
 _KERNELS = threading.Lock()
 
 

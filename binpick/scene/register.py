@@ -1,44 +1,29 @@
-"""The scene path, in process: a capture's arrays in, the cleaned cloud, its segments and a pose
-per part out. The part's models are loaded once (`PartModels.load`) and serve any number of
-captures; the DVC stages, the benchmarks and a resident service all call these functions, so
-they cannot drift apart.
-
-Steps: `clean` (range, region, floor and walls, the network's voxel grid and normals),
-`segment` (FPCC instance labels), `register` (PPF matching per segment and/or over the whole
-scene, score filter, duplicate suppression), `pick` (a collision-free grasp per part, ranked);
-`process` runs them (picks when the models carry grasps). Camera frame, metres; poses are
-T_cam_from_model.
-"""
+"""Scene step `register`: PPF matching per segment and/or over the whole scene, score filter,
+duplicate suppression, near symmetries resolved, and verification against what the camera saw.
+Camera frame, metres; poses are T_cam_from_model."""
 
 from __future__ import annotations
 
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from binpick.cleaning import clean_capture
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.io.cloud import CleanCloud
-from binpick.io.grasps import GraspSet, load_grasps
-from binpick.io.part_model import PartModel, load_part_model
 from binpick.io.poses import PartPose
-from binpick.io.ppf_model import PPFModel, load_ppf_model
-from binpick.network.checkpoint import InferenceSettings
-from binpick.network.infer import Segmenter, load_segmenter
-from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
-from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
+from binpick.io.ppf_model import PPFModel
+from binpick.io.verification import Verification
+from binpick.params import RegisterParams
 from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT, Scales
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
 from binpick.registration.verification import score_pose, seen_through, visible_support
 from binpick.registration.visibility import DepthView
-from binpick.seeding import derive_int, derive_seed
 
 log = logging.getLogger(__name__)
 
@@ -48,71 +33,6 @@ log = logging.getLogger(__name__)
 # registration on 8-part T-joint bins. A constant, not the machine's core count: which segments
 # are matched, and so the poses, must not depend on the machine.
 SEGMENT_WAVE = 2
-
-
-@dataclass(frozen=True)
-class PartModels:
-    """Everything the scene path needs for one part, loaded once: the part model, its PPF model,
-    its segmenter (None: registration over the whole scene only, no network) and the settings of
-    the import and registration steps (the part's own overrides applied)."""
-
-    part: PartModel
-    ppf: PPFModel
-    segmenter: Segmenter | None
-    import_params: ImportCaptureParams
-    register_params: RegisterParams
-    grasps: GraspSet | None = None  # None: no picks
-    pick_params: PickParams | None = None
-
-    @classmethod
-    def load(
-        cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None, grasps: str | Path | None = None
-    ) -> PartModels:
-        """params: resolved for the part (load_params(path, part)); checkpoint None: no network;
-        grasps: the part's grasp file (None: no picks)."""
-        segmenter = load_segmenter(checkpoint, params.segment) if checkpoint is not None else None
-        register_params = params.registration
-        if segmenter is None and register_params.mode != "whole_scene":
-            log.info("no network for the part: registration over the whole scene")
-            register_params = register_params.model_copy(update={"mode": "whole_scene"})
-        return cls(
-            part=load_part_model(part_model),
-            ppf=load_ppf_model(ppf_model),
-            segmenter=segmenter,
-            import_params=params.import_capture,
-            register_params=with_verification(register_params, segmenter.settings if segmenter is not None else None),
-            grasps=load_grasps(grasps)[params.pick.gripper] if grasps is not None else None,
-            pick_params=params.pick,
-        )
-
-
-def with_verification(params: RegisterParams, settings: InferenceSettings | None) -> RegisterParams:
-    """register params with max_seen_through and min_visible_support resolved: the value in
-    params, else the one chosen at training (in the checkpoint's settings), else the default
-    (DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT)."""
-    update: dict[str, float] = {}
-    if params.max_seen_through is None:
-        chosen = settings.max_seen_through if settings is not None else None
-        update["max_seen_through"] = DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen
-    if params.min_visible_support is None:
-        chosen = settings.min_visible_support if settings is not None else None
-        update["min_visible_support"] = DEFAULT_MIN_VISIBLE_SUPPORT if chosen is None else chosen
-    return params.model_copy(update=update) if update else params
-
-
-@dataclass(frozen=True)
-class SceneSeeds:
-    """The seed of each random step. `of(seed, name)` derives them from the project seed and a
-    capture name; the DVC stages pass the seeds they always used."""
-
-    clean: int
-    segment: np.random.SeedSequence
-    register: np.random.SeedSequence
-
-    @classmethod
-    def of(cls, seed: int, name: str) -> SceneSeeds:
-        return cls(derive_int(seed, "import", name), derive_seed(seed, "segment", name), derive_seed(seed, "register", name))
-
 
 @dataclass(frozen=True)
 class Registration:
@@ -129,30 +49,17 @@ class Registration:
     n_unsupported: int = 0  # poses dropped: too little of their surface in view measured
 
 
-@dataclass(frozen=True)
-class SceneResult:
-    """The scene path's answer for one capture; timings_s per step (clean_s, segment_s, register_s)."""
-
-    cloud: CleanCloud
-    labels: np.ndarray
-    registration: Registration
-    timings_s: dict[str, float] = field(default_factory=dict)
-    picks: PickPlan | None = None
-
-    @property
-    def poses(self) -> list[PartPose]:
-        return self.registration.poses
-
-
-def clean(xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: ImportCaptureParams, seed: int) -> CleanCloud:
-    """The cleaned cloud of a capture: xyz_m (n, 3) camera frame, metres, NaN = no return
-    (n = H * W, row-major, for an organized frame of shape frame_shape); rgb (n, 3) uint8 or None."""
-    return clean_capture(xyz_m, rgb, frame_shape, params, seed)
-
-
-def segment(cloud: CleanCloud, segmenter: Segmenter, seed: np.random.SeedSequence | int) -> np.ndarray:
-    """Instance labels (n,) int32 of the cloud's points, -1 = not a part."""
-    return segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(seed))
+def with_verification(params: RegisterParams, chosen: Verification | None) -> RegisterParams:
+    """register params with max_seen_through and min_visible_support resolved: the value in
+    params, else the one the verify stage chose (verification.json, or an older checkpoint's),
+    else the default (DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT)."""
+    update: dict[str, float] = {}
+    if params.max_seen_through is None:
+        update["max_seen_through"] = DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen.max_seen_through
+    if params.min_visible_support is None:
+        least = chosen.min_visible_support if chosen is not None else None
+        update["min_visible_support"] = DEFAULT_MIN_VISIBLE_SUPPORT if least is None else least
+    return params.model_copy(update=update) if update else params
 
 
 def register(
@@ -271,45 +178,3 @@ def _resolve_near_symmetries(
     if n_turned:
         log.info("turned %d of %d poses by a near symmetry of the part, as the capture showed it", n_turned, len(out))
     return out
-
-
-def bin_box_of(params: ImportCaptureParams) -> BinBoxObstacle | None:
-    """The bin given in params (import_capture's region of interest with its frame), else None."""
-    if params.T_cam_from_roi is None or params.roi_min_m is None or params.roi_max_m is None:
-        return None
-    return BinBoxObstacle(np.asarray(params.T_cam_from_roi, dtype=np.float64), np.asarray(params.roi_min_m, float), np.asarray(params.roi_max_m, float))
-
-
-def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: GraspSet, params: PickParams, import_params: ImportCaptureParams) -> PickPlan:
-    """Picks for the posed parts (binpick/picking.py): obstacles are everything the capture
-    measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
-    when params give it, and the other parts at their poses."""
-    captured = DepthView(cloud.seen_depth_m, cloud.seen_K).points_m()
-    if len(captured) == 0:
-        captured = cloud.points_m
-    T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
-    scores = np.array([p.score for p in poses], dtype=np.float64)
-    shares = np.array([(p.extra or {}).get("seen_through", np.nan) for p in poses], dtype=np.float64)
-    return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params), shares)
-
-
-def process(
-    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, models: PartModels, seeds: SceneSeeds
-) -> SceneResult:
-    """clean, segment (unless the models have no segmenter), register and (when the models carry
-    grasps) pick one capture."""
-    t0 = time.perf_counter()
-    cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
-    t1 = time.perf_counter()
-    labels = segment(cloud, models.segmenter, seeds.segment) if models.segmenter is not None else None
-    t2 = time.perf_counter()
-    registration = register(cloud, labels, models.ppf, models.register_params, seeds.register)
-    t3 = time.perf_counter()
-    plan = None
-    if models.grasps is not None and models.pick_params is not None:
-        plan = pick(cloud, registration.poses, models.part, models.grasps, models.pick_params, models.import_params)
-    t4 = time.perf_counter()
-    if labels is None:
-        labels = np.full(len(cloud.points_m), -1, np.int32)
-    timings = {"clean_s": t1 - t0, "segment_s": t2 - t1, "register_s": t3 - t2, **({"pick_s": t4 - t3} if plan is not None else {})}
-    return SceneResult(cloud, labels, registration, timings, plan)
