@@ -277,7 +277,7 @@ class Keeper:
 
     def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
         from stages.common import mlflow_run
-        from stages.common.recording import write_pick_recording
+        from stages.common.pick_recording import write_pick_recording
 
         if capture.parent != folder:  # a named file: keep a copy (a link where the disk allows)
             target = folder / f"capture{capture.suffix}"

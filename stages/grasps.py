@@ -16,7 +16,7 @@ from binpick.io.grasps import load_grasps, save_grasps
 from binpick.io.part_model import load_part_model
 from binpick.params import Params, load_params
 from stages.common import entry, log_timings, parser, start, write_metrics
-from stages.common.recording import write_grasp_recording
+from stages.common.pick_recording import write_grasp_recording
 
 log = logging.getLogger("binpick.stage.grasps")
 

@@ -20,7 +20,7 @@ from binpick.io.poses import load_poses
 from binpick.params import Params, load_params
 from binpick.scene.pick import pick
 from stages.common import entry, mlflow_run, parser, start, write_metrics
-from stages.common.recording import write_pick_recording
+from stages.common.pick_recording import write_pick_recording
 
 log = logging.getLogger("binpick.stage.pick")
 

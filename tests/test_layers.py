@@ -66,3 +66,16 @@ def test_every_stage_depends_on_the_code_it_imports(stage, module, deps):
     assert not missing, f"dvc.yaml stage {stage!r} runs {module} but does not depend on {missing}"
     for d in code_deps:
         assert (ROOT / d).exists(), f"dvc.yaml stage {stage!r} depends on {d}, which does not exist"
+
+
+def test_training_depends_on_no_registration_or_picking_code():
+    """A change to registration, verification or picking re-runs verify and the scene stages,
+    never a network's training (10 minutes to hours a part); picking needs no network."""
+    stages = {name: (module, deps) for name, module, deps in _stages()}
+    scene_code = ("binpick/registration", "binpick/picking.py", "binpick/scene", "binpick/verification_threshold.py", "binpick/gripper.py")
+    module, deps = stages["train"]
+    imported = [p.relative_to(ROOT).as_posix() for p in closure(module).values()]
+    assert not [d for d in deps if d.startswith(scene_code)]
+    assert not [f for f in imported if f.startswith(scene_code[:-1])]
+    module, deps = stages["pick"]
+    assert not [f for f in (p.relative_to(ROOT).as_posix() for p in closure(module).values()) if f.startswith("binpick/network")]
