@@ -18,7 +18,8 @@ import numpy as np
 from binpick.io.scene import SyntheticScene
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT
-from binpick.scene.process import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, process
+from binpick.seeding import SceneSeeds
 
 # The threshold stays within these bounds whatever few validation scenes say. Below 0.3 it would
 # drop right poses: silhouette pixels and noise at tilted views reach 0.28 on estimates within

@@ -30,7 +30,6 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
-import hashlib
 import json
 import logging
 import os
@@ -56,7 +55,8 @@ from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.poses import save_poses
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
-from binpick.scene.process import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, process
+from binpick.seeding import SceneSeeds
 from flows.learn import served_checkpoint
 
 log = logging.getLogger("binpick.service")
@@ -208,16 +208,12 @@ class PickService:
                 frame = load_capture(path, ImportOptions(unit))
             except BinpickError as exc:
                 raise RequestError(400, str(exc)) from None
-            # The same capture gets the same seeds, so the same answer. Seeds need a digest that
-            # is the same for the same capture, not one unique to it: every 16th pixel (hashing
-            # all of a 1920 x 1200 frame took 40-70 ms of each answer).
-            h = hashlib.sha256(np.ascontiguousarray(frame.xyz_m[::16]))
-            if frame.rgb is not None:
-                h.update(np.ascontiguousarray(frame.rgb[::16]))
-            digest = h.hexdigest()[:16]
+            # Seeds from the capture's content, as the DVC stages take them: the same capture
+            # gets the same answer here and when `binpick requests --add` runs it through them.
+            seeds = SceneSeeds.of_capture(served.params.seed, frame.xyz_m, frame.rgb)
             t1 = time.perf_counter()
             try:
-                result = process(frame.xyz_m, frame.rgb, frame.shape, served.models, SceneSeeds.of(served.params.seed, digest))
+                result = process(frame.xyz_m, frame.rgb, frame.shape, served.models, seeds)
             except BinpickError as exc:
                 raise RequestError(400, f"{path.name}: {exc}") from None
         except RequestError:

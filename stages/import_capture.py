@@ -6,6 +6,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 from binpick.cleaning import clean_capture
@@ -14,7 +15,7 @@ from binpick.io.atomic import atomic_paths
 from binpick.io.capture import DEFAULT_TEXT_COLUMNS, ImportOptions, load_capture
 from binpick.io.cloud import save_cloud
 from binpick.params import Params, load_params
-from binpick.seeding import derive_int
+from binpick.seeding import SceneSeeds, capture_digest
 from stages.common import entry, log_timings, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.import_capture")
@@ -26,7 +27,8 @@ def run(
     t0 = time.perf_counter()
     capture = load_capture(capture_path, options)
     try:
-        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.import_capture_for(name), derive_int(params.seed, "import", str(capture_path)))
+        digest = capture_digest(capture.xyz_m, capture.rgb)
+        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.import_capture_for(name), SceneSeeds.of_capture_digest(params.seed, digest).clean)
     except BinpickError as exc:
         raise BinpickError(f"{capture_path}: {exc}") from None
     metrics = {
@@ -39,7 +41,7 @@ def run(
         **{f"floor_plane_{k}": float(v) for k, v in zip("abcd", cloud.floor_plane, strict=False)},
     }
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
-        save_cloud(tmp_out, cloud)
+        save_cloud(tmp_out, replace(cloud, capture_digest=digest))
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
             if name:

@@ -21,7 +21,7 @@ from binpick.io.verification import load_verification
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params, load_params
 from binpick.scene.register import register, with_verification
-from binpick.seeding import derive_seed
+from binpick.seeding import scene_seeds
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 from stages.common.recording import write_scene_recording
 
@@ -49,7 +49,7 @@ def run(
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
     chosen = load_verification(verification) if verification is not None else None
-    result = register(cloud, labels, ppf, with_verification(params.registration, chosen), derive_seed(params.seed, "register", name))
+    result = register(cloud, labels, ppf, with_verification(params.registration, chosen), scene_seeds(params.seed, cloud.capture_digest, cloud_path).register)
     register_s = time.perf_counter() - t0
     estimates = result.poses
     metrics: dict[str, float] = {

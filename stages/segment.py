@@ -14,7 +14,7 @@ from binpick.io.atomic import atomic_paths
 from binpick.io.cloud import load_cloud, save_segments
 from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
-from binpick.seeding import derive_seed
+from binpick.seeding import scene_seeds
 from stages.common import entry, log_timings, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.segment")
@@ -24,7 +24,7 @@ def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_p
     cloud = load_cloud(cloud_path)
     segmenter = load_segmenter(checkpoint, params.segment)
     t0 = time.perf_counter()
-    labels = segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(derive_seed(params.seed, "segment", str(cloud_path))))
+    labels = segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(scene_seeds(params.seed, cloud.capture_digest, cloud_path).segment))
     seconds = time.perf_counter() - t0
     n_inst = int(labels.max()) + 1 if len(labels) else 0
     metrics = {"segment_s": seconds, "n_instances": float(n_inst), "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0}

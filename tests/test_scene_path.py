@@ -13,21 +13,28 @@ from binpick.io.ppf_model import save_ppf_model
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.registration.model import train_ppf
 from binpick.scene.clean import clean
-from binpick.scene.process import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, process
 from binpick.scene.register import register
+from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
 
 from settings import PARAMS, changed
 
 
 @pytest.fixture(scope="module")
-def models(t_joint, tmp_path_factory):
-    """The part's models written and loaded back as the stages do, without a network."""
+def model_folder(t_joint, tmp_path_factory):
+    """The part's models written as the stages write them."""
     folder = tmp_path_factory.mktemp("models")
     ppf = train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), PARAMS.registration)
     save_part_model(folder / "part.npz", t_joint)
     save_ppf_model(folder / "ppf.npz", ppf)
-    return PartModels.load(PARAMS, folder / "part.npz", folder / "ppf.npz", checkpoint=None)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def models(model_folder):
+    """The part's models loaded back as the stages and the service do, without a network."""
+    return PartModels.load(PARAMS, model_folder / "part.npz", model_folder / "ppf.npz", checkpoint=None)
 
 
 def _capture(t_joint, seed: int, n_objects: int):
@@ -108,3 +115,31 @@ def test_poses_where_the_camera_saw_through_are_dropped(t_joint, models):
     assert result.n_seen_through == 0 and all(p.extra["seen_through"] <= limit for p in result.poses)
     # ... and most of what the camera should see of each is measured (visible support).
     assert result.n_unsupported == 0 and min(p.extra["visible_support"] for p in result.poses) > 0.8
+
+
+def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_folder, models, tmp_path):
+    """Every step draws its seeds from the capture's content: the import and register stages, run
+    on the capture file under any name, give the poses the in-process path (the service's) gave."""
+    from binpick.io.capture import ImportOptions, load_capture
+    from binpick.io.cloud import save_segments
+    from binpick.io.ply import PointCloudData, save_ply
+    from binpick.io.poses import load_poses
+    from stages import import_capture
+    from stages import register as register_stage
+
+    scene, xyz, (H, W) = _capture(t_joint, 11, 4)
+    capture = tmp_path / "kept-request-20261204.ply"
+    save_ply(capture, PointCloudData(xyz=xyz * 1000.0, rgb=None, shape=(H, W)))
+    frame = load_capture(capture, ImportOptions("mm"))
+    served = process(frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of_capture(PARAMS.seed, frame.xyz_m, frame.rgb))
+    assert len(served.poses) >= 3
+
+    params = PARAMS.model_copy(update={"registration": models.register_params})
+    import_capture.run(params, capture, ImportOptions("mm"), tmp_path / "cloud.npz")
+    save_segments(tmp_path / "segments.npz", np.full(len(served.cloud.points_m), -1, np.int32))
+    register_stage.run(params, "any-name", tmp_path / "cloud.npz", tmp_path / "segments.npz", model_folder / "ppf.npz",
+                       model_folder / "part.npz", tmp_path / "poses.json")
+    _, batch = load_poses(tmp_path / "poses.json")
+    assert len(batch) == len(served.poses)
+    for a, b in zip(batch, served.poses, strict=True):
+        np.testing.assert_allclose(a.T_cam_from_model, b.T_cam_from_model, atol=1e-6)

@@ -29,8 +29,9 @@ from binpick.layout import Layout
 from binpick.metrics.pose import MIN_VISIBLE_FRACTION, scene_pose_metrics
 from binpick.params import BinParams, Params
 from binpick.registration.model import train_ppf
-from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
+from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)

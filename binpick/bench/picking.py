@@ -50,9 +50,9 @@ from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
 from binpick.params import Params
 from binpick.registration.model import train_ppf
-from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
-from binpick.seeding import derive_seed
+from binpick.seeding import SceneSeeds, derive_seed
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)

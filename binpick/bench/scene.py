@@ -46,7 +46,8 @@ from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import GenerateParams, Params
-from binpick.scene.process import PartModels, SceneSeeds, process
+from binpick.scene.process import PartModels, process
+from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)

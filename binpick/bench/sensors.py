@@ -48,9 +48,9 @@ from binpick.network.checkpoint import read_checkpoint, write_finetuned
 from binpick.network.evaluate import segment_and_count
 from binpick.network.train import BEST, Views, finetune_fpcc, train_fpcc
 from binpick.params import Params
-from binpick.scene.process import PartModels, SceneSeeds, chosen_verification, process
+from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
-from binpick.seeding import derive_int, derive_seed
+from binpick.seeding import SceneSeeds, derive_int, derive_seed
 from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)

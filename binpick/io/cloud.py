@@ -24,7 +24,9 @@ class CleanCloud:
     wall_planes (k, 4) float64; removed_fraction (3,) float64 shares of the valid input points
     removed as floor, walls and outliers; seen_depth_m (h, w) float32 the nearest measured depth
     per cell of everything the capture measured, before cleaning (inf = nothing; (0, 0) when
-    unknown) and seen_K (3, 3) float64 the pinhole of that grid (registration/visibility.py).
+    unknown) and seen_K (3, 3) float64 the pinhole of that grid (registration/visibility.py);
+    capture_digest the capture's content digest (binpick.seeding.capture_digest; '' in clouds
+    written before it), which seeds the steps after import.
     """
 
     points_m: np.ndarray
@@ -37,6 +39,7 @@ class CleanCloud:
     removed_fraction: np.ndarray
     seen_depth_m: np.ndarray
     seen_K: np.ndarray
+    capture_digest: str = ""
 
 
 def save_cloud(path: str | Path, cloud: CleanCloud) -> None:
@@ -44,7 +47,8 @@ def save_cloud(path: str | Path, cloud: CleanCloud) -> None:
 
 
 def load_cloud(path: str | Path) -> CleanCloud:
-    return CleanCloud(**load_fields(path, CleanCloud, "cleaned cloud", "cleaned cloud not found (run the import stage first)"))
+    arrays = load_fields(path, CleanCloud, "cleaned cloud", "cleaned cloud not found (run the import stage first)", {"capture_digest": np.asarray("")})
+    return CleanCloud(**{**arrays, "capture_digest": str(arrays["capture_digest"])})  # type: ignore[arg-type]  # the rest are arrays
 
 
 def save_segments(path: str | Path, labels: np.ndarray) -> None:

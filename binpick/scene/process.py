@@ -23,7 +23,7 @@ from binpick.scene.clean import clean
 from binpick.scene.pick import pick
 from binpick.scene.register import Registration, register, with_verification
 from binpick.scene.segment import segment
-from binpick.seeding import derive_int, derive_seed
+from binpick.seeding import SceneSeeds
 
 log = logging.getLogger(__name__)
 
@@ -75,20 +75,6 @@ def chosen_verification(path: str | Path | None, segmenter: Segmenter | None) ->
     if settings is None or settings.max_seen_through is None:
         return None
     return Verification(settings.max_seen_through, settings.min_visible_support)
-
-
-@dataclass(frozen=True)
-class SceneSeeds:
-    """The seed of each random step. `of(seed, name)` derives them from the project seed and a
-    capture name; the DVC stages pass the seeds they always used."""
-
-    clean: int
-    segment: np.random.SeedSequence
-    register: np.random.SeedSequence
-
-    @classmethod
-    def of(cls, seed: int, name: str) -> SceneSeeds:
-        return cls(derive_int(seed, "import", name), derive_seed(seed, "segment", name), derive_seed(seed, "register", name))
 
 
 @dataclass(frozen=True)
