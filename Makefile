@@ -47,5 +47,7 @@ lock: setup
 repro: setup
 	$(BIN)/binpick repro
 
+# The run records: the local MLflow store and its artifacts, and Prefect's state (data/README.md).
+# Models, results and kept service requests stay.
 clean-runs:
-	rm -rf runs mlflow.db mlartifacts .prefect
+	rm -rf data/mlflow data/prefect

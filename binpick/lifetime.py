@@ -16,6 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
+import psutil
+
 log = logging.getLogger(__name__)
 _PR_SET_PDEATHSIG = 1
 
@@ -46,8 +48,8 @@ def die_with_parent() -> None:
 
 def _argv(pid: int) -> list[str]:
     try:
-        return Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
-    except OSError:
+        return psutil.Process(pid).cmdline()
+    except psutil.Error:
         return []
 
 
@@ -59,12 +61,9 @@ def is_program(argv: list[str], program: str) -> bool:
 
 def _parent(pid: int) -> int:
     try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("PPid:"):
-                return int(line.split()[1])
-    except (OSError, ValueError):
-        pass
-    return 0
+        return psutil.Process(pid).ppid()
+    except psutil.Error:
+        return 0
 
 
 def find_ancestor(program: str) -> int | None:
@@ -80,7 +79,7 @@ def find_ancestor(program: str) -> int | None:
 
 
 def watch_ancestor(pid: int, interval_s: float = 1.0) -> threading.Thread:
-    """Send this process SIGTERM once process `pid` is gone (a daemon thread polling /proc)."""
+    """Send this process SIGTERM once process `pid` is gone (a daemon thread polling it)."""
     me = os.getpid()
     start_time = _start_time(pid)
 
@@ -97,8 +96,8 @@ def watch_ancestor(pid: int, interval_s: float = 1.0) -> threading.Thread:
     return thread
 
 
-def _start_time(pid: int) -> str | None:
+def _start_time(pid: int) -> float | None:
     try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[19]
-    except (OSError, IndexError):
+        return psutil.Process(pid).create_time()
+    except psutil.Error:
         return None

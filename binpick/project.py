@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from binpick.errors import ParamsError
+from binpick.io.digest import file_sha256
 from binpick.io.pipeline_vars import (
     PIPELINE_VARS,
     PipelineVars,
@@ -44,16 +45,6 @@ class ProjectCheck:
     vars_changed: bool
 
 
-def _file_digest(path: Path) -> str:
-    if not path.is_file():
-        return "missing"
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def fingerprint(root: Path, kind: str, name: str, params: Params) -> str:
     """SHA-256 of a part's or capture's params entry and of every file it names."""
     entry = (params.parts if kind == "parts" else params.captures)[name]
@@ -61,7 +52,8 @@ def fingerprint(root: Path, kind: str, name: str, params: Params) -> str:
     h = hashlib.sha256(json.dumps(entry.model_dump(by_alias=True), sort_keys=True).encode())
     for rel in files:
         if rel:
-            h.update(f"\0{rel}\0{_file_digest(root / rel)}".encode())
+            digest = file_sha256(root / rel) if (root / rel).is_file() else "missing"
+            h.update(f"\0{rel}\0{digest}".encode())
     return h.hexdigest()
 
 

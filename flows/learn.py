@@ -30,12 +30,12 @@ import numpy as np
 
 from binpick.errors import BinpickError, InputError
 from binpick.io.atomic import atomic_path
+from binpick.io.digest import file_sha256
 from binpick.io.labelled_capture import LabelledCapture, list_labelled_captures, load_labelled_capture
 from binpick.io.review_record import load_review_record, save_review_record
 from binpick.layout import Layout
 from binpick.learning import IGNORE
 from binpick.params import Params
-from stages.common import file_sha256
 
 log = logging.getLogger(__name__)
 

@@ -114,7 +114,7 @@ def test_models_are_registered_and_the_accepted_alias_points_at_the_checkpoint(p
     (thresholds 0 in the tiny profile) pointed the alias at the version of the current model.pt."""
     import mlflow
 
-    from stages.common import file_sha256
+    from binpick.io.digest import file_sha256
 
     mlflow.set_tracking_uri(f"sqlite:///{project / 'data' / 'mlflow' / 'mlflow.db'}")
     client = mlflow.MlflowClient()
@@ -150,14 +150,6 @@ def test_scene_flow_processes_a_folder_of_captures(project):
     captures = yaml.safe_load((project / "params.yaml").read_text())["captures"]
     # Written as the README says, without the optional keys (truth, intrinsics), and DVC ran it.
     assert captures["bin_a"] == {"file": "data/captures/monday/bin A.ply", "part": "t_joint", "unit": "mm"}
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _train_runs(project, part):
@@ -199,7 +191,9 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     before = {part: len(_train_runs(project, part)) for part in ("t_joint", "bracket_block")}
     assert all(before.values())
     trimesh.creation.cylinder(radius=9.0, height=30.0, sections=48).export(project / "data" / "parts" / "spacer.stl")
-    port = _free_port()
+    from binpick.bench import free_port
+
+    port = free_port()
     env = {**os.environ, "PREFECT_HOME": str(project / "data" / "prefect"), "TQDM_DISABLE": "1"}
     env.pop("PREFECT_API_URL", None)
     proc = subprocess.Popen(
@@ -253,7 +247,7 @@ def test_one_parts_params_rerun_only_its_stages_and_a_rerun_reproduces_it(projec
     running again without DVC's run cache gives the same data set, weights and metrics."""
     from ruamel.yaml import YAML
 
-    from stages.common import file_sha256
+    from binpick.io.digest import file_sha256
 
     def lock_hash(stage, out):
         lock = yaml.safe_load((project / "dvc.lock").read_text())["stages"][stage]

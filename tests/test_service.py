@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from conftest import copy_project
 
+from binpick.bench import free_port
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
@@ -28,11 +29,6 @@ from binpick.view import ViewParams
 
 httpx = pytest.importorskip("httpx")
 
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +62,7 @@ def server(project):
 
     root, _, _ = project
     service = PickService(root, root / "params.yaml", keep_mlflow=False)
-    service.settings = service.settings.model_copy(update={"http_port": _free_port(), "tcp_port": _free_port()})
+    service.settings = service.settings.model_copy(update={"http_port": free_port(), "tcp_port": free_port()})
     config = uvicorn.Config(http_app(service), host="127.0.0.1", port=service.settings.http_port, log_level="warning")
     web = uvicorn.Server(config)
     thread = threading.Thread(target=web.run, daemon=True)
@@ -202,6 +198,6 @@ def test_the_command_refuses_a_port_in_use_and_an_open_bind_without_token(projec
         proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--http-port", str(port)], cwd=root, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "cannot listen" in proc.stderr and "Traceback" not in proc.stderr
     env = {k: v for k, v in __import__("os").environ.items() if k != "BINPICK_TOKEN"}
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--host", "0.0.0.0", "--http-port", str(_free_port()), "--tcp-port", "0"],
+    proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--host", "0.0.0.0", "--http-port", str(free_port()), "--tcp-port", "0"],
                           cwd=root, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 2 and "needs a token" in proc.stderr

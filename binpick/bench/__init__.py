@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import platform
+import socket
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,6 +25,17 @@ def machine() -> dict[str, object]:
         "cpu_model": cpu_model(),
         "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
     }
+
+
+def free_port() -> int:
+    """A TCP port free on 127.0.0.1 now (for a service started by a benchmark or a test)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+# The parts every benchmark runs unless told otherwise: the built-in part and the shared CAD parts.
+BENCH_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe")
 
 
 def cpu_model() -> str:

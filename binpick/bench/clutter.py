@@ -19,7 +19,7 @@ from typing import TypeVar
 
 import numpy as np
 
-from binpick.bench import machine
+from binpick.bench import BENCH_PARTS, machine
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 Group = TypeVar("Group")
 
 CUP = "icbin_coffee_cup"
-DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe", CUP)
+DEFAULT_PARTS = (*BENCH_PARTS, CUP)
 NOISE_SCALE_MAX = 2.0
 CLUTTER: dict[str, object] = {"n_distractors_max": 8, "distractor_size_rel": (0.3, 1.2), "outside_share": 0.5, "bin_scale": (0.9, 1.2),
            "wall_height_scale": (0.6, 1.4), "camera_tilt_deg_max": 20.0, "camera_distance_scale": (0.95, 1.2), "noise_scale": (0.5, NOISE_SCALE_MAX)}

@@ -33,7 +33,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.bench import machine
+from binpick.bench import BENCH_PARTS, machine
 from binpick.bench.clutter import TILT_DEG_MAX, per_band, scaled_settings, tilt_band
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
@@ -57,7 +57,7 @@ from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe")
+DEFAULT_PARTS = BENCH_PARTS
 TOUCH_M = 0.002
 TOUCH_DEG = 10.0
 PENETRATION_M = 0.0005

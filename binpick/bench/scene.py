@@ -33,7 +33,7 @@ from typing import IO, Any
 
 import numpy as np
 
-from binpick.bench import machine
+from binpick.bench import BENCH_PARTS, free_port, machine
 from binpick.bench.picking import bench_models, picking_settings
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
@@ -52,7 +52,7 @@ from binpick.view import ViewParams
 
 log = logging.getLogger(__name__)
 
-DEFAULT_PARTS = ("t_joint", "ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe")
+DEFAULT_PARTS = BENCH_PARTS
 BIN_SIZES = (8, 20)
 CAPTURES_PER_CASE = 3
 REPEATS = 3
@@ -63,12 +63,6 @@ START_TIMEOUT_S = 300.0
 # proportions 19 in one of 5. Heaped up to 0.8 of the part's size, every bin holds the 20 this
 # benchmark asks for (bins that were not full are drawn as before).
 PILE_HEIGHT_REL = 0.8
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _overrides(p: Params) -> dict:
@@ -108,7 +102,7 @@ class ServiceProject:
                 shutil.copyfile(checkpoints[name], layout.checkpoint(name))
                 if Layout.verification_of(checkpoints[name]).is_file():
                     shutil.copyfile(Layout.verification_of(checkpoints[name]), layout.verification(name))
-        self.http_port, self.tcp_port = _free_port(), _free_port()
+        self.http_port, self.tcp_port = free_port(), free_port()
         self.process: subprocess.Popen | None = None
         self.log_file: IO[str] | None = None
         self._client: Any = None  # httpx.Client, made on the first request
@@ -151,10 +145,9 @@ class ServiceProject:
 
     def rss_mb(self) -> float:
         assert self.process is not None
-        for line in Path(f"/proc/{self.process.pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return float(line.split()[1]) / 1024.0
-        return float("nan")
+        import psutil
+
+        return psutil.Process(self.process.pid).memory_info().rss / 2**20
 
     def stop(self) -> None:
         if self._client is not None:

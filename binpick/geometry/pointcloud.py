@@ -10,7 +10,6 @@ import numpy as np
 import open3d as o3d
 from numba import njit, prange
 from pykdtree.kdtree import KDTree
-from scipy.spatial import cKDTree
 
 
 def _check_points(points: np.ndarray, name: str = "points") -> np.ndarray:
@@ -223,17 +222,6 @@ def statistical_outliers(points: np.ndarray, neighbours: int, std_ratio: float) 
     mask = np.zeros(len(points), dtype=bool)
     mask[np.asarray(kept, dtype=np.int64)] = True
     return mask
-
-
-def nearest_neighbours(reference: np.ndarray, query: np.ndarray, k: int = 1) -> tuple[np.ndarray, np.ndarray]:
-    """Distances and indices of the k nearest `reference` points for each `query` point (kd-tree).
-
-    Returns (m,) arrays for k == 1, else (m, k).
-    """
-    reference = _check_points(reference, "reference")
-    query = _check_points(query, "query")
-    d, i = cKDTree(reference).query(query, k=k, workers=-1)
-    return d, i
 
 
 def plane_frame(plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -43,14 +43,6 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return (points @ T[:3, :3].T + T[:3, 3]).astype(points.dtype, copy=False)
 
 
-def rotate_vectors(T: np.ndarray, vectors: np.ndarray) -> np.ndarray:
-    """Apply only the rotation of a (4, 4) transform to (n, 3) direction vectors."""
-    vectors = np.asarray(vectors)
-    if vectors.ndim != 2 or vectors.shape[1] != 3:
-        raise ValueError(f"expected vectors (n, 3), got {vectors.shape}")
-    return (vectors @ np.asarray(T, dtype=np.float64)[:3, :3].T).astype(vectors.dtype, copy=False)
-
-
 def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """(4, 4) T with T @ src = dst in the least-squares sense (Kabsch): src, dst (n, 3) paired points."""
     cs, cd = src.mean(0), dst.mean(0)

@@ -17,6 +17,7 @@ from typing import Any
 from binpick.env import configure_environment, project_root
 from binpick.errors import BinpickError
 from binpick.io.atomic import write_text
+from binpick.io.digest import file_sha256
 from binpick.layout import Layout
 from binpick.log import setup_logging
 
@@ -214,16 +215,6 @@ def flat_params(prefix: str, model: Any) -> dict[str, Any]:
 
     walk(prefix, model.model_dump(by_alias=True) if hasattr(model, "model_dump") else model)
     return out
-
-
-def file_sha256(path: str | Path) -> str:
-    import hashlib
-
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def model_name(part: str) -> str:
