@@ -77,8 +77,8 @@ def calibrate_verification(
         _, per = scene_pose_metrics(T, scene.T_cam_from_model, scene.visible_fraction, models.ppf.dense_points_m,
                                     models.ppf.symmetries, models.ppf.diameter_m)
         for pose, match in zip(poses, per, strict=True):
-            extra = pose.extra or {}
-            (right if match and match["add_ok"] else wrong).append((float(extra.get("seen_through", 0.0)), float(extra.get("visible_support", 1.0))))
+            shares = (pose.seen_through if pose.seen_through is not None else 0.0, pose.visible_support if pose.visible_support is not None else 1.0)
+            (right if match and match["add_ok"] else wrong).append(shares)
     t = choose_threshold([r[0] for r in right], [w[0] for w in wrong])
     # The support cut is chosen on the poses the seen-through cut keeps: the two checks together.
     s = choose_threshold([r[1] for r in right if r[0] <= t], [w[1] for w in wrong if w[0] <= t], DEFAULT_MIN_VISIBLE_SUPPORT, SUPPORT_RANGE, keep_below=False)

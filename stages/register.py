@@ -68,7 +68,7 @@ def run(
         summary, _ = scene_pose_metrics(
             np.array([e.T_cam_from_model for e in estimates]).reshape(-1, 4, 4),
             np.array([t.T_cam_from_model for t in truth]).reshape(-1, 4, 4),
-            np.array([(t.extra or {}).get("visible_fraction", 1.0) for t in truth]),
+            np.array([1.0 if t.visible_fraction is None else t.visible_fraction for t in truth]),
             ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
         )
         metrics.update(summary)

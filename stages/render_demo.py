@@ -45,7 +45,7 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
     scene = generate_scene(part, generate, camera, ViewParams.of_import(params.import_capture), seed, n_objects=params.render_demo.n_objects)
     H, W = scene.labels.shape
     records = [
-        PartPose(T, 1.0, i, {"visible_fraction": round(float(v), 4)})
+        PartPose(T, 1.0, i, visible_fraction=float(v))
         for i, (T, v) in enumerate(zip(scene.T_cam_from_model, scene.visible_fraction, strict=False))
     ]
     with atomic_paths(out, truth) as (tmp_out, tmp_truth):  # the capture and its truth together

@@ -95,7 +95,7 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
     result = register(cloud, None, ppf, changed(PARAMS.registration, mode="whole_scene", max_instances=10), seed=0)
     centres = transform_points(invert_T(box.T_cam_from_bin), np.array([p.T_cam_from_model[:3, :3] @ cup.centre_m + p.T_cam_from_model[:3, 3] for p in result.poses]).reshape(-1, 3))
     assert np.all((centres >= box.inner_min_m - 1e-9) & (centres <= box.inner_max_m + 1e-9))
-    assert all(p.extra["seen_through"] <= DEFAULT_MAX_SEEN_THROUGH for p in result.poses)  # no network: the prior
+    assert all(p.seen_through <= DEFAULT_MAX_SEEN_THROUGH for p in result.poses)  # no network: the prior
 
 
 def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():

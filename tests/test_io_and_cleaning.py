@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -85,9 +87,15 @@ def test_cloud_and_pose_files_roundtrip(tmp_path):
     assert np.array_equal(back.points_m, cloud.points_m) and np.array_equal(back.pixel_index, cloud.pixel_index)
     T = np.eye(4)
     T[:3, 3] = [0.01, 0.02, 0.5]
-    save_poses(tmp_path / "p.json", "t_joint", [PartPose(T, 0.9, 3, {"visible_fraction": 0.5})])
+    written = [PartPose(T, 0.9, 3, visible_fraction=0.5), PartPose(T, 0.7, seen_through=0.123456, visible_support=0.9, turned_by_near_symmetry=True)]
+    save_poses(tmp_path / "p.json", "t_joint", written)
     part, poses = load_poses(tmp_path / "p.json")
     assert part == "t_joint" and np.allclose(poses[0].T_cam_from_model, T) and poses[0].segment == 3
+    assert (poses[0].visible_fraction, poses[0].seen_through, poses[0].turned_by_near_symmetry) == (0.5, None, False)
+    # The typed fields are stored under "extra" as before, rounded only in the file.
+    assert json.loads((tmp_path / "p.json").read_text())["poses"][1]["extra"] == {
+        "turned_by_near_symmetry": 1.0, "seen_through": 0.1235, "visible_support": 0.9}
+    assert (poses[1].seen_through, poses[1].visible_support, poses[1].turned_by_near_symmetry, poses[1].extra) == (0.1235, 0.9, True, None)
     (tmp_path / "bad.json").write_text('{"part": "x"}')
     with pytest.raises(InputError, match="bad.json"):
         load_poses(tmp_path / "bad.json")

@@ -112,9 +112,9 @@ def test_poses_where_the_camera_saw_through_are_dropped(t_joint, models):
     # The whole path keeps every rendered pose.
     labels = scene.labels.reshape(-1)[cloud.pixel_index].astype(np.int32)
     result = register(cloud, labels, models.ppf, changed(models.register_params, mode="segments"), seed=0)
-    assert result.n_seen_through == 0 and all(p.extra["seen_through"] <= limit for p in result.poses)
+    assert result.n_seen_through == 0 and all(p.seen_through <= limit for p in result.poses)
     # ... and most of what the camera should see of each is measured (visible support).
-    assert result.n_unsupported == 0 and min(p.extra["visible_support"] for p in result.poses) > 0.8
+    assert result.n_unsupported == 0 and min(p.visible_support for p in result.poses) > 0.8
 
 
 def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_folder, models, tmp_path):

@@ -29,5 +29,5 @@ def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: Gras
         captured = cloud.points_m
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
-    shares = np.array([(p.extra or {}).get("seen_through", np.nan) for p in poses], dtype=np.float64)
+    shares = np.array([np.nan if p.seen_through is None else p.seen_through for p in poses], dtype=np.float64)
     return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params), shares)

@@ -145,7 +145,7 @@ def register(
         if support < least:
             n_unsupported += 1
             continue
-        kept_poses.append(replace(pose, extra={**(pose.extra or {}), "seen_through": round(share, 4), "visible_support": round(support, 4)}))
+        kept_poses.append(replace(pose, seen_through=share, visible_support=support))
     if len(kept_poses) < len(poses):
         log.info("dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface in view measured",
                  len(poses) - len(kept_poses), len(poses), len(poses) - len(kept_poses) - n_unsupported, n_unsupported)
@@ -173,7 +173,7 @@ def _resolve_near_symmetries(
                 score = score_pose(ppf, T, own, scales.inlier_m)
             else:
                 score = score_pose(ppf, T, fine, scales.inlier_m, score_tree, whole_scene=True)
-            pose = replace(pose, T_cam_from_model=T, score=score, extra={**(pose.extra or {}), "turned_by_near_symmetry": 1.0})
+            pose = replace(pose, T_cam_from_model=T, score=score, turned_by_near_symmetry=True)
         out.append(pose)
     if n_turned:
         log.info("turned %d of %d poses by a near symmetry of the part, as the capture showed it", n_turned, len(out))
