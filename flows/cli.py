@@ -287,7 +287,7 @@ def requests(
     import sys
 
     from binpick.params import add_captures, load_params
-    from flows.service import list_requests
+    from flows.service_keeper import list_requests
 
     root = project_root()
     params = params if params.is_absolute() else root / params

@@ -1,28 +1,34 @@
 """`binpick service`: a resident process answering "picks for this capture" for a robot cell.
 
-It loads every trained part of the project once (part model, PPF model, network, grasps) and
-answers over HTTP/JSON and over a plain TCP line protocol (one JSON request per line, one JSON
-answer per line), on 127.0.0.1 by default. The answer is the picks.json document of the batch
-pipeline (binpick.io.picks), plus the request's id, its timings per step and the poses. The
-scene path is the library's (binpick.scene.process.process), the one the DVC stages and the
-benchmarks call.
+It loads every part of the project once (part model, PPF model, network, grasps, verification
+thresholds), serving a part's network only when the evaluate stage accepted it (GET /health says
+why a part is not served), and answers over HTTP/JSON and over a plain TCP line protocol (one JSON
+request per line, one JSON answer per line), on 127.0.0.1 by default. Requests and answers are the
+pydantic types of flows/service_api.py, published as the OpenAPI schema at /openapi.json (/docs).
+The answer is the picks.json document of the batch pipeline (binpick.io.picks), plus the
+request's id, its timings per step and the poses. The scene path is the library's
+(binpick.scene.process.process), the one the DVC stages and the benchmarks call, seeded by the
+capture's content as they are.
 
-Requests are answered one at a time (two parts' models never fight over the cores); up to
-service.max_queue more wait, further ones are refused as busy. A bad request gets an error answer
-and the service goes on. Each answered request is kept for review in
+Requests are answered one at a time, on one thread (two parts' models never fight over the
+cores); up to service.max_queue more wait, further ones are refused as busy. A bad request gets an
+error answer and the service goes on. POST /reload (or {"reload": true}) loads the parts again: a
+part trained after the service started is served from the next request on, without a restart and
+without dropping a request in progress. Each answered request is kept for review in
 <keep_dir>/requests/<date>/<id>/ (the capture, request.json, poses.json, picks.json and a rerun
 recording) and logged to MLflow (experiment `service`), both after the answer is sent; the newest
 service.keep_requests are kept.
 
 HTTP:
-  GET  /health                      {"status": "ok", "parts": [...], "answered": n, "uptime_s": s}
+  GET  /health                      {"status": "ok", "parts": [...], "not_served": {...}, "answered": n, ...}
+  POST /reload                      the same, after loading the parts again
   POST /picks?part=P&format=zdf&unit=mm   the capture file as the body (application/octet-stream)
   POST /picks  {"part": P, "path": FILE, "unit": "mm"}   a capture file on this machine
   POST /picks  {"part": P, "camera": true}               a frame from the connected Zivid camera
-TCP: the same JSON objects, one per line ({"health": true} for health; an upload as
-  "data_b64" with "format"), each with "token" when one is required.
-Errors: {"error": "..."} (HTTP 400 bad request, 401 token, 404 unknown part, 413 too large,
-  429 rate, 503 busy).
+TCP: the same JSON objects, one per line ({"health": true}, {"reload": true}; an upload as
+  "data_b64" with "format"), each with "token" when one is required (HTTP: Authorization: Bearer).
+Errors: {"error": "..."} (HTTP 400 bad request, 401 token, 404 unknown part, 409 reload refused,
+  413 too large, 429 rate, 503 busy).
 """
 
 from __future__ import annotations
@@ -33,7 +39,6 @@ import contextlib
 import json
 import logging
 import os
-import queue
 import shutil
 import threading
 import time
@@ -47,21 +52,23 @@ from typing import Any
 import numpy as np
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse
+from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
-from binpick.io.picks import picks_document, write_picks_document
-from binpick.io.poses import save_poses
+from binpick.io.picks import VERSION as PICKS_VERSION
+from binpick.io.picks import picks_document
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from flows.learn import served_checkpoint
+from flows.service_api import ErrorAnswer, Health, PicksAnswer, PicksRequest, validation_message
+from flows.service_keeper import Keeper
 
 log = logging.getLogger("binpick.service")
 
-UNITS = ("mm", "m", "in")
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 
 
@@ -80,16 +87,24 @@ class Served:
     T_base_from_cam: np.ndarray | None
 
 
-def load_parts(root: Path, params_path: Path) -> dict[str, Served]:
+def load_parts(root: Path, params_path: Path) -> tuple[dict[str, Served], dict[str, str]]:
     """Every part of the project whose models are built (data/models/<part>/ part.npz, ppf.npz,
-    grasps.json; its network when trained)."""
+    grasps.json; its network when trained) and whose network the evaluate stage accepted; and
+    the parts not served, with the reason."""
     base = load_params(params_path)
+    layout = Layout(root)
     served: dict[str, Served] = {}
+    not_served: dict[str, str] = {}
     for name in base.parts:
-        layout = Layout(root)
         needed = [layout.part_model(name), layout.ppf_model(name), layout.grasps(name)]
         if not all(p.is_file() for p in needed):
-            log.warning("not serving %s: its models are not built (run make repro)", name)
+            not_served[name] = "its models are not built (run make repro)"
+            log.warning("not serving %s: %s", name, not_served[name])
+            continue
+        refused = _not_accepted(layout, name)
+        if refused:
+            not_served[name] = refused
+            log.warning("not serving %s: %s", name, refused)
             continue
         p = load_params(params_path, name)
         # The fine-tuned network when `binpick learn finetune` found it no worse (flows/learn.py).
@@ -99,8 +114,24 @@ def load_parts(root: Path, params_path: Path) -> dict[str, Served]:
         log.info("serving %s (%s, %d %s grasps)", name, f"segmentation ({checkpoint.name}) + registration" if models.segmenter and checkpoint else
                  "registration only", len(models.grasps or []), p.pick.gripper)
     if not served:
-        raise BinpickError(f"no part of {params_path} has built models to serve: run `make repro` first")
-    return served
+        why = "; ".join(f"{n}: {r}" for n, r in not_served.items())
+        raise BinpickError(f"no part of {params_path} can be served ({why or 'no parts'}): run `make repro` first")
+    return served, not_served
+
+
+def _not_accepted(layout: Layout, part: str) -> str | None:
+    """Why a part's trained network must not be served (the evaluate stage refused it, or has not
+    judged this network), None when it may be (accepted, or no network: registration only)."""
+    if not layout.checkpoint(part).is_file():
+        return None
+    metrics = layout.part_metrics(part, "evaluate")
+    if not metrics.is_file() or metrics.stat().st_mtime < layout.checkpoint(part).stat().st_mtime:
+        return "its network has not been evaluated since it was trained (run make repro)"
+    figures = json.loads(metrics.read_text())
+    if not figures.get("accepted"):
+        return (f"its network was not accepted by evaluate (segmentation precision {figures.get('precision', float('nan')):.2f}, "
+                f"recall {figures.get('recall', float('nan')):.2f} below evaluate.accept_precision / accept_recall)")
+    return None
 
 
 class PickService:
@@ -110,7 +141,8 @@ class PickService:
         self.root = Path(root)
         self.params = load_params(params_path)
         self.settings: ServiceParams = self.params.service
-        self.parts = load_parts(self.root, params_path)
+        self.params_path = Path(params_path)
+        self.parts, self.not_served = load_parts(self.root, params_path)
         self.token = os.environ.get(self.settings.token_env) or None
         self.started = time.monotonic()
         self.answered = 0
@@ -143,40 +175,50 @@ class PickService:
         return int(self.settings.max_request_mb * 1024 * 1024)
 
     def health(self) -> dict[str, Any]:
-        return {"status": "ok", "parts": sorted(self.parts), "answered": self.answered, "waiting": self._waiting,
+        return {"status": "ok", "parts": sorted(self.parts), "not_served": self.not_served, "answered": self.answered, "waiting": self._waiting,
                 "uptime_s": round(time.monotonic() - self.started, 3)}
+
+    def reload(self) -> dict[str, Any]:
+        """Load the project's parts again (a part trained, fine-tuned or refused since) and serve
+        them from the next request on; a request in progress finishes with the models it began
+        with. Refused (the old parts kept) when no part could be loaded."""
+        try:
+            parts, not_served = load_parts(self.root, self.params_path)
+        except BinpickError as exc:
+            raise RequestError(409, f"reload refused, still serving {', '.join(sorted(self.parts))}: {exc}") from None
+        self.parts, self.not_served = parts, not_served  # one assignment each: a request reads one or the other
+        log.info("reloaded: serving %s", ", ".join(sorted(parts)))
+        return self.health()
 
     # -- answering -----------------------------------------------------------------------------
 
-    def answer(self, request: dict[str, Any], payload: bytes | None = None) -> dict[str, Any]:
-        """The picks for one request (see the module's docstring); raises RequestError."""
-        part = request.get("part")
-        if not isinstance(part, str) or part not in self.parts:
-            raise RequestError(404 if isinstance(part, str) else 400, f"unknown part {part!r} (serving: {', '.join(sorted(self.parts))})")
-        unit = request.get("unit", "mm")
-        if unit not in UNITS:
-            raise RequestError(400, f"unit {unit!r} is not one of {', '.join(UNITS)}")
+    async def answer(self, request: PicksRequest, payload: bytes | None = None) -> dict[str, Any]:
+        """The picks for one request (see the module's docstring); raises RequestError. Called
+        on the event loop: the work goes straight to the one answering thread."""
+        served = self.parts.get(request.part)
+        if served is None:
+            raise RequestError(404, f"unknown part {request.part!r} (serving: {', '.join(sorted(self.parts))})")
         with self._count:
             if self._waiting >= self.settings.max_queue + 1:
                 raise RequestError(503, f"busy: {self._waiting} requests in progress or waiting")
             self._waiting += 1
         try:
-            return self._worker.submit(self._answer, part, unit, request, payload).result()
+            return await asyncio.wrap_future(self._worker.submit(self._answer, served, request, payload))
         finally:
             with self._count:
                 self._waiting -= 1
 
-    def _capture_file(self, request: dict[str, Any], payload: bytes | None, folder: Path) -> Path:
+    def _capture_file(self, request: PicksRequest, payload: bytes | None, folder: Path) -> Path:
         """The capture as a file: the upload written into the request's folder, a named file, or a camera frame."""
         if payload is not None:
-            fmt = str(request.get("format", "")).lower().lstrip(".")
+            fmt = (request.format or "").lower().lstrip(".")
             if f".{fmt}" not in CAPTURE_SUFFIXES:
                 raise RequestError(400, f"an uploaded capture needs its format: one of {', '.join(s.lstrip('.') for s in CAPTURE_SUFFIXES)}")
             path = folder / f"capture.{fmt}"
             path.write_bytes(payload)
             return path
-        if request.get("path"):
-            path = Path(str(request["path"]))
+        if request.path:
+            path = Path(request.path)
             path = path if path.is_absolute() else self.root / path
             allowed = [self.root, *(Path(f) for f in self.settings.capture_folders)]
             if not any(path.resolve().is_relative_to(a.resolve()) for a in allowed):
@@ -184,7 +226,7 @@ class PickService:
             if not path.is_file():
                 raise RequestError(400, f"{path}: capture file not found")
             return path
-        if request.get("camera"):
+        if request.camera:
             from binpick.zivid_camera import grab_to_file
 
             path = folder / "capture.ply"
@@ -195,8 +237,8 @@ class PickService:
             return path
         raise RequestError(400, "a request names a capture: an upload (with its format), a \"path\" or \"camera\": true")
 
-    def _answer(self, part: str, unit: str, request: dict[str, Any], payload: bytes | None) -> dict[str, Any]:
-        served = self.parts[part]
+    def _answer(self, served: Served, request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
+        part, unit = request.part, request.unit
         t0 = time.perf_counter()
         stamp = datetime.now(UTC)
         request_id = f"{stamp:%Y%m%dT%H%M%S%f}-{part}"
@@ -235,86 +277,6 @@ class PickService:
         self._keeper.close()
 
 
-class Keeper:
-    """Keeps answered requests for review, off the answering path (a thread of its own): the
-    capture, request.json, poses.json, picks.json and scene.rrd in a dated folder, an MLflow
-    run, and the retention limit."""
-
-    def __init__(self, keep_dir: Path, limit: int, mlflow_uri: str | None, log_mlflow: bool):
-        self.requests = keep_dir / "requests"
-        self.limit = limit
-        self.mlflow_uri = mlflow_uri
-        self.log_mlflow = log_mlflow
-        self._jobs: queue.Queue[tuple | None] = queue.Queue()
-        self._stream = None  # one rerun stream for every recording (a stream per file leaks threads)
-        self._thread = threading.Thread(target=self._run, name="binpick-keeper", daemon=True)
-        self._thread.start()
-
-    def folder(self, stamp: datetime, request_id: str) -> Path:
-        path = self.requests / f"{stamp:%Y-%m-%d}" / request_id
-        path.mkdir(parents=True, exist_ok=True)
-        return path
-
-    def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
-        self._jobs.put((folder, capture, doc, result, served, unit))
-
-    def close(self) -> None:
-        self._jobs.put(None)
-        self._thread.join(timeout=60)
-
-    def _run(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            try:
-                self._keep(*job)
-            except Exception:  # noqa: BLE001 - a review copy that failed must not stop the service
-                log.exception("keeping request %s for review failed", job[2].get("request_id"))
-            finally:
-                self._jobs.task_done()
-
-    def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
-        from stages.common import mlflow_run
-        from stages.common.pick_recording import write_pick_recording
-
-        if capture.parent != folder:  # a named file: keep a copy (a link where the disk allows)
-            target = folder / f"capture{capture.suffix}"
-            try:
-                os.link(capture, target)
-            except OSError:
-                shutil.copyfile(capture, target)
-        part = served.models.part
-        write_picks_document(folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")})
-        save_poses(folder / "poses.json", part.name, result.poses)
-        (folder / "request.json").write_text(json.dumps({"request_id": doc["request_id"], "part": part.name, "timings_s": doc["timings_s"],
-                                                         "counts": doc["counts"], "source": str(capture), "unit": unit}, indent=1) + "\n")
-        if self._stream is None:
-            import rerun as rr
-
-            self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
-        write_pick_recording(folder / "scene.rrd", doc["request_id"], result.cloud, part, result.poses, result.picks, served.params.pick.gripper,
-                             served.params.pick, self._stream)
-        if self.log_mlflow:
-            with mlflow_run("service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}):
-                import mlflow
-
-                mlflow.log_metrics({**doc["timings_s"], **doc["counts"],
-                                    "score_mean": float(np.mean([p.score for p in result.poses])) if result.poses else 0.0})
-        self._prune()
-
-    def _prune(self) -> None:
-        kept = list_requests(self.requests)
-        for old in kept[self.limit:]:
-            shutil.rmtree(old, ignore_errors=True)
-            with contextlib.suppress(OSError):
-                old.parent.rmdir()  # the day's folder, once empty
-
-
-def list_requests(requests: Path) -> list[Path]:
-    """Kept request folders, newest first."""
-    if not requests.is_dir():
-        return []
-    return sorted((p for day in requests.iterdir() if day.is_dir() for p in day.iterdir() if p.is_dir()), key=lambda p: p.name, reverse=True)
-
-
 # -- HTTP ----------------------------------------------------------------------------------------
 
 def http_app(service: PickService):
@@ -332,53 +294,73 @@ def http_app(service: PickService):
                 server.close()
                 await server.wait_closed()
 
-    app = FastAPI(title="binpick pick service", lifespan=lifespan)
+    app = FastAPI(title="binpick pick service", version=str(PICKS_VERSION), lifespan=lifespan,
+                  description="Picks for a capture of a bin: the poses of the parts and a collision-free grasp per part, ranked. "
+                              "Send `Authorization: Bearer <token>` when the service was started with a token.")
+    errors: dict[int | str, dict[str, Any]] = {code: {"model": ErrorAnswer} for code in (400, 401, 404, 409, 413, 429, 503)}
 
-    def error(exc: RequestError) -> JSONResponse:
+    @app.exception_handler(RequestError)
+    async def refused(request: Request, exc: RequestError) -> JSONResponse:
         return JSONResponse({"error": str(exc)}, status_code=exc.status)
 
-    def bearer(request: Request) -> str | None:
+    def authorised(request: Request) -> None:
         value = request.headers.get("authorization", "")
-        return value[7:] if value.lower().startswith("bearer ") else None
+        service.check_token(value[7:] if value.lower().startswith("bearer ") else None)
 
-    @app.get("/health")
+    @app.get("/health", response_model=Health, responses=errors)
     async def health(request: Request):
-        try:
-            service.check_token(bearer(request))
-        except RequestError as exc:
-            return error(exc)
+        authorised(request)
         return service.health()
 
-    @app.post("/picks")
+    @app.post("/reload", response_model=Health, responses=errors,
+              summary="Load the project's parts again (a part trained or fine-tuned since the service started)")
+    async def reload(request: Request):
+        authorised(request)
+        return await run_in_threadpool(service.reload)
+
+    upload_schema = {"requestBody": {"content": {
+        "application/json": {"schema": PicksRequest.model_json_schema()},
+        "application/octet-stream": {"schema": {"type": "string", "format": "binary"},
+                                     "description": "the capture file; part, format and unit as query parameters"},
+    }}}
+
+    @app.post("/picks", response_model=PicksAnswer, response_model_exclude_unset=True, responses=errors, openapi_extra=upload_schema,
+              summary="Picks for one capture: JSON naming a file or the camera, or the capture file as the body")
     async def picks(request: Request):
-        try:
-            service.check_token(bearer(request))
-            service.check_rate()
-            declared = request.headers.get("content-length")
-            if declared is not None and int(declared) > service.max_bytes:
-                raise RequestError(413, f"request of {int(declared) / 2**20:.1f} MB is over service.max_request_mb {service.settings.max_request_mb:g}")
-            body = bytearray()
-            async for chunk in request.stream():
-                body += chunk
-                if len(body) > service.max_bytes:
-                    raise RequestError(413, f"request is over service.max_request_mb {service.settings.max_request_mb:g}")
-            if request.headers.get("content-type", "").startswith("application/json"):
-                try:
-                    fields = json.loads(bytes(body))
-                except ValueError as exc:
-                    raise RequestError(400, f"not JSON: {exc}") from None
-                if not isinstance(fields, dict):
-                    raise RequestError(400, "the request must be a JSON object")
-                payload = None
-            else:
-                fields = dict(request.query_params)
-                payload = bytes(body) if body else None
-            answer = await run_in_threadpool(service.answer, fields, payload)
-        except RequestError as exc:
-            return error(exc)
-        return answer
+        authorised(request)
+        service.check_rate()
+        declared = request.headers.get("content-length")
+        if declared is not None and int(declared) > service.max_bytes:
+            raise RequestError(413, f"request of {int(declared) / 2**20:.1f} MB is over service.max_request_mb {service.settings.max_request_mb:g}")
+        body = bytearray()
+        async for chunk in request.stream():
+            body += chunk
+            if len(body) > service.max_bytes:
+                raise RequestError(413, f"request is over service.max_request_mb {service.settings.max_request_mb:g}")
+        if request.headers.get("content-type", "").startswith("application/json"):
+            fields, payload = _json_object(bytes(body)), None
+        else:
+            fields, payload = dict(request.query_params), bytes(body) if body else None
+        return await service.answer(_picks_request(fields), payload)
 
     return app
+
+
+def _json_object(text: bytes) -> dict[str, Any]:
+    try:
+        fields = json.loads(text)
+    except ValueError as exc:
+        raise RequestError(400, f"not JSON: {exc}") from None
+    if not isinstance(fields, dict):
+        raise RequestError(400, "the request must be a JSON object")
+    return fields
+
+
+def _picks_request(fields: dict[str, Any]) -> PicksRequest:
+    try:
+        return PicksRequest.model_validate(fields)
+    except ValidationError as exc:
+        raise RequestError(400, validation_message(exc)) from None
 
 
 async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
@@ -392,8 +374,7 @@ async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer:
                 break
             if not line:
                 break
-            answer = await asyncio.get_running_loop().run_in_executor(None, _tcp_answer, service, line)
-            writer.write(json.dumps(answer).encode() + b"\n")
+            writer.write(json.dumps(await _tcp_answer(service, line)).encode() + b"\n")
             await writer.drain()
     except (ConnectionError, asyncio.IncompleteReadError):
         pass
@@ -403,25 +384,24 @@ async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer:
             await writer.wait_closed()
 
 
-def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
+async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
+    """{"health": true} and {"reload": true} (with "token" when one is set) or a PicksRequest."""
     try:
-        try:
-            request = json.loads(line)
-        except ValueError as exc:
-            raise RequestError(400, f"not JSON: {exc}") from None
-        if not isinstance(request, dict):
-            raise RequestError(400, "the request must be a JSON object")
-        service.check_token(request.get("token"))
-        if request.get("health"):
+        fields = _json_object(line)
+        service.check_token(fields.get("token"))
+        if fields.get("health"):
             return service.health()
+        if fields.get("reload"):
+            return await asyncio.get_running_loop().run_in_executor(None, service.reload)
         service.check_rate()
+        request = _picks_request(fields)
         payload = None
-        if "data_b64" in request:
+        if request.data_b64 is not None:
             try:
-                payload = base64.b64decode(request["data_b64"], validate=True)
+                payload = base64.b64decode(request.data_b64, validate=True)
             except (ValueError, TypeError) as exc:
                 raise RequestError(400, f"data_b64 is not base64: {exc}") from None
-        return service.answer(request, payload)
+        return await service.answer(request, payload)
     except RequestError as exc:
         return {"error": str(exc), "status": exc.status}
 

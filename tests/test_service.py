@@ -163,7 +163,7 @@ def test_requests_are_kept_within_the_limit_and_one_joins_the_pipeline(server, p
     import subprocess
     import sys
 
-    from flows.service import list_requests
+    from flows.service_keeper import list_requests
 
     service, url = server
     root, _, capture = project
@@ -201,3 +201,54 @@ def test_the_command_refuses_a_port_in_use_and_an_open_bind_without_token(projec
     proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--host", "0.0.0.0", "--http-port", str(free_port()), "--tcp-port", "0"],
                           cwd=root, capture_output=True, text=True, timeout=120, env=env)
     assert proc.returncode == 2 and "needs a token" in proc.stderr
+
+
+def test_the_schema_describes_requests_and_answers(server):
+    _, url = server
+    schema = httpx.get(f"{url}/openapi.json").json()
+    body = schema["paths"]["/picks"]["post"]["requestBody"]["content"]
+    assert {"application/json", "application/octet-stream"} <= set(body)
+    assert {"part", "path", "camera", "unit"} <= set(body["application/json"]["schema"]["properties"])
+    answer = schema["components"]["schemas"]["PicksAnswer"]["properties"]
+    assert {"picks", "poses", "request_id", "T_base_from_cam"} <= set(answer)
+    assert "/reload" in schema["paths"]
+
+
+def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_not(server, project):
+    """The project gains a part while the service runs: /reload serves it without a restart, while
+    a request in progress is answered; a part whose network evaluate refused is not served, and
+    /health says why."""
+    import shutil
+
+    import yaml
+
+    service, url = server
+    root, _, capture = project
+    raw = yaml.safe_load((root / "params.yaml").read_text())
+    raw["parts"]["t_joint_b"] = dict(raw["parts"]["t_joint"])
+    (root / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
+    shutil.copytree(root / "data" / "models" / "t_joint", root / "data" / "models" / "t_joint_b")
+    assert httpx.get(f"{url}/health").json()["parts"] == ["t_joint"]
+
+    answers: list[int] = []
+    during = threading.Thread(target=lambda: answers.append(
+        httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code))
+    during.start()
+    time.sleep(0.2)
+    reloaded = httpx.post(f"{url}/reload", timeout=120)
+    during.join()
+    assert answers == [200] and reloaded.status_code == 200, reloaded.text
+    assert reloaded.json()["parts"] == ["t_joint", "t_joint_b"]
+    assert httpx.post(f"{url}/picks", json={"part": "t_joint_b", "path": str(capture)}, timeout=120).json()["picks"]
+
+    network = root / "data" / "fpcc" / "t_joint_b" / "model.pt"
+    network.parent.mkdir(parents=True)
+    network.write_bytes(b"a network the evaluate stage judged")
+    metrics = root / "data" / "metrics" / "t_joint_b" / "evaluate.json"
+    metrics.parent.mkdir(parents=True)
+    metrics.write_text(json.dumps({"accepted": 0.0, "precision": 0.41, "recall": 0.3}))
+    health = httpx.post(f"{url}/reload", timeout=120).json()
+    assert health["parts"] == ["t_joint"] and "not accepted" in health["not_served"]["t_joint_b"]
+    assert httpx.post(f"{url}/picks", json={"part": "t_joint_b", "path": str(capture)}, timeout=120).status_code == 404
+    network.unlink()
+    assert httpx.post(f"{url}/reload", timeout=120).json()["parts"] == ["t_joint", "t_joint_b"]

@@ -1,0 +1,103 @@
+"""The pick service's request and answer types, shared by HTTP and the TCP line protocol. FastAPI
+publishes them as the service's OpenAPI schema (`/openapi.json`, rendered at `/docs`), the
+contract a robot integrator programs against. The answer is the picks.json document of the batch
+pipeline (binpick.io.picks, data/README.md) plus the request's id, timings and poses."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+UNITS = ("mm", "m", "in")
+Matrix4 = list[list[float]]
+
+
+class PicksRequest(BaseModel):
+    """Picks for one capture: an upload (HTTP body with `format` as a query parameter, or
+    `data_b64` on the line protocol), a capture file on the service's machine (`path`, inside the
+    project or service.capture_folders) or a frame from the connected Zivid camera (`camera`)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    part: str = Field(description="a part the service serves (GET /health lists them)")
+    path: str | None = Field(None, description="capture file on the service's machine, absolute or relative to the project")
+    camera: bool = Field(False, description="grab a frame from the connected Zivid camera")
+    unit: str = Field("mm", description="unit of the capture's coordinates: mm, m or in")
+    format: str | None = Field(None, description="an upload's file format: ply, pcd, zdf, csv, xyz, png")
+    data_b64: str | None = Field(None, description="line protocol: the uploaded capture, base64")
+    token: str | None = Field(None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)")
+
+    @field_validator("unit")
+    @classmethod
+    def _known_unit(cls, unit: str) -> str:
+        if unit not in UNITS:
+            raise ValueError(f"unit {unit!r} is not one of {', '.join(UNITS)}")
+        return unit
+
+
+class PosesOfPick(BaseModel):
+    pregrasp: Matrix4
+    grasp: Matrix4
+    postgrasp: Matrix4
+
+
+class Pick(BaseModel):
+    rank: int = Field(description="0 = pick this first")
+    pose_index: int = Field(description="index into `poses`")
+    grasp_id: str
+    score: float
+    clearance_m: float
+    height_m: float
+    trusted: bool = Field(description="the pose's verification left no doubt (seen-through share within the limit)")
+    width_m: float | None = Field(None, description="jaw gripper: the opening at the grasp")
+    camera: PosesOfPick = Field(description="T_cam_from_tool of the pre-grasp, grasp and post-grasp poses (metres)")
+    base: PosesOfPick = Field(description="the same in the robot base frame (T_base_from_cam applied)")
+
+
+class Unpicked(BaseModel):
+    pose_index: int
+    reason: str
+
+
+class PoseOut(BaseModel):
+    T_cam_from_model: Matrix4
+    score: float
+
+
+class PicksAnswer(BaseModel):
+    format: Literal["binpick-picks"]
+    version: int
+    capture: str = Field(description="the request's id")
+    part: str
+    gripper: str
+    unit: Literal["m"]
+    tool_frame: str
+    calibrated: bool = Field(description="T_base_from_cam is the hand-eye calibration (false: identity)")
+    T_base_from_cam: Matrix4
+    up_cam: list[float] = Field(description="the bin's up axis in the camera frame")
+    picks: list[Pick]
+    unpicked: list[Unpicked]
+    counts: dict[str, float]
+    request_id: str
+    timings_s: dict[str, float]
+    poses: list[PoseOut]
+
+
+class Health(BaseModel):
+    status: Literal["ok"]
+    parts: list[str]
+    not_served: dict[str, str] = Field(description="parts of the project not served, and why")
+    answered: int
+    waiting: int
+    uptime_s: float
+
+
+class ErrorAnswer(BaseModel):
+    error: str = Field(description="one line; names no path of the service's machine but the client's own")
+    status: int | None = Field(None, description="line protocol: the HTTP status it stands for")
+
+
+def validation_message(exc: ValidationError) -> str:
+    """One line from pydantic's errors: `field: what is wrong`."""
+    return "; ".join(f"{'.'.join(str(x) for x in e['loc']) or 'request'}: {str(e['msg']).removeprefix('Value error, ')}" for e in exc.errors())

@@ -1,0 +1,107 @@
+"""The pick service's keeper: every answered request kept for review, off the answering path
+(a thread of its own), and the newest service.keep_requests kept: the capture, request.json,
+poses.json, picks.json and a rerun recording (scene.rrd) in <keep_dir>/requests/<date>/<id>/,
+and an MLflow run in experiment `service`."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import os
+import queue
+import shutil
+import threading
+from datetime import datetime
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from binpick.io.picks import write_picks_document
+from binpick.io.poses import save_poses
+from stages.common.pick_recording import write_pick_recording
+
+if TYPE_CHECKING:
+    from flows.service import Served
+
+log = logging.getLogger("binpick.service")
+
+
+class Keeper:
+    """Keeps answered requests for review, off the answering path (a thread of its own): the
+    capture, request.json, poses.json, picks.json and scene.rrd in a dated folder, an MLflow
+    run, and the retention limit."""
+
+    def __init__(self, keep_dir: Path, limit: int, mlflow_uri: str | None, log_mlflow: bool):
+        self.requests = keep_dir / "requests"
+        self.limit = limit
+        self.mlflow_uri = mlflow_uri
+        self.log_mlflow = log_mlflow
+        self._jobs: queue.Queue[tuple | None] = queue.Queue()
+        self._stream = None  # one rerun stream for every recording (a stream per file leaks threads)
+        self._thread = threading.Thread(target=self._run, name="binpick-keeper", daemon=True)
+        self._thread.start()
+
+    def folder(self, stamp: datetime, request_id: str) -> Path:
+        path = self.requests / f"{stamp:%Y-%m-%d}" / request_id
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+
+    def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
+        self._jobs.put((folder, capture, doc, result, served, unit))
+
+    def close(self) -> None:
+        self._jobs.put(None)
+        self._thread.join(timeout=60)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            try:
+                self._keep(*job)
+            except Exception:  # noqa: BLE001 - a review copy that failed must not stop the service
+                log.exception("keeping request %s for review failed", job[2].get("request_id"))
+            finally:
+                self._jobs.task_done()
+
+    def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
+        from stages.common import mlflow_run
+
+        if capture.parent != folder:  # a named file: keep a copy (a link where the disk allows)
+            target = folder / f"capture{capture.suffix}"
+            try:
+                os.link(capture, target)
+            except OSError:
+                shutil.copyfile(capture, target)
+        part = served.models.part
+        write_picks_document(folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")})
+        save_poses(folder / "poses.json", part.name, result.poses)
+        (folder / "request.json").write_text(json.dumps({"request_id": doc["request_id"], "part": part.name, "timings_s": doc["timings_s"],
+                                                         "counts": doc["counts"], "source": str(capture), "unit": unit}, indent=1) + "\n")
+        if self._stream is None:
+            import rerun as rr
+
+            self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
+        write_pick_recording(folder / "scene.rrd", doc["request_id"], result.cloud, part, result.poses, result.picks, served.params.pick.gripper,
+                             served.params.pick, self._stream)
+        if self.log_mlflow:
+            with mlflow_run("service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}):
+                import mlflow
+
+                mlflow.log_metrics({**doc["timings_s"], **doc["counts"],
+                                    "score_mean": float(np.mean([p.score for p in result.poses])) if result.poses else 0.0})
+        self._prune()
+
+    def _prune(self) -> None:
+        kept = list_requests(self.requests)
+        for old in kept[self.limit:]:
+            shutil.rmtree(old, ignore_errors=True)
+            with contextlib.suppress(OSError):
+                old.parent.rmdir()  # the day's folder, once empty
+
+
+def list_requests(requests: Path) -> list[Path]:
+    """Kept request folders, newest first."""
+    if not requests.is_dir():
+        return []
+    return sorted((p for day in requests.iterdir() if day.is_dir() for p in day.iterdir() if p.is_dir()), key=lambda p: p.name, reverse=True)
