@@ -10,9 +10,9 @@ the user to check in the recording and keep in params.yaml.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
+
+from binpick.bin_box import BinBox
 
 # Occupancy grid of what stands on the plane; gaps up to one cell join a region.
 GRID_CELL_M = 0.005
@@ -28,24 +28,6 @@ MIN_PARTS_ACROSS = 1.0
 MAX_PARTS_ALONG = 25.0
 # ... and a bin camera looks into the bin: its up axis within this of the camera's view.
 MAX_VIEW_TILT_DEG = 60.0
-
-
-@dataclass(frozen=True)
-class BinBox:
-    """T_cam_from_bin (4, 4); inner_min_m, inner_max_m (3,): the box corners in the bin frame."""
-
-    T_cam_from_bin: np.ndarray
-    inner_min_m: np.ndarray
-    inner_max_m: np.ndarray
-    n_points: int
-
-    def as_import_settings(self) -> dict[str, object]:
-        """The import_capture keys that crop to this box."""
-        return {
-            "T_cam_from_roi": [[round(float(x), 9) for x in row] for row in self.T_cam_from_bin],
-            "roi_min_m": [round(float(x), 4) for x in self.inner_min_m],
-            "roi_max_m": [round(float(x), 4) for x in self.inner_max_m],
-        }
 
 
 def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -118,7 +100,7 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     T[:3, :3] = np.column_stack([x_axis, y_axis, z_axis])
     T[:3, 3] = origin + centre[0] * axes[0] + centre[1] * axes[1]
     top = float(np.percentile(height[height > keep_above_m][member], HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
-    return BinBox(T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]), int(member.sum()))
+    return BinBox(T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]))
 
 
 def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:

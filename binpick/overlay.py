@@ -9,11 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-# Instance colours (RGB), cycled.
-PALETTE = np.array([
-    (230, 25, 75), (60, 180, 75), (255, 225, 25), (0, 130, 200), (245, 130, 48), (145, 30, 180),
-    (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 190), (0, 128, 128), (170, 110, 40),
-], dtype=np.uint8)
+from binpick.palette import instance_colours
+
 # A model point this far behind the measured depth at its pixel is hidden.
 HIDDEN_MARGIN_M = 0.005
 
@@ -34,7 +31,9 @@ def draw_poses(
     """
     out = image.astype(np.float32).copy()
     H, W = image.shape[:2]
-    for i, T in enumerate(np.asarray(T_cam_from_model).reshape(-1, 4, 4)):
+    poses = np.asarray(T_cam_from_model).reshape(-1, 4, 4)
+    palette = instance_colours(max(len(poses), 1))
+    for i, T in enumerate(poses):
         p = model_points_m @ T[:3, :3].T + T[:3, 3]
         p = p[p[:, 2] > 1e-6]
         uv = p @ K.T
@@ -45,7 +44,7 @@ def draw_poses(
         if depth_m is not None:
             measured = depth_m[v, u]
             u, v = u[~(z > measured + HIDDEN_MARGIN_M)], v[~(z > measured + HIDDEN_MARGIN_M)]
-        colour = PALETTE[i % len(PALETTE)].astype(np.float32)
+        colour = palette[i].astype(np.float32)
         # Each surface point covers a few pixels at full resolution: a 3 x 3 block.
         mask = np.zeros((H, W), bool)
         for du in (-1, 0, 1):
@@ -61,13 +60,15 @@ def label_poses(image: np.ndarray, K: np.ndarray, T_cam_from_model: np.ndarray, 
 
     img = Image.fromarray(image)
     draw = ImageDraw.Draw(img)
-    for i, (T, s) in enumerate(zip(np.asarray(T_cam_from_model).reshape(-1, 4, 4), scores, strict=True)):
+    poses = np.asarray(T_cam_from_model).reshape(-1, 4, 4)
+    palette = instance_colours(max(len(poses), 1))
+    for i, (T, s) in enumerate(zip(poses, scores, strict=True)):
         if T[2, 3] <= 0:
             continue
         uvw = K @ T[:3, 3]
         x, y = uvw[0] / uvw[2], uvw[1] / uvw[2]
         draw.text((x + 1, y + 1), f"{i}:{s:.2f}", fill=(0, 0, 0))
-        draw.text((x, y), f"{i}:{s:.2f}", fill=tuple(int(c) for c in PALETTE[i % len(PALETTE)]))
+        draw.text((x, y), f"{i}:{s:.2f}", fill=tuple(int(c) for c in palette[i]))
     return np.asarray(img)
 
 

@@ -40,6 +40,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
+from binpick.bin_box import BinBox
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
@@ -108,30 +109,6 @@ BIN_PLANE_AGREEMENT_M = 0.02
 
 
 @dataclass(frozen=True)
-class BinBoxObstacle:
-    """A bin given as a box: T_cam_from_bin (4, 4), z up from its floor; inner_min_m / inner_max_m
-    (3,) its inner corners in that frame. Its floor and four walls (up to inner_max_m z) are obstacles."""
-
-    T_cam_from_bin: np.ndarray
-    inner_min_m: np.ndarray
-    inner_max_m: np.ndarray
-
-    def surface_points(self, spacing_m: float) -> np.ndarray:
-        """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
-        lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
-        axes = [np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1)) for a, b in zip(lo, hi, strict=True)]
-        faces = []
-        for fixed in range(3):
-            others = [k for k in range(3) if k != fixed]
-            A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
-            for value in ((lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed])):  # no lid
-                f = np.empty((A.size, 3))
-                f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
-                faces.append(f)
-        return transform_points(self.T_cam_from_bin, np.concatenate(faces))
-
-
-@dataclass(frozen=True)
 class Pick:
     """pose_index: the part (its index in the poses); T_cam_from_tool at pre-grasp, grasp and
     post-grasp; clearance_m of the swept gripper (capped at CLEARANCE_CAP_M); height_m of the
@@ -183,7 +160,7 @@ def thin(points: np.ndarray, grid_m: float) -> np.ndarray:
     return points[voxel_downsample_indices(points, grid_m)]
 
 
-def support_frame(floor_plane: np.ndarray, bin_box: BinBoxObstacle | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tuple[np.ndarray, np.ndarray | None]:
     """up (3,) unit, camera frame, and the support plane (4,) with that normal (None when there is none).
 
     With a bin box, up is the box's z axis (toward the camera) and the plane its floor (bin
@@ -223,7 +200,7 @@ def plan_picks(
     captured_m: np.ndarray,
     floor_plane: np.ndarray,
     params: PickParams,
-    bin_box: BinBoxObstacle | None = None,
+    bin_box: BinBox | None = None,
     seen_through: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the detected parts.

@@ -41,7 +41,6 @@ log = logging.getLogger(__name__)
 
 REVIEWED = "reviewed.json"
 REVIEW_RECORDING = "review.rrd"
-IGNORED_GREY = np.array([110, 110, 110], np.uint8)
 
 
 def load_reviewed(folder: Path) -> dict[str, dict]:
@@ -110,7 +109,7 @@ def write_review_recording(path: Path, part: str, part_model, captures: list[tup
     at each trusted pose, in the camera frame."""
     import rerun as rr
 
-    from binpick.io.scene import instance_colours
+    from binpick.palette import instance_colours, instance_rgb
 
     path.parent.mkdir(parents=True, exist_ok=True)
     rec = rr.RecordingStream("binpick", recording_id=f"review-{part}")
@@ -121,8 +120,7 @@ def write_review_recording(path: Path, part: str, part_model, captures: list[tup
             rec.set_time("capture", sequence=step)
             n = len(c.T_cam_from_model)
             palette = instance_colours(max(n, 1))
-            colours = np.where((c.labels >= 0)[:, None], palette[np.maximum(c.labels, 0) % len(palette)], IGNORED_GREY)
-            rec.log("camera/labels", rr.Points3D(c.points_m, colors=colours, radii=0.001, class_ids=c.labels.astype(np.int32)))
+            rec.log("camera/labels", rr.Points3D(c.points_m, colors=instance_rgb(c.labels), radii=0.001, class_ids=c.labels.astype(np.int32)))
             rec.log("camera/parts", rr.Clear(recursive=True))
             for k, T in enumerate(c.T_cam_from_model):
                 vertices = part_model.mesh_vertices_m @ T[:3, :3].T + T[:3, 3]

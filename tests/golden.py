@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.bench import cpu_model
 from binpick.params import CameraParams, GenerateParams
+from flows.bench import cpu_model
 
 GOLDEN = Path(__file__).resolve().parent / "data" / "golden_scene.npz"
 SEED = 20261201

@@ -4,9 +4,9 @@ asserted (speed targets live in the benchmarks' JSON, not in tests)."""
 import numpy as np
 import pytest
 
-from binpick.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
-from binpick.bench.ppf import bench_ppf
 from binpick.geometry.transforms import make_T
+from flows.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
+from flows.bench.ppf import bench_ppf
 
 from settings import PARAMS
 
@@ -42,7 +42,7 @@ def test_ppf_bench_recovers_poses():
 
 
 def test_clutter_bench_reports_both_scorings():
-    from binpick.bench.clutter import bench_clutter
+    from flows.bench.clutter import bench_clutter
 
     result = bench_clutter(PARAMS, ["t_joint"], n_scenes=1, checkpoints={})
     part = result["parts"]["t_joint"]
@@ -55,9 +55,9 @@ def test_clutter_bench_reports_both_scorings():
 
 
 def test_a_tilted_bench_camera_looks_at_the_bin_centre_at_its_tilt():
-    from binpick.bench.clutter import camera_tilt_deg, tilt_band
     from binpick.generation.scene import tilted_camera
     from binpick.geometry.transforms import invert_T, transform_points
+    from flows.bench.clutter import camera_tilt_deg, tilt_band
 
     for tilt_deg, heading in ((0.0, 0.3), (30.0, 1.0), (45.0, 4.0)):
         T_bin_from_camera = tilted_camera(0.8, np.radians(tilt_deg), heading)
@@ -69,7 +69,7 @@ def test_a_tilted_bench_camera_looks_at_the_bin_centre_at_its_tilt():
 
 
 def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
-    from binpick.bench.picking import bench_picking
+    from flows.bench.picking import bench_picking
 
     result = bench_picking(PARAMS, ["t_joint"], n_bins=1, parts_per_bin=(3, 3), checkpoints={})
     part = result["parts"]["t_joint"]
@@ -86,10 +86,10 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     """The benchmark's own judge: a grasp placed on a true part passes, one 5 mm above it or
     whose tool passes through a neighbour fails."""
 
-    from binpick.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch
     from binpick.geometry.transforms import make_T
     from binpick.io.grasps import tool_frame
     from binpick.picking import Pick
+    from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch
 
     T_obj = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
     # The camera looks along +z, so the part's top is its model -z side: a contact on the run's
@@ -118,12 +118,12 @@ def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():
     square on the surface under it: it passes; one tilted 20 degrees from that normal fails."""
     import trimesh
 
-    from binpick.bench.picking import TrueSurface, _true_touch
     from binpick.geometry.transforms import axis_angle_to_R, make_T
     from binpick.io.grasps import tool_frame
     from binpick.params import SymmetryParams
     from binpick.parts import make_part_model
     from binpick.picking import Pick
+    from flows.bench.picking import TrueSurface, _true_touch
 
     cylinder = trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12)
     part = make_part_model("rod", cylinder, SymmetryParams(kind="revolution"), 20000, np.random.default_rng(0), "m")
@@ -146,11 +146,11 @@ def test_scene_bench_bins_hold_twenty_long_parts(t_joint):
     benchmark's hold the 20 it asks for, of a long part and of the built-in one."""
     import trimesh
 
-    from binpick.bench.picking import picking_settings
-    from binpick.bench.scene import scene_generate_settings
     from binpick.generation.placement import place_objects
     from binpick.params import SymmetryParams
     from binpick.parts import make_part_model
+    from flows.bench.picking import picking_settings
+    from flows.bench.scene import scene_generate_settings
 
     # The gear shaft's proportions: a 0.44 m body of 60 mm girth with a 100 mm gear on it.
     body, gear = trimesh.creation.cylinder(radius=0.03, height=0.44), trimesh.creation.cylinder(radius=0.05, height=0.06)

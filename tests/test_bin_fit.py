@@ -99,12 +99,13 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
 
 
 def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
-    from binpick.bin_fit import BinBox, implausible
+    from binpick.bin_box import BinBox
+    from binpick.bin_fit import implausible
 
     def box(size_m, height_m, tilt_deg=0.0):
         R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi + np.radians(tilt_deg))  # z toward the camera
         half = np.asarray(size_m) / 2
-        return BinBox(make_T(R, np.array([0.0, 0.0, 0.8])), np.array([-half[0], -half[1], 0.004]), np.array([half[0], half[1], height_m]), 1000)
+        return BinBox(make_T(R, np.array([0.0, 0.0, 0.8])), np.array([-half[0], -half[1], 0.004]), np.array([half[0], half[1], height_m]))
 
     assert implausible(box([0.4, 0.3], 0.15), 0.12) == []
     assert implausible(box([0.4, 0.3], 0.15, tilt_deg=45.0), 0.12) == []  # an oblique camera

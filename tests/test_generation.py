@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 import trimesh
 
-from binpick.bench.generation import max_penetration_mm
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import Intrinsics, apply_sensor_noise, render
 from binpick.generation.placement import place_objects
@@ -12,6 +11,7 @@ from binpick.generation.scene import generate_scene
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.scene import load_scene, save_scene
 from binpick.view import ViewParams
+from flows.bench.generation import max_penetration_mm
 
 from settings import PARAMS, changed
 
@@ -133,8 +133,8 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
     also for a CAD model whose origin lies far outside the part."""
     import trimesh
 
-    from binpick.bench.generation import max_penetration_mm
     from binpick.parts import T_JOINT_SYMMETRY, make_part_model
+    from flows.bench.generation import max_penetration_mm
 
     if any(origin_offset_m):
         mesh = trimesh.Trimesh(t_joint.mesh_vertices_m + np.asarray(origin_offset_m), t_joint.mesh_faces)

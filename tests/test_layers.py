@@ -79,3 +79,13 @@ def test_training_depends_on_no_registration_or_picking_code():
     assert not [f for f in imported if f.startswith(scene_code[:-1])]
     module, deps = stages["pick"]
     assert not [f for f in (p.relative_to(ROOT).as_posix() for p in closure(module).values()) if f.startswith("binpick/network")]
+
+
+def test_the_library_starts_no_application_process():
+    """`python -m flows ...` or `-m stages ...` from the library would be the application called
+    through a back door; the benchmarks that start the service live in flows/bench."""
+    import re
+
+    pattern = re.compile(r"""["']-m["']\s*,\s*["'](flows|stages)\b|-m (flows|stages)\.""")
+    offences = [f"{module_file(name).relative_to(ROOT)}" for name in all_modules("binpick") if pattern.search(module_file(name).read_text())]
+    assert not offences, offences

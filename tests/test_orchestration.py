@@ -73,7 +73,7 @@ def test_dask_fan_out_on_a_two_worker_cluster_matches_the_local_pool(tmp_path, p
     assert metrics_local["n_scenes"] == 3 and np.isfinite(metrics_local["precision"])
 
     # The segmentation benchmark scores with the evaluate stage's routine: the same numbers.
-    from binpick.bench.segmentation import bench_segment
+    from flows.bench.segmentation import bench_segment
 
     bench = bench_segment(checkpoint, tmp_path / "local", local.segment, local.import_capture.voxel_size_m, local.seed, local.evaluate.iou_threshold, repeats=1)
     assert (bench["precision"], bench["recall"]) == (metrics_local["precision"], metrics_local["recall"])

@@ -99,8 +99,8 @@ def test_declared_symmetries_of_the_benchmark_parts_map_each_onto_itself(shared_
     add (the gear shaft's teeth break its revolution by 0.8 mm)."""
     import trimesh
 
-    from binpick.bench.parts import SHARED_PARTS
     from binpick.geometry.symmetry import symmetry_transforms
+    from flows.bench.parts import SHARED_PARTS
 
     spec = SHARED_PARTS[name]
     mesh, _ = load_mesh(shared_data / "parts" / spec.file, spec.unit)

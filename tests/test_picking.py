@@ -11,6 +11,7 @@ import pytest
 import trimesh
 from conftest import ROOT, box_part_model
 
+from binpick.bin_box import BinBox
 from binpick.errors import InputError
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
@@ -20,7 +21,7 @@ from binpick.io.grasps import GraspSet, load_grasps, save_grasps, tool_frame
 from binpick.io.picks import load_picks, save_picks
 from binpick.params import SymmetryParams, load_params
 from binpick.parts import make_part_model
-from binpick.picking import BIN, CAPTURED, BinBoxObstacle, plan_picks
+from binpick.picking import BIN, CAPTURED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -198,7 +199,7 @@ def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part,
     # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
     # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
-    box = BinBoxObstacle(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
+    box = BinBox(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
     walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings, box)
     assert not walled.picks and BIN in walled.unpicked[0][1]
 

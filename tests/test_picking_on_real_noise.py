@@ -10,9 +10,10 @@ import pytest
 from conftest import box_part_model
 from pykdtree.kdtree import KDTree
 
+from binpick.bin_box import BinBox
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.io.grasps import GraspSet, tool_frame
-from binpick.picking import UNSEEN, BinBoxObstacle, image_coordinates, local_noise_m, plan_picks, support_frame
+from binpick.picking import UNSEEN, image_coordinates, local_noise_m, plan_picks, support_frame
 
 EXTENTS = np.array([0.06, 0.05, 0.02])
 FLOOR = np.array([0.0, 0.0, -1.0, 0.6])  # a Kinect-class camera 0.6 m above the floor
@@ -103,7 +104,7 @@ def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, pick_set
     the bin floor is taken straight down that axis."""
     R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg))
     T_cam_from_bin = make_T(R, np.array([0.0, 0.0, 0.6]))
-    box = BinBoxObstacle(T_cam_from_bin, np.array([-0.2, -0.15, 0.005]), np.array([0.2, 0.15, 0.15]))
+    box = BinBox(T_cam_from_bin, np.array([-0.2, -0.15, 0.005]), np.array([0.2, 0.15, 0.15]))
     T = lying(T_cam_from_bin)
     captured = measured_top(T, 0.0003, np.random.default_rng(4))
     bin_up = R[:, 2]

@@ -191,7 +191,7 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     before = {part: len(_train_runs(project, part)) for part in ("t_joint", "bracket_block")}
     assert all(before.values())
     trimesh.creation.cylinder(radius=9.0, height=30.0, sections=48).export(project / "data" / "parts" / "spacer.stl")
-    from binpick.bench import free_port
+    from flows.bench import free_port
 
     port = free_port()
     env = {**os.environ, "PREFECT_HOME": str(project / "data" / "prefect"), "TQDM_DISABLE": "1"}

@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from conftest import copy_project
 
-from binpick.bench import free_port
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
@@ -26,6 +25,7 @@ from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import load_params
 from binpick.registration.model import train_ppf
 from binpick.view import ViewParams
+from flows.bench import free_port
 
 httpx = pytest.importorskip("httpx")
 

@@ -13,6 +13,7 @@ from PIL import Image
 
 from binpick.io.atomic import atomic_path
 from binpick.io.npz import load_fields, save_fields
+from binpick.palette import instance_colours
 
 
 @dataclass(frozen=True)
@@ -39,25 +40,6 @@ class SyntheticScene:
     view_points_m: np.ndarray
     view_normals: np.ndarray
     view_labels: np.ndarray
-
-
-# Fixed colours so that instance i has the same colour in every image and recording.
-_PALETTE_SEED = 12345
-
-
-def instance_colours(n: int) -> np.ndarray:
-    """(n, 3) uint8 distinct, stable colours for instances 0..n-1."""
-    rng = np.random.default_rng(_PALETTE_SEED)
-    hues = (np.arange(n) * 0.618033988749895) % 1.0
-    sat = 0.65 + 0.35 * rng.random(n)
-    h6 = hues * 6.0
-    c = sat
-    x = c * (1 - np.abs(h6 % 2 - 1))
-    zero = np.zeros(n)
-    sector = h6.astype(int) % 6
-    table = [(c, x, zero), (x, c, zero), (zero, c, x), (zero, x, c), (x, zero, c), (c, zero, x)]
-    rgb = np.stack([np.choose(sector, [t[j] for t in table]) for j in range(3)], axis=1)
-    return (255 * (1 - sat[:, None] + rgb) * 0.9).clip(0, 255).astype(np.uint8)
 
 
 def label_image(labels: np.ndarray) -> np.ndarray:

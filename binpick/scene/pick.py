@@ -4,20 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
+from binpick.bin_box import BinBox
 from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
 from binpick.params import ImportCaptureParams, PickParams
-from binpick.picking import BinBoxObstacle, PickPlan, plan_picks
+from binpick.picking import PickPlan, plan_picks
 from binpick.registration.visibility import DepthView
-
-
-def bin_box_of(params: ImportCaptureParams) -> BinBoxObstacle | None:
-    """The bin given in params (import_capture's region of interest with its frame), else None."""
-    if params.T_cam_from_roi is None or params.roi_min_m is None or params.roi_max_m is None:
-        return None
-    return BinBoxObstacle(np.asarray(params.T_cam_from_roi, dtype=np.float64), np.asarray(params.roi_min_m, float), np.asarray(params.roi_max_m, float))
 
 
 def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: GraspSet, params: PickParams, import_params: ImportCaptureParams) -> PickPlan:
@@ -30,4 +24,4 @@ def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: Gras
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
     shares = np.array([np.nan if p.seen_through is None else p.seen_through for p in poses], dtype=np.float64)
-    return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, bin_box_of(import_params), shares)
+    return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, BinBox.of_import(import_params), shares)

@@ -12,7 +12,7 @@ from binpick.io.atomic import atomic_path
 from binpick.io.cloud import CleanCloud
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
-from binpick.io.scene import instance_colours
+from binpick.palette import instance_colours
 from stages.common.recording import log_part
 
 GRIPPER_COLOUR = np.array([230, 160, 40, 140], np.uint8)

@@ -12,9 +12,8 @@ from binpick.io.atomic import atomic_path
 from binpick.io.cloud import CleanCloud
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
-from binpick.io.scene import instance_colours
+from binpick.palette import UNLABELLED_GREY, instance_colours, instance_rgb
 
-NOISE_GREY = np.array([110, 110, 110], np.uint8)
 TRUTH_COLOUR = np.array([60, 200, 90, 90], np.uint8)
 PLANE_COLOUR = np.array([90, 120, 200, 70], np.uint8)
 
@@ -38,8 +37,7 @@ def write_scene_recording(
         rec.log("camera/scene", rr.Points3D(cloud.points_m, colors=cloud.rgb, radii=0.0008))
         n = int(labels.max()) + 1 if len(labels) and labels.max() >= 0 else 0
         palette = instance_colours(max(n, 1))
-        colours = np.where((labels >= 0)[:, None], palette[np.maximum(labels, 0) % len(palette)], NOISE_GREY)
-        rec.log("camera/segments", rr.Points3D(cloud.points_m, colors=colours, radii=0.001, class_ids=labels))
+        rec.log("camera/segments", rr.Points3D(cloud.points_m, colors=instance_rgb(labels), radii=0.001, class_ids=labels))
         if np.isfinite(cloud.floor_plane).all():
             a, b, c, d = cloud.floor_plane
             quad = plane_quad(cloud.floor_plane, cloud.points_m)
@@ -47,7 +45,7 @@ def write_scene_recording(
                 rec.log("camera/floor_plane", rr.Mesh3D(vertex_positions=quad, triangle_indices=[[0, 1, 2], [0, 2, 3]], albedo_factor=PLANE_COLOUR), static=True)
             rec.log("camera/floor_plane/equation", rr.TextDocument(f"removed floor plane: {a:.4f} x + {b:.4f} y + {c:.4f} z + {d:.4f} = 0 (metres)"), static=True)
         for k, pose in enumerate(estimates):
-            colour = palette[pose.segment % len(palette)] if pose.segment >= 0 else NOISE_GREY
+            colour = palette[pose.segment % len(palette)] if pose.segment >= 0 else UNLABELLED_GREY
             log_part(rec, f"camera/parts/{k}", pose, part, np.append(colour, 255).astype(np.uint8))
         for k, pose in enumerate(truth or []):
             log_part(rec, f"camera/truth/{k}", pose, part, TRUTH_COLOUR)
@@ -94,14 +92,14 @@ class TrainingRecording:
         self.rec.log("views", rr.ViewCoordinates.RDF, static=True)
         self.views = views
         for i, (points, labels) in enumerate(views):
-            self.rec.log(f"views/{i}/truth", rr.Points3D(points, colors=_instance_rgb(labels), radii=0.0008), static=True)
+            self.rec.log(f"views/{i}/truth", rr.Points3D(points, colors=instance_rgb(labels), radii=0.0008), static=True)
 
     def log_epoch(self, epoch: int, predictions: list[np.ndarray], metrics: dict[str, float]) -> None:
         import rerun as rr
 
         self.rec.set_time("epoch", sequence=epoch)
         for i, ((points, _), labels) in enumerate(zip(self.views, predictions, strict=False)):
-            self.rec.log(f"views/{i}/prediction", rr.Points3D(points, colors=_instance_rgb(labels), radii=0.0008))
+            self.rec.log(f"views/{i}/prediction", rr.Points3D(points, colors=instance_rgb(labels), radii=0.0008))
         for key in ("train_loss", "val_loss"):
             if key in metrics:
                 self.rec.log(f"loss/{key}", rr.Scalars(metrics[key]))
@@ -109,11 +107,6 @@ class TrainingRecording:
     def close(self) -> None:
         self.rec.flush()
         self.rec.disconnect()
-
-
-def _instance_rgb(labels: np.ndarray) -> np.ndarray:
-    palette = instance_colours(max(int(labels.max()) + 1 if len(labels) else 1, 1))
-    return np.where((labels >= 0)[:, None], palette[np.maximum(labels, 0) % len(palette)], NOISE_GREY)
 
 
 def write_bin_recording(path: Path, name: str, points_m: np.ndarray, rgb: np.ndarray | None, inside: np.ndarray,

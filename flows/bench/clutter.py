@@ -19,7 +19,6 @@ from typing import TypeVar
 
 import numpy as np
 
-from binpick.bench import BENCH_PARTS, machine
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
@@ -33,6 +32,7 @@ from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
 from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
+from flows.bench import BENCH_PARTS, machine
 
 log = logging.getLogger(__name__)
 Group = TypeVar("Group")
@@ -48,10 +48,10 @@ TILT_BAND_DEG = 15.0
 
 
 def _cup(n_points: int) -> PartModel | None:
-    from binpick.bench.parts import shared_parts_folder
     from binpick.io.mesh import load_mesh
     from binpick.params import SymmetryParams
     from binpick.parts import make_part_model
+    from flows.bench.parts import shared_parts_folder
 
     parts = shared_parts_folder()
     path = parts.parent / "scans" / "icbin_scene1" / "coffee_cup_model.ply" if parts else None
@@ -114,7 +114,7 @@ def bench_clutter(settings: Params, names: list[str] | None, n_scenes: int, chec
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
     without one are registered over the whole scene, no network); tilt_deg_max: the camera's
     largest tilt from the bin's up axis, degrees."""
-    from binpick.bench.parts import bench_parts
+    from flows.bench.parts import bench_parts
 
     wanted = list(names or DEFAULT_PARTS)
     others = [n for n in wanted if n != CUP]

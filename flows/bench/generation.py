@@ -9,8 +9,6 @@ import time
 import numpy as np
 import trimesh
 
-from binpick.bench import machine
-from binpick.bench.parts import bench_parts
 from binpick.generation.overlap import penetration_depths_m
 from binpick.generation.placement import place_objects
 from binpick.generation.scene import render_scene, settle_in_bin
@@ -18,6 +16,8 @@ from binpick.geometry.transforms import invert_T, make_T, random_rotation, trans
 from binpick.io.part_model import PartModel
 from binpick.params import BinParams, Params
 from binpick.view import ViewParams
+from flows.bench import machine
+from flows.bench.parts import bench_parts
 
 log = logging.getLogger(__name__)
 

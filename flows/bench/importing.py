@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.bench import machine, summary, timed
 from binpick.cleaning import clean_capture
 from binpick.generation.scene import generate_scene
 from binpick.io.capture import ImportOptions, load_capture
@@ -17,6 +16,7 @@ from binpick.io.zdf import save_zdf_v1
 from binpick.params import Params
 from binpick.parts import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
 from binpick.view import ViewParams
+from flows.bench import machine, summary, timed
 
 N_OBJECTS = 12
 

@@ -33,9 +33,6 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.bench import machine
-from binpick.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
-from binpick.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.scene import generate_scene
@@ -52,6 +49,9 @@ from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
 from binpick.seeding import SceneSeeds, derive_int, derive_seed
 from binpick.view import ViewParams
+from flows.bench import machine
+from flows.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
+from flows.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, 
     are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
     network; n_test: cluttered test bins per test sensor; n_captures: captures of
     finetune_sensor the cell labels itself; trust_margin: instead of learn.trust_margin."""
-    from binpick.bench.parts import bench_parts
+    from flows.bench.parts import bench_parts
 
     if trust_margin is not None:
         settings = settings.model_copy(update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})})

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from binpick.bench import machine
 from binpick.params import Params
+from flows.bench import machine
 
 SPHERE_RADIUS_MM = 30.0
 SPHERE_FACES = (10_000, 100_000, 1_000_000, 2_000_000)

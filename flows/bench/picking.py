@@ -33,8 +33,6 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.bench import BENCH_PARTS, machine
-from binpick.bench.clutter import TILT_DEG_MAX, per_band, scaled_settings, tilt_band
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.physics import SettleSettings, settle
@@ -54,6 +52,8 @@ from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
 from binpick.seeding import SceneSeeds, derive_seed
 from binpick.view import ViewParams
+from flows.bench import BENCH_PARTS, machine
+from flows.bench.clutter import TILT_DEG_MAX, per_band, scaled_settings, tilt_band
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +258,7 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
     without one are registered over the whole scene); gripper: overrides pick.gripper;
     tilt_deg_max: the largest tilt of a bin's camera from the bin's up axis, degrees."""
-    from binpick.bench.parts import bench_parts
+    from flows.bench.parts import bench_parts
 
     parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
     kind = gripper or settings.pick.gripper

@@ -11,7 +11,6 @@ import numpy as np
 import open3d as o3d
 import torch
 
-from binpick.bench import machine
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.evaluate import segment_and_count
@@ -19,6 +18,7 @@ from binpick.network.infer import default_device, load_segmenter
 from binpick.network.loss import fpcc_loss
 from binpick.network.model import input_features
 from binpick.params import SegmentParams
+from flows.bench import machine
 
 SCENE_SIZES = (16384, 65536)
 DBSCAN_EPS_PER_VOXEL = 2.0  # neighbours within two grid cells are one cluster

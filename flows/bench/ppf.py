@@ -9,8 +9,6 @@ import time
 import numpy as np
 import open3d as o3d
 
-from binpick.bench import machine
-from binpick.bench.parts import bench_parts
 from binpick.generation.camera import Intrinsics, render
 from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
@@ -20,6 +18,8 @@ from binpick.metrics.pose import pose_errors
 from binpick.params import Params, RegisterParams
 from binpick.registration.matching import match_segment
 from binpick.registration.model import train_ppf
+from flows.bench import machine
+from flows.bench.parts import bench_parts
 
 log = logging.getLogger(__name__)
 

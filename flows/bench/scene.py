@@ -33,8 +33,6 @@ from typing import IO, Any
 
 import numpy as np
 
-from binpick.bench import BENCH_PARTS, free_port, machine
-from binpick.bench.picking import bench_models, picking_settings
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
 from binpick.io.capture import ImportOptions, load_capture
@@ -49,6 +47,8 @@ from binpick.params import GenerateParams, Params
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
+from flows.bench import BENCH_PARTS, free_port, machine
+from flows.bench.picking import bench_models, picking_settings
 
 log = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def _score(poses: list, scene, models: PartModels) -> dict[str, float]:
 
 def bench_scene(settings: Params, settings_text: str, names: list[str] | None, checkpoints: dict[str, Path], seed: int = 0) -> dict[str, object]:
     """settings / settings_text: the project's params (parsed and as written)."""
-    from binpick.bench.parts import bench_parts
+    from flows.bench.parts import bench_parts
 
     parts = bench_parts(names or list(DEFAULT_PARTS), n_points=settings.ingest.n_surface_points)
     out: dict[str, object] = {"machine": machine(), "frame": f"{settings.camera.width_px}x{settings.camera.height_px}", "captures_per_case": CAPTURES_PER_CASE,
@@ -302,7 +302,7 @@ def _signature(answer: dict) -> tuple[list, np.ndarray]:
 def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients: int, per_client: int, checkpoint: Path | None,
                n_captures: int = 4, seed: int = 0) -> dict[str, object]:
     """The built-in part, 8-part bins at the camera's full resolution."""
-    from binpick.bench.parts import bench_parts
+    from flows.bench.parts import bench_parts
 
     part = bench_parts(["t_joint"], n_points=settings.ingest.n_surface_points)[0]
     p = picking_settings(settings, part)

@@ -1,0 +1,50 @@
+"""The bin as a box, the one type for it: fitted to a capture (bin_fit.py), given in params
+(import_capture's region of interest), and an obstacle to the gripper (picking.py)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from binpick.geometry.transforms import transform_points
+from binpick.params import ImportCaptureParams
+
+
+@dataclass(frozen=True)
+class BinBox:
+    """T_cam_from_bin (4, 4), z up from the bin's floor; inner_min_m / inner_max_m (3,) its inner
+    corners in that frame, metres. As an obstacle: its floor and four walls, up to inner_max_m z."""
+
+    T_cam_from_bin: np.ndarray
+    inner_min_m: np.ndarray
+    inner_max_m: np.ndarray
+
+    @classmethod
+    def of_import(cls, params: ImportCaptureParams) -> BinBox | None:
+        """The bin given in params (import_capture's region of interest with its frame), else None."""
+        if params.T_cam_from_roi is None or params.roi_min_m is None or params.roi_max_m is None:
+            return None
+        return cls(np.asarray(params.T_cam_from_roi, dtype=np.float64), np.asarray(params.roi_min_m, float), np.asarray(params.roi_max_m, float))
+
+    def as_import_settings(self) -> dict[str, object]:
+        """The import_capture keys that crop to this box."""
+        return {
+            "T_cam_from_roi": [[round(float(x), 9) for x in row] for row in self.T_cam_from_bin],
+            "roi_min_m": [round(float(x), 4) for x in self.inner_min_m],
+            "roi_max_m": [round(float(x), 4) for x in self.inner_max_m],
+        }
+
+    def surface_points(self, spacing_m: float) -> np.ndarray:
+        """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
+        lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
+        axes = [np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1)) for a, b in zip(lo, hi, strict=True)]
+        faces = []
+        for fixed in range(3):
+            others = [k for k in range(3) if k != fixed]
+            A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
+            for value in ((lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed])):  # no lid
+                f = np.empty((A.size, 3))
+                f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
+                faces.append(f)
+        return transform_points(self.T_cam_from_bin, np.concatenate(faces))
