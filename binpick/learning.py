@@ -72,7 +72,7 @@ def label_capture(cloud: CleanCloud, poses: list[PartPose], dense_points_m: np.n
     voxel_size_m: the import grid the cloud is on."""
     from pykdtree.kdtree import KDTree
 
-    from binpick.picking import image_coordinates, local_noise_m
+    from binpick.picking.plan import image_coordinates, local_noise_m
 
     points = np.asarray(cloud.points_m, dtype=np.float64)
     keep = trusted(poses, min_score, margin)

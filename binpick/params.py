@@ -505,7 +505,7 @@ PICK_ORDER_KEYS = ("height", "score", "clearance")
 
 
 class PickParams(_Strict):
-    """Picks (binpick/picking.py): the gripper, where it may come from and how parts are ranked."""
+    """Picks (binpick/picking/plan.py): the gripper, where it may come from and how parts are ranked."""
 
     gripper: Literal["suction", "jaw"]
     suction: SuctionParams

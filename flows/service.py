@@ -227,7 +227,7 @@ class PickService:
                 raise RequestError(400, f"{path}: capture file not found")
             return path
         if request.camera:
-            from binpick.zivid_camera import grab_to_file
+            from binpick.cell.zivid_camera import grab_to_file
 
             path = folder / "capture.ply"
             try:

@@ -9,12 +9,12 @@ from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
-from binpick.cleaning import clean_capture
 from binpick.errors import BinpickError
 from binpick.io.atomic import atomic_paths
 from binpick.io.capture import DEFAULT_TEXT_COLUMNS, ImportOptions, load_capture
 from binpick.io.cloud import save_cloud
 from binpick.params import Params, load_params
+from binpick.scene.cleaning import clean_capture
 from binpick.seeding import SceneSeeds, capture_digest
 from stages.common import entry, log_timings, parser, start, write_metrics
 

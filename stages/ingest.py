@@ -1,5 +1,5 @@
 """Stage `ingest`: a part's CAD mesh, in its declared unit, becomes a part model in metres
-(checks and simplification: binpick/ingest.py)."""
+(checks and simplification: binpick/part/ingest.py)."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
-from binpick.ingest import ingest_part
 from binpick.io.atomic import atomic_paths
 from binpick.io.part_model import save_part_model
 from binpick.params import Params, load_params
+from binpick.part.ingest import ingest_part
 from stages.common import entry, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.ingest")

@@ -1,5 +1,5 @@
 """Stage `pick`: for every part the register stage found, a collision-free grasp, ranked
-(binpick/picking.py); picks.json in the camera and robot base frames, a rerun recording with the
+(binpick/picking/plan.py); picks.json in the camera and robot base frames, a rerun recording with the
 gripper at the first picks and the refused grasps, the counts in MLflow."""
 
 from __future__ import annotations

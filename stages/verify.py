@@ -1,6 +1,6 @@
 """Stage `verify`: the part's pose verification thresholds (register.max_seen_through,
 register.min_visible_support), chosen on its validation scenes with its trained network
-(binpick/verification_threshold.py). Its own stage, so that a change to registration or picking
+(binpick/scene/verification_threshold.py). Its own stage, so that a change to registration or picking
 re-runs this choice and not the training."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from binpick.network.checkpoint import read_checkpoint
 from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
 from binpick.scene.process import PartModels
-from binpick.verification_threshold import calibrate_verification
+from binpick.scene.verification_threshold import calibrate_verification
 from stages.common import entry, mlflow_run, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.verify")

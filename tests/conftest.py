@@ -28,7 +28,7 @@ def shared_data() -> Path:
 @pytest.fixture(scope="session")
 def t_joint():
     """The built-in part as a part model (metres)."""
-    from binpick.parts import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+    from binpick.part.model import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
 
     mesh = build_t_joint_mesh()
     mesh.apply_scale(1e-3)
@@ -53,7 +53,7 @@ def box_part_model(extents_m):
     import trimesh
 
     from binpick.params import SymmetryParams
-    from binpick.parts import make_part_model
+    from binpick.part.model import make_part_model
 
     return make_part_model("box", trimesh.creation.box(extents=extents_m), SymmetryParams(), 20000, np.random.default_rng(0), "m")
 

@@ -37,7 +37,7 @@ def render_golden() -> dict[str, np.ndarray]:
     """Render the golden scene on this machine: depth (H, W) float32 metres (nan = no return),
     labels (H, W) int16, poses (k, 4, 4) float64 camera frame."""
     from binpick.generation.scene import generate_scene
-    from binpick.parts import T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+    from binpick.part.model import T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
     from binpick.view import ViewParams
 
     mesh = build_t_joint_mesh()

@@ -88,7 +88,7 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
 
     from binpick.geometry.transforms import make_T
     from binpick.io.grasps import tool_frame
-    from binpick.picking import Pick
+    from binpick.picking.plan import Pick
     from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch
 
     T_obj = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
@@ -121,8 +121,8 @@ def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():
     from binpick.geometry.transforms import axis_angle_to_R, make_T
     from binpick.io.grasps import tool_frame
     from binpick.params import SymmetryParams
-    from binpick.parts import make_part_model
-    from binpick.picking import Pick
+    from binpick.part.model import make_part_model
+    from binpick.picking.plan import Pick
     from flows.bench.picking import TrueSurface, _true_touch
 
     cylinder = trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12)
@@ -148,7 +148,7 @@ def test_scene_bench_bins_hold_twenty_long_parts(t_joint):
 
     from binpick.generation.placement import place_objects
     from binpick.params import SymmetryParams
-    from binpick.parts import make_part_model
+    from binpick.part.model import make_part_model
     from flows.bench.picking import picking_settings
     from flows.bench.scene import scene_generate_settings
 

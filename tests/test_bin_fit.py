@@ -3,7 +3,7 @@
 import numpy as np
 import trimesh
 
-from binpick.bin_fit import fit_bin_box, min_area_rectangle
+from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import Intrinsics, render
 from binpick.geometry.pointcloud import fit_plane_ransac
@@ -63,13 +63,13 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
     no pose lies outside the box; no kept pose lies where the camera saw through it."""
     import json
 
-    from binpick.cleaning import clean_capture
     from binpick.geometry.symmetry import symmetry_transforms
-    from binpick.ingest import ingest_part
     from binpick.io.capture import ImportOptions, load_capture
     from binpick.params import PartParams
+    from binpick.part.ingest import ingest_part
     from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
     from binpick.registration.model import train_ppf
+    from binpick.scene.cleaning import clean_capture
     from binpick.scene.register import register
     from binpick.view import ViewParams, view_grid
 
@@ -99,8 +99,8 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
 
 
 def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
-    from binpick.bin_box import BinBox
-    from binpick.bin_fit import implausible
+    from binpick.cell.bin_box import BinBox
+    from binpick.cell.bin_fit import implausible
 
     def box(size_m, height_m, tilt_deg=0.0):
         R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi + np.radians(tilt_deg))  # z toward the camera

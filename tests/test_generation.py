@@ -133,7 +133,7 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
     also for a CAD model whose origin lies far outside the part."""
     import trimesh
 
-    from binpick.parts import T_JOINT_SYMMETRY, make_part_model
+    from binpick.part.model import T_JOINT_SYMMETRY, make_part_model
     from flows.bench.generation import max_penetration_mm
 
     if any(origin_offset_m):

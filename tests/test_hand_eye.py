@@ -4,9 +4,9 @@ and board detection in a rendered checkerboard image."""
 import numpy as np
 import pytest
 
+from binpick.cell.hand_eye import board_points, board_pose, solve_hand_eye
 from binpick.errors import BinpickError
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T
-from binpick.hand_eye import board_points, board_pose, solve_hand_eye
 
 pytest.importorskip("cv2", reason="hand-eye calibration uses OpenCV (pip install -e .[bench])")
 

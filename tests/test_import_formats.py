@@ -9,12 +9,12 @@ import open3d as o3d
 import pytest
 from PIL import Image
 
-from binpick.cleaning import clean_capture
 from binpick.errors import InputError, MissingDependencyError
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.pcd import load_pcd, save_pcd
 from binpick.io.ply import PointCloudData
 from binpick.io.zdf import save_zdf_v1
+from binpick.scene.cleaning import clean_capture
 
 from settings import PARAMS, changed
 
@@ -166,7 +166,7 @@ def _fake_zivid(H=6, W=8):
 
 
 def test_capture_through_a_fake_camera(tmp_path, params):
-    from binpick.zivid_camera import grab_to_file
+    from binpick.cell.zivid_camera import grab_to_file
 
     fake, calls = _fake_zivid()
     settings = params.zivid_camera.model_copy(update={"serial": "ABC", "exposure_time_us": 5000, "aperture": 4.0})

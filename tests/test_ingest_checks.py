@@ -10,9 +10,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from binpick.errors import InputError
-from binpick.ingest import ingest_part
 from binpick.params import PartParams
-from binpick.parts import (
+from binpick.part.ingest import ingest_part
+from binpick.part.model import (
     DIAMETER_DIRECTIONS,
     EXACT_DIAMETER_MAX_POINTS,
     _half_sphere_directions,

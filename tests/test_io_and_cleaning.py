@@ -3,12 +3,12 @@ import json
 import numpy as np
 import pytest
 
-from binpick.cleaning import _long_and_low, _square_to, clean_capture
 from binpick.errors import BinpickError, InputError
 from binpick.io.capture import load_capture
 from binpick.io.cloud import load_cloud, save_cloud
 from binpick.io.ply import PointCloudData, load_ply, save_ply
 from binpick.io.poses import PartPose, load_poses, save_poses
+from binpick.scene.cleaning import _long_and_low, _square_to, clean_capture
 
 from settings import PARAMS, changed
 
@@ -231,9 +231,9 @@ def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region()
     """The fused pass of clean_capture against its definition in plain numpy: valid points,
     range within [min, max], inside the ROI box of the bin frame, then view_grid's first point
     per voxel. The same pixels, in the same order."""
-    from binpick.cleaning import _kept_voxel_keys, _screen
     from binpick.geometry.pointcloud import first_in_each_voxel
     from binpick.geometry.transforms import invert_T, transform_points
+    from binpick.scene.cleaning import _kept_voxel_keys, _screen
     from binpick.view import ViewParams, view_grid
 
     xyz, _ = _bin_frame()

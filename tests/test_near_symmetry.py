@@ -13,7 +13,7 @@ from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.params import SymmetryParams
-from binpick.parts import make_part_model
+from binpick.part.model import make_part_model
 from binpick.registration.constants import FINE_STRIDE, Scales
 from binpick.registration.model import near_symmetries, train_ppf
 from binpick.registration.near_symmetry import resolve

@@ -5,7 +5,7 @@ import trimesh
 from binpick.errors import InputError
 from binpick.io.mesh import load_mesh, save_mesh
 from binpick.io.part_model import load_part_model, save_part_model
-from binpick.parts import build_t_joint_mesh, diameter, sample_surface
+from binpick.part.model import build_t_joint_mesh, diameter, sample_surface
 from tests.conftest import ROOT
 
 

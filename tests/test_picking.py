@@ -11,17 +11,17 @@ import pytest
 import trimesh
 from conftest import ROOT, box_part_model
 
-from binpick.bin_box import BinBox
+from binpick.cell.bin_box import BinBox
 from binpick.errors import InputError
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
-from binpick.grasping import expand_by_symmetry, jaw_grasps, suction_grasps
-from binpick.gripper import Box, Cylinder, covering_spheres, jaw_primitives, lowest_height, signed_distance, swept
 from binpick.io.grasps import GraspSet, load_grasps, save_grasps, tool_frame
 from binpick.io.picks import load_picks, save_picks
 from binpick.params import SymmetryParams, load_params
-from binpick.parts import make_part_model
-from binpick.picking import BIN, CAPTURED, plan_picks
+from binpick.part.model import make_part_model
+from binpick.picking.grasps import expand_by_symmetry, jaw_grasps, suction_grasps
+from binpick.picking.gripper import Box, Cylinder, covering_spheres, jaw_primitives, lowest_height, signed_distance, swept
+from binpick.picking.plan import BIN, CAPTURED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])

@@ -183,7 +183,7 @@ SHAFT_SYMMETRY = SymmetryParams(kind="revolution", axis=(1.0, 0.0, 0.0))
 
 @pytest.fixture(scope="module")
 def shaft():
-    from binpick.parts import make_part_model
+    from binpick.part.model import make_part_model
 
     pieces = []
     for x0, x1, radius in ((-0.075, 0.075, 0.008), (-0.035, -0.025, 0.016), (0.025, 0.035, 0.016)):
@@ -284,7 +284,7 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     from pykdtree.kdtree import KDTree
 
     from binpick.geometry.transforms import invert_T
-    from binpick.parts import _cylinder_along
+    from binpick.part.model import _cylinder_along
     from binpick.registration.visibility import DepthView
     from binpick.scene.clean import clean
 

@@ -16,13 +16,13 @@ from conftest import copy_project
 
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
-from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
 from binpick.io.grasps import save_grasps
 from binpick.io.part_model import save_part_model
 from binpick.io.ppf_model import save_ppf_model
 from binpick.io.zdf import save_zdf_v1
 from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import load_params
+from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
 from binpick.registration.model import train_ppf
 from binpick.view import ViewParams
 from flows.bench import free_port

@@ -1,7 +1,7 @@
 """The pose verification threshold chosen on validation poses."""
 
 from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
-from binpick.verification_threshold import THRESHOLD_RANGE, choose_threshold
+from binpick.scene.verification_threshold import THRESHOLD_RANGE, choose_threshold
 
 
 def test_the_threshold_separates_right_from_wrong_poses():
@@ -31,7 +31,7 @@ def test_bounds_hold_with_few_poses():
 
 def test_a_least_support_cut_keeps_poses_above_it():
     from binpick.registration.constants import DEFAULT_MIN_VISIBLE_SUPPORT
-    from binpick.verification_threshold import SUPPORT_RANGE
+    from binpick.scene.verification_threshold import SUPPORT_RANGE
 
     def cut(right, wrong):
         return choose_threshold(right, wrong, DEFAULT_MIN_VISIBLE_SUPPORT, SUPPORT_RANGE, keep_below=False)

@@ -25,7 +25,7 @@ class GraspSet:
     """Grasps of one gripper kind, best first.
 
     ids               : k names (unique)
-    T_model_from_tool : (k, 4, 4) the tool frame at the grasp (binpick/gripper.py): origin the
+    T_model_from_tool : (k, 4, 4) the tool frame at the grasp (binpick/picking/gripper.py): origin the
                         tool centre point, z the approach, x the jaws' closing axis; model frame, metres
     width_m           : (k,) jaw opening at the contacts (0 for suction)
     """

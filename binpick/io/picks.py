@@ -10,7 +10,7 @@ import numpy as np
 
 from binpick.errors import InputError
 from binpick.io.atomic import write_text
-from binpick.picking import PickPlan
+from binpick.picking.plan import PickPlan
 
 FORMAT = "binpick-picks"
 VERSION = 1
@@ -30,7 +30,7 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
 
     return {
         "format": FORMAT, "version": VERSION, "capture": capture, "part": part, "gripper": gripper, "unit": "m",
-        "tool_frame": "origin at the tool centre point, z the approach, x the jaws' closing axis (binpick/gripper.py)",
+        "tool_frame": "origin at the tool centre point, z the approach, x the jaws' closing axis (binpick/picking/gripper.py)",
         "calibrated": T_base_from_cam is not None,
         "T_base_from_cam": _T(T_base),
         "up_cam": [round(float(x), 9) for x in plan.up_cam],

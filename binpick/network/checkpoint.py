@@ -52,7 +52,7 @@ class InferenceSettings:
     train: TrainParams
     clustering: CalibratedClustering | None = None
     # The pose verification threshold (register.max_seen_through) chosen on the validation
-    # scenes after training (binpick/verification_threshold.py); None until chosen.
+    # scenes after training (binpick/scene/verification_threshold.py); None until chosen.
     max_seen_through: float | None = None
     # ... and register.min_visible_support, chosen with it (None: not chosen, as in checkpoints
     # calibrated before it existed).

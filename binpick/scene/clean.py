@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from binpick.cleaning import clean_capture
 from binpick.io.cloud import CleanCloud
 from binpick.params import ImportCaptureParams
+from binpick.scene.cleaning import clean_capture
 
 
 def clean(xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: ImportCaptureParams, seed: int) -> CleanCloud:

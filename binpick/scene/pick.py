@@ -1,21 +1,21 @@
-"""Scene step `pick`: picks for the posed parts (binpick/picking.py) among what the capture measured."""
+"""Scene step `pick`: picks for the posed parts (binpick/picking/plan.py) among what the capture measured."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from binpick.bin_box import BinBox
+from binpick.cell.bin_box import BinBox
 from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
 from binpick.params import ImportCaptureParams, PickParams
-from binpick.picking import PickPlan, plan_picks
+from binpick.picking.plan import PickPlan, plan_picks
 from binpick.registration.visibility import DepthView
 
 
 def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: GraspSet, params: PickParams, import_params: ImportCaptureParams) -> PickPlan:
-    """Picks for the posed parts (binpick/picking.py): obstacles are everything the capture
+    """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
     when params give it, and the other parts at their poses."""
     captured = DepthView(cloud.seen_depth_m, cloud.seen_K).points_m()

@@ -18,7 +18,7 @@ from binpick.io.ppf_model import PPFModel, load_ppf_model
 from binpick.io.verification import Verification, load_verification
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
-from binpick.picking import PickPlan
+from binpick.picking.plan import PickPlan
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
 from binpick.scene.register import Registration, register, with_verification

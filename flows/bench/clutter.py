@@ -50,7 +50,7 @@ TILT_BAND_DEG = 15.0
 def _cup(n_points: int) -> PartModel | None:
     from binpick.io.mesh import load_mesh
     from binpick.params import SymmetryParams
-    from binpick.parts import make_part_model
+    from binpick.part.model import make_part_model
     from flows.bench.parts import shared_parts_folder
 
     parts = shared_parts_folder()

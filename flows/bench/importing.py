@@ -7,14 +7,14 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.cleaning import clean_capture
 from binpick.generation.scene import generate_scene
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.pcd import save_pcd
 from binpick.io.ply import PointCloudData, save_ply
 from binpick.io.zdf import save_zdf_v1
 from binpick.params import Params
-from binpick.parts import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+from binpick.part.model import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+from binpick.scene.cleaning import clean_capture
 from binpick.view import ViewParams
 from flows.bench import machine, summary, timed
 

@@ -33,7 +33,7 @@ def _sphere(n_faces: int) -> trimesh.Trimesh:
 
 def bench_meshes() -> list[tuple[str, trimesh.Trimesh, float]]:
     """(name, mesh in millimetres, true diameter in mm) for every benchmarked size."""
-    from binpick.parts import build_t_joint_mesh, diameter
+    from binpick.part.model import build_t_joint_mesh, diameter
 
     out = [(f"sphere_{n}", _sphere(n), 2.0 * SPHERE_RADIUS_MM) for n in SPHERE_FACES]
     base = build_t_joint_mesh()
@@ -49,7 +49,7 @@ def bench_meshes() -> list[tuple[str, trimesh.Trimesh, float]]:
 def _child(params: Params, mesh_path: str, queue: Any) -> None:
     """Ingest one mesh in this (fresh) process; report time, peak memory and the diameter."""
     from binpick.errors import BinpickError
-    from binpick.ingest import ingest_part
+    from binpick.part.ingest import ingest_part
 
     t0 = time.perf_counter()
     result: dict[str, Any]

@@ -12,7 +12,7 @@ import numpy as np
 from binpick.io.mesh import load_mesh
 from binpick.io.part_model import PartModel
 from binpick.params import SymmetryParams
-from binpick.parts import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
+from binpick.part.model import DEFAULT_PART_NAME, T_JOINT_SYMMETRY, build_t_joint_mesh, make_part_model
 
 log = logging.getLogger(__name__)
 

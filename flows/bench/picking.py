@@ -40,13 +40,13 @@ from binpick.generation.placement import place_objects
 from binpick.generation.scene import render_scene, settle_in_bin, tilted_camera
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
-from binpick.grasping import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
-from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
 from binpick.params import Params
+from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
+from binpick.picking.gripper import gripper_primitives, signed_distance, swept
 from binpick.registration.model import train_ppf
 from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification

@@ -106,8 +106,8 @@ def requests(
 @app.command()
 def grab(out: Path = typer.Option(..., help="capture to write (.ply, millimetres)"), params: Path = PARAMS) -> None:
     """Grab one frame from a connected Zivid camera and save it as a capture (needs the zivid package)."""
+    from binpick.cell.zivid_camera import grab_to_file
     from binpick.params import load_params
-    from binpick.zivid_camera import grab_to_file
 
     H, W = grab_to_file(out, load_params(params).zivid_camera)
     typer.echo(f"wrote {out} ({W} x {H})")
@@ -129,7 +129,7 @@ def fit_bin(
     import numpy as np
     import yaml
 
-    from binpick.bin_fit import fit_bin_box, implausible
+    from binpick.cell.bin_fit import fit_bin_box, implausible
     from binpick.geometry.pointcloud import fit_plane_ransac
     from binpick.geometry.transforms import invert_T, transform_points
     from binpick.io.capture import load_capture
@@ -200,7 +200,7 @@ def hand_eye(
 
     import numpy as np
 
-    from binpick.hand_eye import board_pose, solve_hand_eye
+    from binpick.cell.hand_eye import board_pose, solve_hand_eye
     from binpick.io.atomic import write_text
     from binpick.io.capture import ImportOptions, load_capture
     from binpick.io.depth_image import load_intrinsics
@@ -275,8 +275,8 @@ def overlay(
     from PIL import Image
 
     from binpick.io.atomic import atomic_path
-    from binpick.overlay import overlay_capture
     from binpick.params import load_params
+    from binpick.scene.overlay import overlay_capture
 
     root = project_root()
     entry, options = listed_capture(load_params(params), params, capture, root)

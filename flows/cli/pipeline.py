@@ -18,7 +18,7 @@ from flows.cli.common import PARAMS, app, fail, project, quiet_prefect
 def default_part(out: Path = typer.Option(Layout(Path()).parts_folder / "t_joint.stl", help="STL to write (millimetres)")) -> None:
     """Write the built-in T-joint pipe part as an STL file (millimetres)."""
     from binpick.io.mesh import save_mesh
-    from binpick.parts import build_t_joint_mesh
+    from binpick.part.model import build_t_joint_mesh
 
     mesh = build_t_joint_mesh()
     save_mesh(out, mesh.vertices, mesh.faces)

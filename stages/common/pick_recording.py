@@ -7,12 +7,12 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.gripper import gripper_primitives
 from binpick.io.atomic import atomic_path
 from binpick.io.cloud import CleanCloud
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
 from binpick.palette import instance_colours
+from binpick.picking.gripper import gripper_primitives
 from stages.common.recording import log_part
 
 GRIPPER_COLOUR = np.array([230, 160, 40, 140], np.uint8)

@@ -24,11 +24,11 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from binpick.geometry.symmetry import symmetry_transforms
-from binpick.gripper import gripper_primitives, signed_distance, swept
 from binpick.io.grasps import GraspSet, tool_frame
 from binpick.io.part_model import PartModel
 from binpick.params import PickParams
-from binpick.parts import sample_surface
+from binpick.part.model import sample_surface
+from binpick.picking.gripper import gripper_primitives, signed_distance, swept
 
 log = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from binpick.bin_box import BinBox
+from binpick.cell.bin_box import BinBox
 
 # Occupancy grid of what stands on the plane; gaps up to one cell join a region.
 GRID_CELL_M = 0.005
@@ -63,8 +63,8 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     """
     from scipy import ndimage
 
-    from binpick.cleaning import bin_reference_point
     from binpick.geometry.pointcloud import plane_frame
+    from binpick.scene.cleaning import bin_reference_point
 
     n = floor[:3]
     height = points_m @ n + floor[3]

@@ -1,6 +1,6 @@
 """Picks: for every detected part, a grasp the gripper can reach without hitting anything, and the
 order to take them in. Camera frame, metres; poses are T_cam_from_model, grasps T_model_from_tool
-(binpick/gripper.py has the tool frame).
+(binpick/picking/gripper.py has the tool frame).
 
 A grasp on a detected part is kept when
 - its approach lies within approach_cone_deg of straight down the bin's up axis (the support
@@ -40,12 +40,23 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from binpick.bin_box import BinBox
+from binpick.cell.bin_box import BinBox
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
-from binpick.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
 from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
+from binpick.picking.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
+from binpick.picking.measured import (
+    NOISE_BAND_FACTOR,
+    NOISE_NEIGHBOURS,
+    OWN_NOISE_SIGMAS,
+    OwnPoints,
+    captured_near,
+    contact_seen,
+    image_coordinates,
+    local_noise_m,
+    point_spacing_m,
+)
 
 # Clearance is measured up to this far (a gripper in free space reports this).
 CLEARANCE_CAP_M = 0.05
@@ -58,50 +69,9 @@ OBSTACLE_GRID_M = 0.001
 # smallest primitive (a 5 mm cup) cannot slip between its points, whatever the part's size (a
 # fixed count of 1,500 left 7.7 mm between the points of the 0.44 m gear shaft).
 PART_OBSTACLE_GRID_M = 0.003
-# Points whose nearest-neighbour distances give a point set's spacing (point_spacing_m): the
-# part's surface sample (own points) and the capture (contacts on sparse captures).
-SPACING_PROBES = 2000
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
-# A grasp's contact must be measured: at least this many captured points under the suction cup
-# (or between the jaw's pads), this share of the cup's within its seal tolerance (plus the noise
-# allowance below) of the contact plane. A pose off by a rotation the camera cannot tell (a pipe
-# turned about its axis, its branch hidden) otherwise places grasps in the air.
-SEEN_MIN_POINTS = 5
-SEEN_SHARE = 0.7
-SEEN_NOISE_M = 0.001
-# The allowance grows with the noise the capture shows around the pose: SEEN_NOISE_SIGMAS of it
-# when that exceeds SEEN_NOISE_M, so a Kinect-class sensor's 1-3 mm on a lid is not taken for a
-# contact off the surface. The noise is the scatter of the captured points about their own local
-# planes (local_noise_m), not about the posed model: a pose off by a turn leaves its points far
-# from its surface, and that must still refuse the contact, not widen the test. Capped: a seal
-# test looser than a few millimetres tests nothing on a 5 mm cup.
-SEEN_NOISE_SIGMAS = 2.5
-MAX_NOISE_SIGMA_M = 0.003
-# The noise is measured at up to NOISE_SAMPLE captured points near the pose, each with its
-# NOISE_NEIGHBOURS nearest captured points (a few millimetres across at a capture's spacing, where
-# a part's surface is flat to well under the noise) ...
-NOISE_SAMPLE = 200
-NOISE_NEIGHBOURS = 12
-MIN_NOISE_POINTS = 30
-# ... points within this multiple of own_points_m of the posed surface ...
-NOISE_BAND_FACTOR = 3.0
-# ... and a noisy capture's own points reach OWN_NOISE_SIGMAS of it (at least own_points_m): at
-# 3 sigma, a few of a part's thousands of points stood in the gripper's way.
-OWN_NOISE_SIGMAS = 4.0
-# ... and the plane fitted to those points must face the cup: its normal within this of the
-# approach. Over a cup's few millimetres the share test alone passes a contact tilted by 30
-# degrees (a pose turned the wrong way about an edge), where no cup seals; the fitted normal of
-# a measured patch is a few degrees off at the sensor's noise.
-SEEN_MAX_TILT_DEG = 20.0
-# On a sparse capture (a VGA sensor at 0.7 m, a downsampled z-buffer: points 2-3 mm apart) a 5 mm
-# cup covers one to four points; the contact is then judged over a disc of this many point
-# spacings, enough to hold SEEN_MIN_POINTS and more.
-SEEN_SPACINGS = 2.5
-# ... measured over the cup, or over a disc of this many noise stds when wider: a 5 mm cup's
-# patch at 3 mm of noise tilts by tens of degrees; 12 mm of it by a few.
-TILT_PATCH_SIGMAS = 4.0
 # A bin box's floor is the support plane unless the plane found in the capture agrees with it
 # within these (then the measured plane is used: it is where the parts lie today).
 BIN_PLANE_AGREEMENT_DEG = 10.0
@@ -224,7 +194,7 @@ def plan_picks(
     grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
 
     part_points = np.asarray(part_points_m, dtype=np.float64).reshape(-1, 3)
-    own_of = _OwnPoints(part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m)
+    own_of = OwnPoints(part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m)
     # Every k-th point of the (evenly spread) sample, k the points per PART_OBSTACLE_GRID_M square
     # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
     model_sample = part_points[:: max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
@@ -257,7 +227,7 @@ def plan_picks(
         own = np.zeros(len(obstacles), bool)
         noise_m = 0.0
         if len(captured):
-            near = _captured_near(tree, len(captured), centres[i], reach)
+            near = captured_near(tree, len(captured), centres[i], reach)
             if len(near):
                 nearest, off_surface = own_of.distances(transform_points(invert_T(T), captured[near]))
                 noise_m = local_noise_m(captured, captured_tree, captured[near[np.isfinite(off_surface)]])
@@ -276,7 +246,7 @@ def plan_picks(
         for g in np.concatenate(tiers).astype(np.int64):
             n_tried += 1
             T_tool = tools[g]
-            if not _contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m):
+            if not contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
@@ -307,88 +277,6 @@ def plan_picks(
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
 
-def point_spacing_m(points_m: np.ndarray, tree: KDTree | None = None) -> float:
-    """The typical distance (metres) between neighbouring points (n, 3): the median
-    nearest-neighbour distance of up to SPACING_PROBES evenly strided points; 0 for fewer than 2.
-    tree: a k-d tree of points_m already built (else one is)."""
-    if len(points_m) < 2:
-        return 0.0
-    probe = points_m[:: max(1, len(points_m) // SPACING_PROBES)]
-    tree = KDTree(np.ascontiguousarray(points_m)) if tree is None else tree
-    d, _ = tree.query(np.ascontiguousarray(probe), k=2)
-    return float(np.median(d[:, 1]))
-
-
-def image_coordinates(points_m: np.ndarray) -> np.ndarray:
-    """(n, 2) x / z, y / z of camera-frame points (n, 3): where they lie in the image."""
-    return np.ascontiguousarray(points_m[:, :2] / points_m[:, 2:3])
-
-
-def local_noise_m(points_m: np.ndarray, image_tree: KDTree | None, at_m: np.ndarray) -> float:
-    """The depth noise of a capture about the points at_m (a robust std, metres, at most
-    MAX_NOISE_SIGMA_M; 0 with fewer than MIN_NOISE_POINTS of them).
-
-    points_m : (n, 3) the capture, camera frame; image_tree a k-d tree of its image_coordinates;
-    at_m (k, 3) where to measure. A sensor's noise moves a point along its ray, not across the
-    image, so at each of up to NOISE_SAMPLE points of at_m (evenly strided) the inverse depths
-    of its NOISE_NEIGHBOURS nearest points in the image are fitted as a plane (1 / z is linear in
-    x / z and y / z on a plane) and their residual std, times z^2, is the depth noise there. The
-    median of the variances over the points is robust to edges.
-    """
-    if image_tree is None or len(at_m) < MIN_NOISE_POINTS:
-        return 0.0
-    probe = at_m[:: max(1, len(at_m) // NOISE_SAMPLE)]
-    _, idx = image_tree.query(image_coordinates(probe), k=NOISE_NEIGHBOURS)
-    nbrs = points_m[idx]  # (s, k, 3)
-    inverse_depth = 1.0 / nbrs[..., 2]  # (s, k)
-    design = np.concatenate([np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1)  # (s, k, 3)
-    normal = np.einsum("ski,skj->sij", design, design)
-    # Neighbours all on one image line (a one-pixel-wide strip) fit no plane.
-    keep = np.abs(np.linalg.det(normal)) >= 1e-18
-    design, inverse_depth, normal, probe = design[keep], inverse_depth[keep], normal[keep], probe[keep]
-    if len(probe) == 0:
-        return 0.0
-    coef = np.linalg.solve(normal, np.einsum("ski,sk->si", design, inverse_depth)[..., None])[..., 0]
-    residual = inverse_depth - np.einsum("ski,si->sk", design, coef)
-    variance = np.sum(residual**2, axis=1) / (NOISE_NEIGHBOURS - 3) * probe[:, 2] ** 4
-    return float(min(MAX_NOISE_SIGMA_M, np.sqrt(np.median(variance))))
-
-
-class _OwnPoints:
-    """Distances of points (model frame) to the part's surface. A point is its own when it lies
-    within own_m of the tangent plane of its nearest sample point, that point no farther than
-    own_m plus the sample's spacing.
-    Asked of the distance to the nearest sample point alone, the answer would follow the sample's
-    density: the ingest's 20,000 points lie 2 mm apart on the 0.44 m gear shaft, and a thinned
-    sample's 8 mm left most of a target's measured surface as obstacles under the cup."""
-
-    def __init__(self, points_m: np.ndarray, normals: np.ndarray, own_m: float) -> None:
-        self.normals, self.own_m = normals, own_m
-        # pykdtree: nearest-neighbour queries only, half scipy's time (a query per target part).
-        tree = KDTree(np.ascontiguousarray(points_m, dtype=np.float64)) if len(points_m) else None
-        self.tree, self.points_m = tree, points_m
-        # The sample's spacing: an even random sample's median nearest-neighbour distance is
-        # about half of it.
-        self.spacing_m = 2.0 * point_spacing_m(points_m, tree)
-        self.reach_m = own_m + self.spacing_m
-
-    def distances(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """For points (k, 3), model frame: (k,) the distance to the nearest sample point and (k,)
-        the distance to its tangent plane; both inf where the nearest point lies beyond
-        own_m plus the spacing, or the plane beyond own_m."""
-        nearest, plane = np.full(len(points_m), np.inf), np.full(len(points_m), np.inf)
-        if self.tree is None or len(points_m) == 0:
-            return nearest, plane
-        d, j = self.tree.query(points_m, distance_upper_bound=self.reach_m)
-        near = np.isfinite(d)
-        jn = j[near]
-        off = np.abs(np.einsum("ij,ij->i", points_m[near] - self.points_m[jn], self.normals[jn]))
-        keep = off <= self.own_m
-        idx = np.flatnonzero(near)[keep]
-        nearest[idx], plane[idx] = d[near][keep], off[keep]
-        return nearest, plane
-
-
 def _name(cause: str) -> str:
     return f"part {cause}" if cause.isdigit() else cause
 
@@ -409,54 +297,6 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
         else:
             keys.append(-pick.clearance_m)
     return (0 if pick.trusted else 1, *keys, pick.pose_index)
-
-
-def _captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:
-    """Indices of the captured points within radius_m of `at`: the obstacle tree's first n_captured rows."""
-    # Sorted: the order (which the tree's layout sets) must not change sums over these points.
-    near = np.asarray(tree.query_ball_point(at, radius_m, return_sorted=True), dtype=np.int64)
-    return near[near < n_captured]
-
-
-def _contact_seen(
-    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams,
-    noise_m: float = 0.0, spacing_m: float = 0.0,
-) -> bool:
-    """Whether the captured points show the surface the grasp's contact needs (see the module's
-    docstring); noise_m: the capture's noise about the pose (local_noise_m), which widens the
-    seal tolerance and the tilt a measured patch may show; spacing_m: the capture's point
-    spacing, which widens a suction contact's disc on a sparse capture (SEEN_SPACINGS)."""
-    if tree is None or len(captured) == 0:
-        return False
-    c = T_cam_from_tool[:3, 3]
-    if kind == "suction":
-        reach = max(params.suction.cup_radius_m, SEEN_SPACINGS * spacing_m)
-    else:
-        reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
-    near = _captured_near(tree, len(captured), c, reach)
-    if len(near) < SEEN_MIN_POINTS:
-        return False
-    local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
-    if kind == "suction":
-        seal_m = params.suction.max_deviation_m + max(SEEN_NOISE_M, SEEN_NOISE_SIGMAS * noise_m)
-        if np.mean(np.abs(local[:, 2]) <= seal_m) < SEEN_SHARE:
-            return False
-        # The normal of the measured patch: the direction of least spread of its points within
-        # the seal tolerance. Noise tilts it: a plane fitted to n points over a disc of radius r
-        # has a slope std of 2 sigma / (r sqrt(n)), so on a noisy capture the patch is taken
-        # wider than the cup, and SEEN_NOISE_SIGMAS of the slope std is allowed on top.
-        patch_m = max(reach, TILT_PATCH_SIGMAS * noise_m)
-        if patch_m > reach:
-            near = _captured_near(tree, len(captured), c, patch_m)
-            local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
-        local = local[np.abs(local[:, 2]) <= seal_m]
-        if len(local) < SEEN_MIN_POINTS:
-            return False
-        normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
-        tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(local)))))
-        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
-    between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
-    return int(between.sum()) >= SEEN_MIN_POINTS
 
 
 def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m) -> tuple[set[str], float]:

@@ -18,8 +18,8 @@ from binpick.errors import InputError
 from binpick.io.mesh import METRES_PER_UNIT, guess_unit, read_mesh
 from binpick.io.part_model import PartModel
 from binpick.params import Params
-from binpick.part_scale import Imaging, bodies, describe_size, fitting_units, scale_problem, size_warning
-from binpick.parts import diameter, make_part_model, simplify_mesh
+from binpick.part.model import diameter, make_part_model, simplify_mesh
+from binpick.part.scale import Imaging, bodies, describe_size, fitting_units, scale_problem, size_warning
 from binpick.seeding import derive_seed
 
 log = logging.getLogger(__name__)

@@ -1,5 +1,5 @@
-"""The bin as a box, the one type for it: fitted to a capture (bin_fit.py), given in params
-(import_capture's region of interest), and an obstacle to the gripper (picking.py)."""
+"""The bin as a box, the one type for it: fitted to a capture (cell/bin_fit.py), given in params
+(import_capture's region of interest), and an obstacle to the gripper (picking/plan.py)."""
 
 from __future__ import annotations
 

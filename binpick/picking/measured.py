@@ -1,0 +1,183 @@
+"""What the camera measured about a posed part: the capture's point spacing and its noise about
+the pose, the target's own points (not obstacles to its own gripper), and whether a grasp's
+contact lies on measured surface. Camera frame, metres."""
+
+from __future__ import annotations
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
+
+from binpick.params import PickParams
+
+# Points whose nearest-neighbour distances give a point set's spacing (point_spacing_m): the
+# part's surface sample (own points) and the capture (contacts on sparse captures).
+SPACING_PROBES = 2000
+# A grasp's contact must be measured: at least this many captured points under the suction cup
+# (or between the jaw's pads), this share of the cup's within its seal tolerance (plus the noise
+# allowance below) of the contact plane. A pose off by a rotation the camera cannot tell (a pipe
+# turned about its axis, its branch hidden) otherwise places grasps in the air.
+SEEN_MIN_POINTS = 5
+SEEN_SHARE = 0.7
+SEEN_NOISE_M = 0.001
+# The allowance grows with the noise the capture shows around the pose: SEEN_NOISE_SIGMAS of it
+# when that exceeds SEEN_NOISE_M, so a Kinect-class sensor's 1-3 mm on a lid is not taken for a
+# contact off the surface. The noise is the scatter of the captured points about their own local
+# planes (local_noise_m), not about the posed model: a pose off by a turn leaves its points far
+# from its surface, and that must still refuse the contact, not widen the test. Capped: a seal
+# test looser than a few millimetres tests nothing on a 5 mm cup.
+SEEN_NOISE_SIGMAS = 2.5
+MAX_NOISE_SIGMA_M = 0.003
+# The noise is measured at up to NOISE_SAMPLE captured points near the pose, each with its
+# NOISE_NEIGHBOURS nearest captured points (a few millimetres across at a capture's spacing, where
+# a part's surface is flat to well under the noise) ...
+NOISE_SAMPLE = 200
+NOISE_NEIGHBOURS = 12
+MIN_NOISE_POINTS = 30
+# ... points within this multiple of own_points_m of the posed surface ...
+NOISE_BAND_FACTOR = 3.0
+# ... and a noisy capture's own points reach OWN_NOISE_SIGMAS of it (at least own_points_m): at
+# 3 sigma, a few of a part's thousands of points stood in the gripper's way.
+OWN_NOISE_SIGMAS = 4.0
+# ... and the plane fitted to those points must face the cup: its normal within this of the
+# approach. Over a cup's few millimetres the share test alone passes a contact tilted by 30
+# degrees (a pose turned the wrong way about an edge), where no cup seals; the fitted normal of
+# a measured patch is a few degrees off at the sensor's noise.
+SEEN_MAX_TILT_DEG = 20.0
+# On a sparse capture (a VGA sensor at 0.7 m, a downsampled z-buffer: points 2-3 mm apart) a 5 mm
+# cup covers one to four points; the contact is then judged over a disc of this many point
+# spacings, enough to hold SEEN_MIN_POINTS and more.
+SEEN_SPACINGS = 2.5
+# ... measured over the cup, or over a disc of this many noise stds when wider: a 5 mm cup's
+# patch at 3 mm of noise tilts by tens of degrees; 12 mm of it by a few.
+TILT_PATCH_SIGMAS = 4.0
+
+
+def point_spacing_m(points_m: np.ndarray, tree: KDTree | None = None) -> float:
+    """The typical distance (metres) between neighbouring points (n, 3): the median
+    nearest-neighbour distance of up to SPACING_PROBES evenly strided points; 0 for fewer than 2.
+    tree: a k-d tree of points_m already built (else one is)."""
+    if len(points_m) < 2:
+        return 0.0
+    probe = points_m[:: max(1, len(points_m) // SPACING_PROBES)]
+    tree = KDTree(np.ascontiguousarray(points_m)) if tree is None else tree
+    d, _ = tree.query(np.ascontiguousarray(probe), k=2)
+    return float(np.median(d[:, 1]))
+
+
+def image_coordinates(points_m: np.ndarray) -> np.ndarray:
+    """(n, 2) x / z, y / z of camera-frame points (n, 3): where they lie in the image."""
+    return np.ascontiguousarray(points_m[:, :2] / points_m[:, 2:3])
+
+
+def local_noise_m(points_m: np.ndarray, image_tree: KDTree | None, at_m: np.ndarray) -> float:
+    """The depth noise of a capture about the points at_m (a robust std, metres, at most
+    MAX_NOISE_SIGMA_M; 0 with fewer than MIN_NOISE_POINTS of them).
+
+    points_m : (n, 3) the capture, camera frame; image_tree a k-d tree of its image_coordinates;
+    at_m (k, 3) where to measure. A sensor's noise moves a point along its ray, not across the
+    image, so at each of up to NOISE_SAMPLE points of at_m (evenly strided) the inverse depths
+    of its NOISE_NEIGHBOURS nearest points in the image are fitted as a plane (1 / z is linear in
+    x / z and y / z on a plane) and their residual std, times z^2, is the depth noise there. The
+    median of the variances over the points is robust to edges.
+    """
+    if image_tree is None or len(at_m) < MIN_NOISE_POINTS:
+        return 0.0
+    probe = at_m[:: max(1, len(at_m) // NOISE_SAMPLE)]
+    _, idx = image_tree.query(image_coordinates(probe), k=NOISE_NEIGHBOURS)
+    nbrs = points_m[idx]  # (s, k, 3)
+    inverse_depth = 1.0 / nbrs[..., 2]  # (s, k)
+    design = np.concatenate([np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1)  # (s, k, 3)
+    normal = np.einsum("ski,skj->sij", design, design)
+    # Neighbours all on one image line (a one-pixel-wide strip) fit no plane.
+    keep = np.abs(np.linalg.det(normal)) >= 1e-18
+    design, inverse_depth, normal, probe = design[keep], inverse_depth[keep], normal[keep], probe[keep]
+    if len(probe) == 0:
+        return 0.0
+    coef = np.linalg.solve(normal, np.einsum("ski,sk->si", design, inverse_depth)[..., None])[..., 0]
+    residual = inverse_depth - np.einsum("ski,si->sk", design, coef)
+    variance = np.sum(residual**2, axis=1) / (NOISE_NEIGHBOURS - 3) * probe[:, 2] ** 4
+    return float(min(MAX_NOISE_SIGMA_M, np.sqrt(np.median(variance))))
+
+
+class OwnPoints:
+    """Distances of points (model frame) to the part's surface. A point is its own when it lies
+    within own_m of the tangent plane of its nearest sample point, that point no farther than
+    own_m plus the sample's spacing.
+    Asked of the distance to the nearest sample point alone, the answer would follow the sample's
+    density: the ingest's 20,000 points lie 2 mm apart on the 0.44 m gear shaft, and a thinned
+    sample's 8 mm left most of a target's measured surface as obstacles under the cup."""
+
+    def __init__(self, points_m: np.ndarray, normals: np.ndarray, own_m: float) -> None:
+        self.normals, self.own_m = normals, own_m
+        # pykdtree: nearest-neighbour queries only, half scipy's time (a query per target part).
+        tree = KDTree(np.ascontiguousarray(points_m, dtype=np.float64)) if len(points_m) else None
+        self.tree, self.points_m = tree, points_m
+        # The sample's spacing: an even random sample's median nearest-neighbour distance is
+        # about half of it.
+        self.spacing_m = 2.0 * point_spacing_m(points_m, tree)
+        self.reach_m = own_m + self.spacing_m
+
+    def distances(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For points (k, 3), model frame: (k,) the distance to the nearest sample point and (k,)
+        the distance to its tangent plane; both inf where the nearest point lies beyond
+        own_m plus the spacing, or the plane beyond own_m."""
+        nearest, plane = np.full(len(points_m), np.inf), np.full(len(points_m), np.inf)
+        if self.tree is None or len(points_m) == 0:
+            return nearest, plane
+        d, j = self.tree.query(points_m, distance_upper_bound=self.reach_m)
+        near = np.isfinite(d)
+        jn = j[near]
+        off = np.abs(np.einsum("ij,ij->i", points_m[near] - self.points_m[jn], self.normals[jn]))
+        keep = off <= self.own_m
+        idx = np.flatnonzero(near)[keep]
+        nearest[idx], plane[idx] = d[near][keep], off[keep]
+        return nearest, plane
+
+
+def captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:
+    """Indices of the captured points within radius_m of `at`: the obstacle tree's first n_captured rows."""
+    # Sorted: the order (which the tree's layout sets) must not change sums over these points.
+    near = np.asarray(tree.query_ball_point(at, radius_m, return_sorted=True), dtype=np.int64)
+    return near[near < n_captured]
+
+
+def contact_seen(
+    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams,
+    noise_m: float = 0.0, spacing_m: float = 0.0,
+) -> bool:
+    """Whether the captured points show the surface the grasp's contact needs (see the module's
+    docstring); noise_m: the capture's noise about the pose (local_noise_m), which widens the
+    seal tolerance and the tilt a measured patch may show; spacing_m: the capture's point
+    spacing, which widens a suction contact's disc on a sparse capture (SEEN_SPACINGS)."""
+    if tree is None or len(captured) == 0:
+        return False
+    c = T_cam_from_tool[:3, 3]
+    if kind == "suction":
+        reach = max(params.suction.cup_radius_m, SEEN_SPACINGS * spacing_m)
+    else:
+        reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
+    near = captured_near(tree, len(captured), c, reach)
+    if len(near) < SEEN_MIN_POINTS:
+        return False
+    local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
+    if kind == "suction":
+        seal_m = params.suction.max_deviation_m + max(SEEN_NOISE_M, SEEN_NOISE_SIGMAS * noise_m)
+        if np.mean(np.abs(local[:, 2]) <= seal_m) < SEEN_SHARE:
+            return False
+        # The normal of the measured patch: the direction of least spread of its points within
+        # the seal tolerance. Noise tilts it: a plane fitted to n points over a disc of radius r
+        # has a slope std of 2 sigma / (r sqrt(n)), so on a noisy capture the patch is taken
+        # wider than the cup, and SEEN_NOISE_SIGMAS of the slope std is allowed on top.
+        patch_m = max(reach, TILT_PATCH_SIGMAS * noise_m)
+        if patch_m > reach:
+            near = captured_near(tree, len(captured), c, patch_m)
+            local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
+        local = local[np.abs(local[:, 2]) <= seal_m]
+        if len(local) < SEEN_MIN_POINTS:
+            return False
+        normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
+        tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(local)))))
+        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
+    between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
+    return int(between.sum()) >= SEEN_MIN_POINTS
