@@ -6,6 +6,7 @@ A transform is named by its frames: `T_cam_from_model @ p_model = p_cam`. Transl
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -55,33 +56,19 @@ def rigid_fit(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
 
 
 def axis_angle_to_R(axis: np.ndarray, angle_rad: float) -> np.ndarray:
-    """(3, 3) rotation by `angle_rad` about `axis` (any length > 0), Rodrigues' formula."""
+    """(3, 3) rotation by `angle_rad` about `axis` (any length > 0)."""
     axis = np.asarray(axis, dtype=np.float64)
     norm = np.linalg.norm(axis)
     if norm < 1e-12:
         raise ValueError("rotation axis must not be zero")
-    k = axis / norm
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(angle_rad) * K + (1 - np.cos(angle_rad)) * (K @ K)
+    return Rotation.from_rotvec(axis / norm * angle_rad).as_matrix()
 
 
 def random_rotation(rng: np.random.Generator) -> np.ndarray:
-    """A (3, 3) rotation drawn uniformly from SO(3) (unit quaternion from a 4-D normal)."""
+    """A (3, 3) rotation drawn uniformly from SO(3): a unit quaternion from a 4-D normal (the
+    draws this project's scenes were generated with; scipy's Rotation.random draws differently)."""
     q = rng.normal(size=4)
-    q /= np.linalg.norm(q)
-    return quaternion_to_R(q)
-
-
-def quaternion_to_R(q: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation from a unit quaternion (w, x, y, z)."""
-    w, x, y, z = np.asarray(q, dtype=np.float64)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    return Rotation.from_quat(q[[1, 2, 3, 0]] / np.linalg.norm(q)).as_matrix()  # (w, x, y, z) drawn, scipy takes (x, y, z, w)
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
