@@ -14,7 +14,7 @@ import shutil
 import threading
 from datetime import datetime
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,7 +39,7 @@ class Keeper:
         self.mlflow_uri = mlflow_uri
         self.log_mlflow = log_mlflow
         self._jobs: queue.Queue[tuple | None] = queue.Queue()
-        self._stream = None  # one rerun stream for every recording (a stream per file leaks threads)
+        self._stream: Any = None  # one rerun stream for every recording (a stream per file leaks threads)
         self._thread = threading.Thread(target=self._run, name="binpick-keeper", daemon=True)
         self._thread.start()
 

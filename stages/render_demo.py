@@ -49,6 +49,7 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
         for i, (T, v) in enumerate(zip(scene.T_cam_from_model, scene.visible_fraction, strict=False))
     ]
     with atomic_paths(out, truth) as (tmp_out, tmp_truth):  # the capture and its truth together
+        assert tmp_truth is not None  # asked for
         save_ply(tmp_out, PointCloudData(xyz=scene.xyz_m.reshape(-1, 3) * MM_PER_M, rgb=grey_shading(scene.xyz_m).reshape(-1, 3), shape=(H, W)))
         save_poses(tmp_truth, part.name, records)
     log.info("%s: %dx%d capture with %d parts -> %s", part.name, W, H, len(records), out)

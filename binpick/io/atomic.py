@@ -8,6 +8,7 @@ import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
+from typing import overload
 
 from binpick.lifetime import pid_alive
 
@@ -81,11 +82,22 @@ def write_text(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
-@contextlib.contextmanager
-def atomic_paths(*paths: str | Path | None) -> Iterator[list[Path | None]]:
+@overload
+def atomic_paths(out: str | Path, other: str | Path | None, /) -> contextlib.AbstractContextManager[tuple[Path, Path | None]]: ...
+@overload
+def atomic_paths(
+    out: str | Path, other: str | Path | None, third: str | Path | None, /
+) -> contextlib.AbstractContextManager[tuple[Path, Path | None, Path | None]]: ...
+def atomic_paths(*paths: str | Path | None) -> contextlib.AbstractContextManager[tuple[Path | None, ...]]:
     """Temporary paths for several outputs that are committed together: each moves onto its real
     path only after the whole block succeeded; a failure anywhere leaves every real path as it
-    was. None stays None (an output not asked for). Suffixes are kept, as in atomic_path."""
+    was. None stays None (an output not asked for; the first output is always asked for).
+    Suffixes are kept, as in atomic_path."""
+    return _atomic_paths(*paths)
+
+
+@contextlib.contextmanager
+def _atomic_paths(*paths: str | Path | None) -> Iterator[tuple[Path | None, ...]]:
     temps: list[Path | None] = []
     try:
         for p in paths:
@@ -99,7 +111,7 @@ def atomic_paths(*paths: str | Path | None) -> Iterator[list[Path | None]]:
             fd, name = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}.", suffix=f".tmp{p.suffix}", dir=p.parent)
             os.close(fd)
             temps.append(Path(name))
-        yield temps
+        yield tuple(temps)
         for p, tmp in zip(paths, temps, strict=True):
             if p is not None and tmp is not None:
                 if not tmp.exists() or tmp.stat().st_size == 0:

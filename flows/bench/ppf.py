@@ -107,7 +107,7 @@ def _open3d(part: PartModel, params: RegisterParams):
         k = voxel_downsample_indices(pts, voxel)
         tgt = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts[k]))
         tgt.normals = o3d.utility.Vector3dVector(nrm[k])
-        tgt_fpfh = reg.compute_fpfh_feature(tgt, feature)
+        tgt_fpfh = reg.compute_fpfh_feature(tgt, feature)  # type: ignore[call-arg]  # open3d 0.20 stubs name an `indices` its binding does not need
         ransac = reg.registration_ransac_based_on_feature_matching(
             src, tgt, src_fpfh, tgt_fpfh, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],

@@ -8,7 +8,7 @@ import json
 import logging
 from collections.abc import Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NoReturn
 
 import typer
 
@@ -30,7 +30,7 @@ log = logging.getLogger("binpick")
 _state = {"verbose": False}
 
 
-def fail(message: str) -> None:
+def fail(message: str) -> NoReturn:
     """The command's one error line, exit status 2 (flows.cli.main turns every BinpickError into it)."""
     typer.echo(f"error: {message}", err=True)
     raise typer.Exit(2)

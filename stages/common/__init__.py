@@ -12,7 +12,7 @@ import socket
 import sys
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from binpick.env import configure_environment, project_root
 from binpick.errors import BinpickError
@@ -39,7 +39,11 @@ def _terminate(signum: int, frame: Any) -> None:
     raise Terminated()
 
 
-def entry(main: Callable[[Sequence[str] | None], int]) -> Callable[[Sequence[str] | None], int]:
+class StageMain(Protocol):
+    def __call__(self, argv: Sequence[str] | None = None) -> int: ...
+
+
+def entry(main: Callable[[Sequence[str] | None], int]) -> StageMain:
     """Wrap a stage's main: a BinpickError becomes one line on stderr and exit code 2."""
 
     def wrapped(argv: Sequence[str] | None = None) -> int:

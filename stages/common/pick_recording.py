@@ -36,7 +36,7 @@ def _gripper_mesh(primitives: list, T_cam_from_tool: np.ndarray) -> tuple[np.nda
             m.apply_translation([0.0, 0.0, (prim.z0 + prim.z1) / 2.0])
         m.apply_transform(T_cam_from_tool)
         meshes.append(m)
-    whole = trimesh.util.concatenate(meshes)
+    whole: trimesh.Trimesh = trimesh.util.concatenate(meshes)  # type: ignore[assignment]  # a list of meshes gives a mesh
     return np.asarray(whole.vertices, np.float32), np.asarray(whole.faces, np.uint32)
 
 
