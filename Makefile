@@ -35,7 +35,7 @@ test: lint
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow
 
-# ruff (pyflakes, pycodestyle, import order, bugbear, no print) on everything; mypy on the library.
+# ruff (pyflakes, pycodestyle, import order, bugbear, no print) on everything; mypy (untyped defs checked) on the library, the application and the stages.
 lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/mypy
