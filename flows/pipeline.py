@@ -63,6 +63,33 @@ def safe_file_name(root: Path, path: Path) -> str | None:
     return None
 
 
+def new_files(root: Path, folder: Path, suffixes: set[str], listed: dict[str, str], taken: set[str]) -> tuple[list[str], dict[str, str], dict[str, str]]:
+    """The files in `folder` with one of `suffixes` (lower case), as params.yaml names: those
+    `listed` (relative path -> name) keep theirs; a new one gets a name from its file name, made
+    unique against `taken` and each other; files whose names cannot reach a command are refused.
+    Returns (every name in the folder, new name -> relative path, refused file -> reason)."""
+    names: list[str] = []
+    new: dict[str, str] = {}
+    refused: dict[str, str] = {}
+    for path in sorted(folder.iterdir()):
+        rel = path.relative_to(root).as_posix()
+        if path.suffix.lower() not in suffixes:
+            continue
+        if rel in listed:
+            names.append(listed[rel])
+            continue
+        why = safe_file_name(root, path)
+        if why:
+            refused[rel] = why
+            continue
+        name = part_name_for(path)
+        while name in taken or name in new:
+            name += "_new"
+        new[name] = rel
+        names.append(name)
+    return names, new, refused
+
+
 @flow(name="train-part", flow_run_name="train-{part}")
 def train_part(part: str, root: Path) -> None:
     """ingest -> ppf -> grasps -> generate -> train -> evaluate, each the part's DVC stage."""
@@ -93,25 +120,7 @@ def add_new_captures(root: Path, folder: Path, part: str, unit: str) -> tuple[li
     if part not in (raw.get("parts") or {}):
         raise InputError(root / "params.yaml", f"part {part!r} is not listed under 'parts' (have: {sorted(raw.get('parts') or {})})")
     listed = {Path(c["file"]).as_posix(): name for name, c in (raw.get("captures") or {}).items()}
-    names: list[str] = []
-    new: dict[str, str] = {}
-    refused: dict[str, str] = {}
-    for path in sorted(folder.iterdir()):
-        rel = path.relative_to(root).as_posix()
-        if path.suffix.lower() not in CAPTURE_SUFFIXES or path.suffix.lower() == ".png":
-            continue
-        if rel in listed:
-            names.append(listed[rel])
-            continue
-        why = safe_file_name(root, path)
-        if why:
-            refused[rel] = why
-            continue
-        name = part_name_for(path)
-        while name in listed.values() or name in new:
-            name += "_new"
-        new[name] = rel
-        names.append(name)
+    names, new, refused = new_files(root, folder, set(CAPTURE_SUFFIXES) - {".png"}, listed, set(raw.get("captures") or {}))
     if new:
         add_captures(root / "params.yaml", new, part, unit)
         log.info("new captures: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))

@@ -17,10 +17,10 @@ from prefect.logging import get_run_logger
 
 from binpick.io.mesh import MESH_SUFFIXES
 from binpick.layout import Layout
-from binpick.params import add_parts, load_raw, part_name_for
+from binpick.params import add_parts, load_raw
 from binpick.project import check_project, set_aside
 from flows.dvc_tasks import StageFailed, dvc_env
-from flows.pipeline import PART_STAGES, Outcome, safe_file_name, train_part
+from flows.pipeline import PART_STAGES, Outcome, new_files, train_part
 
 log = logging.getLogger("binpick.watch")
 
@@ -30,22 +30,8 @@ def add_new_parts(root: Path) -> tuple[list[str], dict[str, str]]:
     """Mesh files in data/parts/ that no part lists are added to params.yaml (unit: auto).
     Returns (names added, refused file -> reason)."""
     raw = load_raw(root / "params.yaml")
-    listed = {Path(p["mesh"]).as_posix() for p in (raw.get("parts") or {}).values()}
-    names = set(raw.get("parts") or {})
-    new: dict[str, str] = {}
-    refused: dict[str, str] = {}
-    for mesh in sorted(Layout(root).parts_folder.iterdir()):
-        rel = mesh.relative_to(root).as_posix()
-        if mesh.suffix.lower() not in MESH_SUFFIXES or rel in listed:
-            continue
-        why = safe_file_name(root, mesh)
-        if why:
-            refused[rel] = why
-            continue
-        name = part_name_for(mesh)
-        while name in names or name in new:
-            name += "_new"
-        new[name] = rel
+    listed = {Path(p["mesh"]).as_posix(): name for name, p in (raw.get("parts") or {}).items()}
+    _, new, refused = new_files(root, Layout(root).parts_folder, set(MESH_SUFFIXES), listed, set(raw.get("parts") or {}))
     if new:
         add_parts(root / "params.yaml", new)
         log.info("new parts: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))
