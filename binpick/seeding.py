@@ -31,9 +31,9 @@ def capture_digest(xyz_m: np.ndarray, rgb: np.ndarray | None) -> str:
     """16 hex digits naming a capture by its content (xyz_m (n, 3) as read, NaN = no return;
     rgb (n, 3) uint8 or None): every step of the scene path draws its seeds from it, so that the
     service and the DVC stages give the same capture the same answer, whatever its file is called."""
-    h = hashlib.sha256(np.ascontiguousarray(xyz_m[::DIGEST_STRIDE]).tobytes())
+    h = hashlib.sha256(np.ascontiguousarray(xyz_m[::DIGEST_STRIDE]).data)
     if rgb is not None:
-        h.update(np.ascontiguousarray(rgb[::DIGEST_STRIDE]).tobytes())
+        h.update(np.ascontiguousarray(rgb[::DIGEST_STRIDE]).data)
     return h.hexdigest()[:16]
 
 

@@ -9,7 +9,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-UNITS = ("mm", "m", "in")
+from binpick.io.mesh import METRES_PER_UNIT
+
 Matrix4 = list[list[float]]
 
 
@@ -31,8 +32,8 @@ class PicksRequest(BaseModel):
     @field_validator("unit")
     @classmethod
     def _known_unit(cls, unit: str) -> str:
-        if unit not in UNITS:
-            raise ValueError(f"unit {unit!r} is not one of {', '.join(UNITS)}")
+        if unit not in METRES_PER_UNIT:
+            raise ValueError(f"unit {unit!r} is not one of {', '.join(METRES_PER_UNIT)}")
         return unit
 
 

@@ -10,6 +10,7 @@ import typer
 
 from binpick.env import project_root
 from binpick.errors import BinpickError
+from binpick.io.mesh import METRES_PER_UNIT
 from binpick.layout import Layout
 from flows.cli.common import PARAMS, app, fail, project, quiet_prefect
 
@@ -136,8 +137,8 @@ def scenes(
     """Import, segment and register every capture in a folder (new files are added to params.yaml);
     a capture that fails is set aside and the others go on."""
     root = project()
-    if unit not in ("mm", "m", "in"):
-        fail(f"unit {unit!r} is not one of mm, m, in")
+    if unit not in METRES_PER_UNIT:
+        fail(f"unit {unit!r} is not one of {', '.join(METRES_PER_UNIT)}")
     from flows.dvc_tasks import StageFailed
     from flows.pipeline import process_folder
 
