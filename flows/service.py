@@ -57,6 +57,7 @@ from starlette.concurrency import run_in_threadpool
 
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
+from binpick.io.digest import file_sha256
 from binpick.io.picks import VERSION as PICKS_VERSION
 from binpick.io.picks import picks_document
 from binpick.layout import Layout
@@ -120,14 +121,22 @@ def load_parts(root: Path, params_path: Path) -> tuple[dict[str, Served], dict[s
 
 
 def _not_accepted(layout: Layout, part: str) -> str | None:
-    """Why a part's trained network must not be served (the evaluate stage refused it, or has not
-    judged this network), None when it may be (accepted, or no network: registration only)."""
-    if not layout.checkpoint(part).is_file():
+    """Why a part's trained network must not be served (the evaluate stage refused it, or judged
+    another file: the SHA-256 it recorded is not the checkpoint's), None when it may be (accepted,
+    or no network: registration only)."""
+    checkpoint = layout.checkpoint(part)
+    if not checkpoint.is_file():
         return None
     metrics = layout.part_metrics(part, "evaluate")
-    if not metrics.is_file() or metrics.stat().st_mtime < layout.checkpoint(part).stat().st_mtime:
-        return "its network has not been evaluated since it was trained (run make repro)"
+    if not metrics.is_file():
+        return "its network has not been evaluated (run make repro)"
     figures = json.loads(metrics.read_text())
+    judged = figures.get("checkpoint_sha256")
+    if judged is None:
+        log.warning("%s: %s does not name the network it judged (written before evaluate recorded digests); "
+                    "serving it as accepted: run make repro to re-judge", part, metrics.name)
+    elif judged != file_sha256(checkpoint):
+        return "its network has not been evaluated since it was trained (run make repro)"
     if not figures.get("accepted"):
         return (f"its network was not accepted by evaluate (segmentation precision {figures.get('precision', float('nan')):.2f}, "
                 f"recall {figures.get('recall', float('nan')):.2f} below evaluate.accept_precision / accept_recall)")

@@ -6,6 +6,7 @@ import logging
 from collections.abc import Sequence
 from pathlib import Path
 
+from binpick.io.digest import file_sha256
 from binpick.io.scene import list_scenes, load_scene
 from binpick.metrics.segmentation import SegmentationCounts
 from binpick.network.checkpoint import InferenceSettings, read_checkpoint
@@ -59,9 +60,12 @@ def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | Non
             log.info("%s: %s version %s is now %r", part, model_name(part), version, ev.accept_alias)
         else:
             log.info("%s: below the acceptance thresholds; alias %r unchanged", part, ev.accept_alias)
-    metrics["accepted"] = float(version is not None)
+    # Accepted means the figures passed; the registry alias is set besides when the run is registered.
+    metrics["accepted"] = float(passed)
     if metrics_path is not None:
-        write_metrics(metrics_path, metrics)
+        # The service serves a network only when this digest is the served file's (mtimes do not
+        # survive a clone and `dvc checkout`).
+        write_metrics(metrics_path, {**metrics, "checkpoint_sha256": file_sha256(checkpoint)})
     log.info("%s: precision %.3f, recall %.3f on %d test scenes", part, metrics["precision"], metrics["recall"], len(paths))
     return metrics
 

@@ -5,6 +5,7 @@ each request for review within its retention limit, and a kept request joins the
 from __future__ import annotations
 
 import base64
+import hashlib
 import json
 import socket
 import threading
@@ -250,5 +251,26 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     health = httpx.post(f"{url}/reload", timeout=120).json()
     assert health["parts"] == ["t_joint"] and "not accepted" in health["not_served"]["t_joint_b"]
     assert httpx.post(f"{url}/picks", json={"part": "t_joint_b", "path": str(capture)}, timeout=120).status_code == 404
+    # Accepted, but for another file than the one now there: retrained since, not served.
+    metrics.write_text(json.dumps({"accepted": 1.0, "checkpoint_sha256": hashlib.sha256(b"an older network").hexdigest()}))
+    health = httpx.post(f"{url}/reload", timeout=120).json()
+    assert health["parts"] == ["t_joint"] and "not been evaluated since" in health["not_served"]["t_joint_b"]
     network.unlink()
     assert httpx.post(f"{url}/reload", timeout=120).json()["parts"] == ["t_joint", "t_joint_b"]
+
+
+def test_a_network_is_served_only_when_evaluate_judged_these_bytes(tmp_path):
+    from binpick.layout import Layout
+    from flows.service import _not_accepted
+
+    layout = Layout(tmp_path)
+    assert _not_accepted(layout, "p") is None  # no network: registration only
+    layout.checkpoint("p").parent.mkdir(parents=True)
+    layout.checkpoint("p").write_bytes(b"weights")
+    assert "not been evaluated" in _not_accepted(layout, "p")
+    metrics = layout.part_metrics("p", "evaluate")
+    metrics.parent.mkdir(parents=True)
+    metrics.write_text(json.dumps({"accepted": 1.0, "checkpoint_sha256": hashlib.sha256(b"weights").hexdigest()}))
+    assert _not_accepted(layout, "p") is None
+    layout.checkpoint("p").write_bytes(b"weights, retrained")
+    assert "since it was trained" in _not_accepted(layout, "p")
