@@ -5,7 +5,7 @@ import trimesh
 
 from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
-from binpick.generation.camera import Intrinsics, render
+from binpick.generation.camera import camera_of, render
 from binpick.geometry.pointcloud import fit_plane_ransac
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
 
@@ -36,7 +36,7 @@ def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
     meshes = [(transform_points(T_cam_table @ T_table_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), part]]
     meshes += [(transform_points(T_cam_table, np.asarray(m.vertices)), np.asarray(m.faces)) for m in (table, carton)]
     labels_of_meshes = [-1] * len(bin_meshes(bin_params)) + [1, -1, -1]  # the part is 1
-    frame = render(meshes, labels_of_meshes, Intrinsics.from_params(PARAMS.camera.model_copy(update={"downscale": 4})))
+    frame = render(meshes, labels_of_meshes, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
     xyz = frame.xyz_m.reshape(-1, 3)
     ok = np.all(np.isfinite(xyz), axis=1)
     pts = xyz[ok]

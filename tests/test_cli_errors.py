@@ -105,7 +105,7 @@ def _bad_captures(tmp_path):
     Image.fromarray(np.full((120, 160), 500, np.uint16)).save(depth)
     wrong = tmp_path / "k_full_res.json"
     wrong.write_text(json.dumps({"fx": 2660.0, "fy": 2660.0, "cx": 960.0, "cy": 600.0}))
-    files["intrinsics of another resolution"] = ([str(depth), "--intrinsics", str(wrong)], "outside the 160 x 120 depth image")
+    files["intrinsics of another resolution"] = ([str(depth), "--intrinsics", str(wrong)], "outside the 160 x 120 image")
     return files
 
 

@@ -5,9 +5,10 @@ import pytest
 import trimesh
 
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
-from binpick.generation.camera import Intrinsics, apply_sensor_noise, render
+from binpick.generation.camera import apply_sensor_noise, camera_of, render
 from binpick.generation.placement import place_objects
 from binpick.generation.scene import generate_scene
+from binpick.geometry.camera import PinholeCamera
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.scene import load_scene, save_scene
 from binpick.view import ViewParams
@@ -40,7 +41,7 @@ def test_a_full_bin_keeps_the_objects_that_fit(t_joint):
 
 def test_camera_sees_the_floor_at_its_distance():
     cam = changed(PARAMS.camera, downscale=8)
-    intr = Intrinsics.from_params(cam)
+    intr = camera_of(cam)
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
     meshes = [(transform_points(T_cam_bin, m.vertices), m.faces) for m in bin_meshes(changed(PARAMS.generate.bin, wall_height_m=0.0))]
     r = render(meshes, [-1] * len(meshes), intr)
@@ -55,7 +56,7 @@ def test_objects_over_a_cached_background_equal_one_cast_of_everything(t_joint):
     from binpick.generation.camera import render_background
 
     cam = changed(PARAMS.camera, downscale=4)
-    intr = Intrinsics.from_params(cam)
+    intr = camera_of(cam)
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
     gen = PARAMS.generate
     placed = place_objects(t_joint.points_m, 8, gen.bin, gen.placement, np.random.default_rng(2))
@@ -73,7 +74,7 @@ def test_objects_over_a_cached_background_equal_one_cast_of_everything(t_joint):
 def test_noise_grows_with_range_and_grazing_returns_drop():
     rng = np.random.default_rng(0)
     H, W = 200, 200
-    dirs = Intrinsics(W, H, 200.0, 200.0, 99.5, 99.5).ray_directions()
+    dirs = PinholeCamera(W, H, 200.0, 200.0, 99.5, 99.5).ray_directions()
     out = []
     for depth in (0.5, 1.5):
         xyz = (dirs * depth).astype(np.float32)

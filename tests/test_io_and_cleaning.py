@@ -135,7 +135,7 @@ def test_points_outside_the_bin_walls_are_dropped():
     import trimesh
 
     from binpick.generation.bin import T_bin_from_cam, bin_meshes
-    from binpick.generation.camera import Intrinsics, render
+    from binpick.generation.camera import camera_of, render
     from binpick.geometry.transforms import invert_T, transform_points
 
     bin_params = PARAMS.generate.bin
@@ -149,7 +149,7 @@ def test_points_outside_the_bin_walls_are_dropped():
     meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), table, inside, outside]]
     labels = [-1] * (len(meshes) - 3) + [-1, 0, 1]
     camera = PARAMS.camera.model_copy(update={"downscale": 4})
-    frame = render(meshes, labels, Intrinsics.from_params(camera))
+    frame = render(meshes, labels, camera_of(camera))
     H, W = frame.labels.shape
     params = changed(PARAMS.import_capture, crop_to_walls=True)
     cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), params, 0)
@@ -167,7 +167,7 @@ def test_walls_are_found_under_a_heap_of_flat_layers():
     import trimesh
 
     from binpick.generation.bin import T_bin_from_cam, bin_meshes
-    from binpick.generation.camera import Intrinsics, render
+    from binpick.generation.camera import camera_of, render
     from binpick.geometry.transforms import invert_T, transform_points
 
     bin_params = PARAMS.generate.bin
@@ -184,7 +184,7 @@ def test_walls_are_found_under_a_heap_of_flat_layers():
     scene = [*bin_meshes(bin_params), table, *plates, outside]
     meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in scene]
     labels = [-1] * (len(scene) - len(plates) - 1) + [0] * len(plates) + [1]
-    frame = render(meshes, labels, Intrinsics.from_params(PARAMS.camera.model_copy(update={"downscale": 4})))
+    frame = render(meshes, labels, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
     H, W = frame.labels.shape
     cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(PARAMS.import_capture, crop_to_walls=True), 0)
     kept = frame.labels.reshape(-1)[cloud.pixel_index]

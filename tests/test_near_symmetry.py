@@ -8,7 +8,8 @@ import pytest
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.generation.camera import Intrinsics, render
+from binpick.generation.camera import render
+from binpick.geometry.camera import PinholeCamera
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
@@ -71,7 +72,7 @@ def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mu
     T_true = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi / 2), np.array([0.0, 0.0, 0.45]))
     floor = trimesh.creation.box(extents=(1.0, 1.0, 0.01))
     floor.apply_translation((0.0, 0.0, 0.655))
-    intr = Intrinsics(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
+    intr = PinholeCamera(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
     vertices = transform_points(T_true, np.asarray(mesh.vertices))
     frame = render([(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
     cloud = clean(frame.xyz_m.reshape(-1, 3), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
@@ -115,7 +116,7 @@ def test_a_turned_pose_is_turned_back_by_a_relief_on_the_lid_at_low_and_high_noi
     T_true = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.45]))
     floor = trimesh.creation.box(extents=(1.0, 1.0, 0.01))
     floor.apply_translation((0.0, 0.0, 0.505))
-    intr = Intrinsics(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
+    intr = PinholeCamera(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
     frame = render([(transform_points(T_true, np.asarray(mesh.vertices)), np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
     xyz = frame.xyz_m.reshape(-1, 3).astype(np.float64)
     rng = np.random.default_rng(seed)

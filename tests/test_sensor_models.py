@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from binpick.generation.camera import Intrinsics, Render, render
+from binpick.generation.camera import Render, render
 from binpick.generation.scene import generate_scene
 from binpick.generation.sensor import (
     apply_sensor_model,
@@ -14,12 +14,13 @@ from binpick.generation.sensor import (
     quantise_disparity,
     specular_cos,
 )
+from binpick.geometry.camera import PinholeCamera
 from binpick.view import ViewParams
 
 from settings import PARAMS, ROOT, changed
 
 # A fine camera 0.5 m above a floor: 0.5 mm pixels there.
-INTR = Intrinsics(400, 300, 1000.0, 1000.0, 199.5, 149.5)
+INTR = PinholeCamera(400, 300, 1000.0, 1000.0, 199.5, 149.5)
 FLOOR_M = 0.5
 MATTE = PARAMS.generate.sensor.materials["matte"]
 
@@ -75,7 +76,7 @@ def test_multipath_biases_a_concave_corner_and_nothing_else():
     # top edge is convex.
     wall = box((0.05, -0.5, FLOOR_M - 0.1), (0.06, 0.5, FLOOR_M))
     meshes = [box((-0.5, -0.5, FLOOR_M), (0.5, 0.5, FLOOR_M + 0.01)), wall, box((-0.2, -0.03, FLOOR_M - 0.05), (-0.14, 0.03, FLOOR_M))]
-    cam = Intrinsics(400, 300, 300.0, 300.0, 199.5, 149.5)
+    cam = PinholeCamera(400, 300, 300.0, 300.0, 199.5, 149.5)
     # Tilt the view so the camera sees the wall's face: the camera sits at x = -0.2 looking along +z.
     shift = np.array([0.2, 0.0, 0.0])
     meshes = [(v + shift, f) for v, f in meshes]
@@ -134,7 +135,7 @@ def test_disparity_quantisation_puts_depths_on_the_sensor_grid():
 
 def test_dropout_and_noise_follow_the_incidence_angle():
     H, W = 200, 200
-    intr = Intrinsics(W, H, 400.0, 400.0, 99.5, 99.5)
+    intr = PinholeCamera(W, H, 400.0, 400.0, 99.5, 99.5)
     dirs = intr.ray_directions()
     xyz = (dirs * 0.6).astype(np.float32)
     model = plain_model(depth_sigma_m=0.001, incidence_noise_gain=0.5, dropout_start_deg=40.0, max_incidence_deg=80.0)
@@ -161,7 +162,7 @@ def test_dropout_and_noise_follow_the_incidence_angle():
 
 def test_a_shiny_part_loses_its_highlight_and_a_matte_one_does_not():
     H, W = 100, 100
-    intr = Intrinsics(W, H, 200.0, 200.0, 49.5, 49.5)
+    intr = PinholeCamera(W, H, 200.0, 200.0, 49.5, 49.5)
     xyz = (intr.ray_directions() * 0.5).astype(np.float32)
     normals = np.broadcast_to(np.array([0, 0, -1], np.float32), xyz.shape).copy()
     labels = np.zeros((H, W), np.int32)

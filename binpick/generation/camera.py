@@ -13,47 +13,21 @@ import numpy as np
 import open3d as o3d
 from numba import njit
 
+from binpick.geometry.camera import PinholeCamera
 from binpick.params import CameraParams, NoiseParams
 
 
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels; pixel (u, v) is column u, row v, centre of the top-left pixel at (0, 0)."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @classmethod
-    def from_params(cls, camera: CameraParams) -> Intrinsics:
-        s = camera.downscale
-        return cls(
-            width=camera.width_px // s,
-            height=camera.height_px // s,
-            fx=camera.fx_px / s,
-            fy=camera.fy_px / s,
-            cx=(camera.cx_px + 0.5) / s - 0.5,
-            cy=(camera.cy_px + 0.5) / s - 0.5,
-        )
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
-    def ray_directions(self) -> np.ndarray:
-        """(H, W, 3) float32 ray directions with z = 1, so that a hit distance is the depth.
-        Cached per camera (read-only): every scene of a data set casts the same rays."""
-        return _rays(self)[..., 3:]
+def camera_of(camera: CameraParams) -> PinholeCamera:
+    """The rendered camera: the configured sensor's pinhole at its downscale."""
+    full = PinholeCamera(camera.width_px, camera.height_px, camera.fx_px, camera.fy_px, camera.cx_px, camera.cy_px)
+    return full.downscaled(camera.downscale)
 
 
 @functools.lru_cache(maxsize=4)
-def _rays(intr: Intrinsics) -> np.ndarray:
-    """(H, W, 6) float32 rays (origin at the camera centre, direction with z = 1), read-only."""
-    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32), np.arange(intr.height, dtype=np.float32))
-    dirs = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, np.ones_like(u)], axis=-1)
+def _rays(camera: PinholeCamera) -> np.ndarray:
+    """(H, W, 6) float32 rays (origin at the camera centre, direction with z = 1), read-only and
+    cached per camera: every scene of a data set casts the same rays."""
+    dirs = camera.ray_directions()
     rays = np.ascontiguousarray(np.concatenate([np.zeros_like(dirs), dirs], axis=-1))
     rays.flags.writeable = False
     return rays
@@ -86,7 +60,7 @@ def raycasting_scene(meshes: list[tuple[np.ndarray, np.ndarray]]) -> o3d.t.geome
     return scene
 
 
-def _pixel_box(vertices: np.ndarray, intr: Intrinsics) -> tuple[int, int, int, int] | None:
+def _pixel_box(vertices: np.ndarray, intr: PinholeCamera) -> tuple[int, int, int, int] | None:
     """(v0, v1, u0, u1): the pixel rows and columns the mesh's projection can cover, None when
     it covers none; the whole frame when part of it lies behind the camera."""
     v = np.asarray(vertices, dtype=np.float64)
@@ -108,7 +82,7 @@ def quantise(values: np.ndarray, step: float) -> np.ndarray:
 
 
 def render(
-    meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: Intrinsics, background: Render | None = None
+    meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: PinholeCamera, background: Render | None = None
 ) -> Render:
     """Ray-cast meshes (vertices (v, 3) in the camera frame, metres; faces (f, 3)) into an organized frame.
 
@@ -171,7 +145,7 @@ def _composite(sel, t, geom, prim_normals, dirs, label_of, xyz, normals, labels)
 
 
 @functools.lru_cache(maxsize=4)
-def _background(intr: Intrinsics, meshes: tuple[tuple[bytes, bytes], ...]) -> Render:
+def _background(intr: PinholeCamera, meshes: tuple[tuple[bytes, bytes], ...]) -> Render:
     arrays = [(np.frombuffer(v, np.float64).reshape(-1, 3), np.frombuffer(f, np.int64).reshape(-1, 3)) for v, f in meshes]
     r = render(arrays, [-1] * len(arrays), intr)
     for a in (r.xyz_m, r.normals, r.labels):
@@ -179,7 +153,7 @@ def _background(intr: Intrinsics, meshes: tuple[tuple[bytes, bytes], ...]) -> Re
     return r
 
 
-def render_background(meshes_cam: list[tuple[np.ndarray, np.ndarray]], intr: Intrinsics) -> Render:
+def render_background(meshes_cam: list[tuple[np.ndarray, np.ndarray]], intr: PinholeCamera) -> Render:
     """The render of static, unlabelled geometry (bin, floor), cached by content: every scene of a
     data set shares it, so each scene casts only the rays that can reach its objects."""
     meshes = tuple(
@@ -222,7 +196,7 @@ def _noise(xyz, normals, labels, draw, dropped, min_cos, sigma0, sigma2):  # pra
 
 
 def visible_fractions(
-    meshes_cam: list[tuple[np.ndarray, np.ndarray]], labels: np.ndarray, intr: Intrinsics
+    meshes_cam: list[tuple[np.ndarray, np.ndarray]], labels: np.ndarray, intr: PinholeCamera
 ) -> np.ndarray:
     """(k,) share of the pixels each object would cover alone that show it in the scene.
 

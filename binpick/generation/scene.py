@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 
 from binpick.generation.bin import FLOOR_THICKNESS_M, T_bin_from_cam, bin_meshes
-from binpick.generation.camera import Intrinsics, apply_sensor_noise, render, render_background, visible_fractions
+from binpick.generation.camera import apply_sensor_noise, camera_of, render, render_background, visible_fractions
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
 from binpick.generation.physics import SettleSettings, settle
 from binpick.generation.placement import place_objects
@@ -47,7 +47,7 @@ def render_scene(
     T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(generate.bin), *(distractors or [])]]
-    intr = Intrinsics.from_params(camera) if sensor is None else intrinsics_of(sensor, camera.width_px, camera.downscale)
+    intr = camera_of(camera) if sensor is None else intrinsics_of(sensor, camera.width_px, camera.downscale)
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
     if sensor is None:

@@ -21,7 +21,8 @@ import numpy as np
 import open3d as o3d
 from numba import njit
 
-from binpick.generation.camera import Intrinsics, Render, raycasting_scene
+from binpick.generation.camera import Render, raycasting_scene
+from binpick.geometry.camera import PinholeCamera
 from binpick.params import MaterialParams, SensorModelParams
 
 # A projector ray that stops this much short of the point it was cast to is blocked: above the
@@ -36,12 +37,12 @@ CONCAVITY_MAX_PX = 12
 CORNER_CONCAVITY = 0.3
 
 
-def intrinsics_of(model: SensorModelParams, reference_width_px: int, reference_downscale: int) -> Intrinsics:
+def intrinsics_of(model: SensorModelParams, reference_width_px: int, reference_downscale: int) -> PinholeCamera:
     """The sensor's pinhole camera rendered at about the pixel count of the reference camera at
     its downscale (never finer than the sensor itself): a Kinect-class frame renders whole, a
     5 MP Zivid frame at about the training resolution."""
     s = max(1, int(round(reference_downscale * model.width_px / reference_width_px)))
-    return Intrinsics(
+    return PinholeCamera(
         width=model.width_px // s, height=model.height_px // s, fx=model.fx_px / s, fy=model.fy_px / s,
         cx=(model.width_px / 2.0) / s - 0.5, cy=(model.height_px / 2.0) / s - 0.5,
     )
@@ -185,7 +186,7 @@ def quantise_disparity(z_m: np.ndarray, fx_px: float, baseline_m: float, step_px
 def apply_sensor_model(
     clean: Render,
     meshes_cam: list[tuple[np.ndarray, np.ndarray]],
-    intr: Intrinsics,
+    intr: PinholeCamera,
     model: SensorModelParams,
     part_material: MaterialParams,
     rng: np.random.Generator,

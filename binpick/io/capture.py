@@ -113,14 +113,12 @@ def load_capture(path: str | Path, options: ImportOptions | str = ImportOptions(
         if {"r", "g", "b"} <= set(cols):
             rgb = np.clip(np.stack([cols["r"], cols["g"], cols["b"]], axis=1), 0, 255).astype(np.uint8)
     else:  # depth image
-        from binpick.io.depth_image import check_intrinsics_fit, depth_to_points, load_depth_png, load_intrinsics
+        from binpick.io.depth_image import depth_metres, load_depth_png, load_intrinsics
 
         if options.intrinsics is None:
             raise InputError(path, "a depth image needs intrinsics (a JSON file with fx, fy, cx, cy)")
         depth = load_depth_png(path)
-        intrinsics = load_intrinsics(options.intrinsics)
-        check_intrinsics_fit(options.intrinsics, intrinsics, depth.shape)
-        xyz = depth_to_points(depth, *intrinsics, scale=1.0)
+        xyz = load_intrinsics(options.intrinsics, depth.shape).back_project(depth_metres(depth, 1.0))
         shape = depth.shape
     if len(xyz) == 0:
         raise InputError(path, "holds no points")

@@ -10,33 +10,35 @@ import numpy as np
 from PIL import Image, UnidentifiedImageError
 
 from binpick.errors import InputError
+from binpick.geometry.camera import PinholeCamera
 
 
-def load_intrinsics(path: str | Path) -> tuple[float, float, float, float]:
+def load_intrinsics(path: str | Path, shape: tuple[int, int]) -> PinholeCamera:
+    """The pinhole camera of an (H, W) depth image from a JSON file: fx, fy, cx, cy in pixels, or
+    BOP's row-major 3 x 3 `cam_K`; refused when it cannot belong to an image of that size."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "intrinsics file not found")
     try:
         doc = json.loads(path.read_text())
-        if "cam_K" in doc:  # BOP's camera format: a row-major 3 x 3 K
+        if "cam_K" in doc:
             K = np.asarray(doc["cam_K"], dtype=float).reshape(3, 3)
-            return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-        return float(doc["fx"]), float(doc["fy"]), float(doc["cx"]), float(doc["cy"])
+            camera = PinholeCamera.from_K(K, shape[1], shape[0])
+        else:
+            camera = PinholeCamera(shape[1], shape[0], float(doc["fx"]), float(doc["fy"]), float(doc["cx"]), float(doc["cy"]))
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(path, f"needs fx, fy, cx, cy (or cam_K) in pixels ({type(exc).__name__}: {exc})") from None
+    problem = camera.fits(shape)
+    if problem:
+        raise InputError(path, problem)
+    return camera
 
 
-def depth_to_points(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, scale: float) -> np.ndarray:
-    """(H*W, 3) float32 camera-frame points from an (H, W) depth image; value * scale = depth in
-    the caller's unit; 0 becomes NaN."""
-    depth = np.asarray(depth)
-    if depth.ndim != 2:
-        raise ValueError(f"expected an (H, W) depth image, got {depth.shape}")
-    H, W = depth.shape
-    z = depth.astype(np.float32) * np.float32(scale)
-    z[depth == 0] = np.nan
-    u, v = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
-    return np.stack([(u - cx) / fx * z, (v - cy) / fy * z, z], axis=-1).reshape(-1, 3)
+def depth_metres(depth: np.ndarray, scale: float) -> np.ndarray:
+    """(H, W) float32 depth of a depth image's values (value * scale; 0, nothing measured, NaN)."""
+    z = np.asarray(depth).astype(np.float32) * np.float32(scale)
+    z[np.asarray(depth) == 0] = np.nan
+    return z
 
 
 def load_depth_png(path: str | Path) -> np.ndarray:
@@ -53,14 +55,3 @@ def load_depth_png(path: str | Path) -> np.ndarray:
     if depth.ndim != 2 or depth.dtype not in (np.uint16, np.int32):
         raise InputError(path, f"expected a single-channel 16-bit depth image, got {depth.dtype} {depth.shape}")
     return depth
-
-
-def check_intrinsics_fit(path: str | Path, intrinsics: tuple[float, float, float, float], shape: tuple[int, int]) -> None:
-    """Refuse intrinsics that cannot belong to an image of this (H, W): the principal point must
-    lie inside the image and the focal lengths be positive."""
-    fx, fy, cx, cy = intrinsics
-    H, W = shape
-    if not (fx > 0 and fy > 0):
-        raise InputError(path, f"focal lengths must be positive (fx {fx}, fy {fy})")
-    if not (0.0 <= cx <= W and 0.0 <= cy <= H):
-        raise InputError(path, f"principal point ({cx:g}, {cy:g}) px lies outside the {W} x {H} depth image: intrinsics of another resolution?")

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from binpick.geometry.camera import PinholeCamera
+
 # The z-buffer keeps the nearest measurement per cell of this many pixels across (a coarser
 # grid than the sensor's: robust to single-pixel gaps, cheap to keep in cloud.npz).
 CELL_PX = 4
@@ -59,13 +61,13 @@ class DepthView:
         return np.column_stack([(u + 0.5 - cx) * z / fx, (v + 0.5 - cy) * z / fy, z])
 
 
-def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Pinhole K (3, 3) of an organized cloud, by least squares on u = fx x / z + cx (and v).
+def fit_intrinsics(xyz_m: np.ndarray, shape: tuple[int, int]) -> PinholeCamera:
+    """The pinhole camera of an organized (H, W) cloud, by least squares on u = fx x / z + cx (and v).
 
     xyz_m : (H * W, 3) camera frame, NaN where nothing was measured.
     """
     ok = np.flatnonzero(np.all(np.isfinite(xyz_m), axis=1) & (xyz_m[:, 2] > 0))
-    return fit_intrinsics_at(xyz_m[ok], ok, shape[1])
+    return PinholeCamera.from_K(fit_intrinsics_at(xyz_m[ok], ok, shape[1]), shape[1], shape[0])
 
 
 def fit_intrinsics_at(xyz_m: np.ndarray, pixel: np.ndarray, width: int) -> np.ndarray:

@@ -91,11 +91,7 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
         raise InputError(capture_path, "not an organized capture (one point per pixel): there is no image to draw on")
     H, W = capture.shape
     xyz = capture.xyz_m.reshape(-1, 3)
-    if options.intrinsics is not None:
-        fx, fy, cx, cy = load_intrinsics(options.intrinsics)
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    else:
-        K = fit_intrinsics(xyz, (H, W))
+    K = (load_intrinsics(options.intrinsics, (H, W)) if options.intrinsics is not None else fit_intrinsics(xyz, (H, W))).K
     if image_path is not None:
         try:
             image = np.asarray(Image.open(Path(image_path)).convert("RGB"))

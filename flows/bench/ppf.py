@@ -9,7 +9,8 @@ import time
 import numpy as np
 import open3d as o3d
 
-from binpick.generation.camera import Intrinsics, render
+from binpick.generation.camera import camera_of, render
+from binpick.geometry.camera import PinholeCamera
 from binpick.geometry.pointcloud import estimate_normals, voxel_downsample_indices
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import make_T, random_rotation, transform_points
@@ -27,7 +28,7 @@ NOISE_M = 0.001
 CLUTTER_FRACTION = 0.10
 
 
-def make_view(part: PartModel, rng: np.random.Generator, intr: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_view(part: PartModel, rng: np.random.Generator, intr: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A view of the part alone at a random pose: (points (n, 3), normals, T_cam_from_model).
 
     The part is rendered from the virtual camera, sampled on the pipeline's 2 mm grid (1/100 of
@@ -150,7 +151,7 @@ def bench_ppf(
     """settings: the project's params (the register section and the camera are used)."""
     methods = methods or list(METHODS)
     params = settings.registration
-    intr = Intrinsics.from_params(settings.camera.model_copy(update={"downscale": 2}))
+    intr = camera_of(settings.camera.model_copy(update={"downscale": 2}))
     models = bench_parts(parts)
     per_method: dict[str, list[dict[str, float]]] = {m: [] for m in methods}
     per_part: dict[str, dict[str, dict[str, float]]] = {}

@@ -231,18 +231,14 @@ def hand_eye(
             fail(f"{capture}: not an organized capture: the board must be found in its image")
         H, W = cap.shape
         xyz = cap.xyz_m.reshape(H, W, 3)
-        if intrinsics is not None:
-            fx, fy, cx, cy = load_intrinsics(intrinsics)
-            K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
-        else:
-            K = fit_intrinsics(cap.xyz_m.reshape(-1, 3), (H, W))
+        camera = load_intrinsics(intrinsics, (H, W)) if intrinsics is not None else fit_intrinsics(cap.xyz_m.reshape(-1, 3), (H, W))
         if e.get("image"):
             from PIL import Image
 
             image = np.asarray(Image.open(pairs.parent / e["image"]).convert("RGB"))
         else:
             image = np.asarray(cap.rgb, dtype=np.uint8).reshape(H, W, 3)
-        T = board_pose(image, (cols, rows), square_mm / 1000.0, K, xyz)
+        T = board_pose(image, (cols, rows), square_mm / 1000.0, camera.K, xyz)
         if T is None:
             fail(f"{capture}: no {cols}x{rows} checkerboard found in its image")
         targets.append(T)
