@@ -35,9 +35,11 @@ test: lint
 test-slow: setup
 	$(BIN)/python -m pytest -q -m slow
 
-# ruff (pyflakes, pycodestyle, import order, bugbear, no print) on everything; mypy (untyped defs checked) on the library, the application and the stages.
+# ruff (pyflakes, pycodestyle, import order, bugbear, no print; lines of 120, formatted by `ruff format`) on
+# everything; mypy (untyped defs checked) on the library, the application and the stages.
 lint: setup
 	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 
 lock: setup

@@ -26,7 +26,9 @@ def trusted(poses: list[PartPose], min_score: float, margin: float) -> np.ndarra
     return np.array([p.score >= min_score + margin for p in poses], dtype=bool)
 
 
-def pseudo_labels(points_m: np.ndarray, T_cam_from_trusted: np.ndarray, model_points_m: np.ndarray, near_m: float) -> np.ndarray:
+def pseudo_labels(
+    points_m: np.ndarray, T_cam_from_trusted: np.ndarray, model_points_m: np.ndarray, near_m: float
+) -> np.ndarray:
     """Instance labels of a capture's points from trusted poses.
 
     points_m (N, 3): the cleaned capture, camera frame, metres; T_cam_from_trusted (k, 4, 4):
@@ -61,8 +63,15 @@ def near_distance_m(noise_m: float, voxel_size_m: float, diameter_m: float) -> f
     return float(min(max(3.0 * noise_m, voxel_size_m), 0.03 * diameter_m))
 
 
-def label_capture(cloud: CleanCloud, poses: list[PartPose], dense_points_m: np.ndarray, diameter_m: float, min_score: float, margin: float,
-                  voxel_size_m: float) -> LabelledCapture:
+def label_capture(
+    cloud: CleanCloud,
+    poses: list[PartPose],
+    dense_points_m: np.ndarray,
+    diameter_m: float,
+    min_score: float,
+    margin: float,
+    voxel_size_m: float,
+) -> LabelledCapture:
     """A cleaned capture labelled from its poses (the register stage's, verified against this
     capture): poses trusted with margin label the points near them (near_distance_m of the
     noise the capture shows about its points), every other point is IGNORE.
@@ -81,6 +90,10 @@ def label_capture(cloud: CleanCloud, poses: list[PartPose], dense_points_m: np.n
     near = near_distance_m(noise, voxel_size_m, diameter_m)
     labels = pseudo_labels(points, T_trusted, dense_points_m, near)
     return LabelledCapture(
-        points_m=np.asarray(cloud.points_m, np.float32), normals=np.asarray(cloud.normals, np.float32), labels=labels,
-        T_cam_from_model=T_trusted, scores=np.array([p.score for p in poses], dtype=np.float64)[keep], near_m=np.asarray(near, np.float64),
+        points_m=np.asarray(cloud.points_m, np.float32),
+        normals=np.asarray(cloud.normals, np.float32),
+        labels=labels,
+        T_cam_from_model=T_trusted,
+        scores=np.array([p.score for p in poses], dtype=np.float64)[keep],
+        near_m=np.asarray(near, np.float64),
     )

@@ -56,7 +56,8 @@ def _argv(pid: int) -> list[str]:
 def is_program(argv: list[str], program: str) -> bool:
     """argv runs `program`: as the executable or its script (`.../bin/dvc`), or as `-m program`."""
     return any(Path(a).name == program for a in argv[:2]) or any(
-        a == "-m" and b == program for a, b in zip(argv, argv[1:], strict=False))
+        a == "-m" and b == program for a, b in zip(argv, argv[1:], strict=False)
+    )
 
 
 def _parent(pid: int) -> int:

@@ -39,7 +39,17 @@ SECTIONS = (
     "register",
     "render_demo",
 )
-PER_PART_SECTIONS = ("ingest", "camera", "generate", "import_capture", "train", "evaluate", "segment", "register", "pick")
+PER_PART_SECTIONS = (
+    "ingest",
+    "camera",
+    "generate",
+    "import_capture",
+    "train",
+    "evaluate",
+    "segment",
+    "register",
+    "pick",
+)
 
 
 # Names and paths from this file reach DVC's command lines (dvc.yaml interpolates them into shell
@@ -246,7 +256,9 @@ class MaterialParams(_Strict):
 
     noise_scale: float = Field(ge=0, description="range noise times this")
     max_incidence_deg: float = Field(gt=0, le=90, description="returns beyond this incidence are lost (steep metal)")
-    specular_lobe_deg: float = Field(ge=0, lt=90, description="lost where the normal is this close to the projector-camera half vector")
+    specular_lobe_deg: float = Field(
+        ge=0, lt=90, description="lost where the normal is this close to the projector-camera half vector"
+    )
     dropout_fraction: float = Field(ge=0, lt=1, description="added random dropout on the surface")
 
 
@@ -258,8 +270,12 @@ class SensorParams(_Strict):
     presets [] keeps the plain noise model (generate.noise) with the camera section's camera."""
 
     presets: list[str]
-    effect_scale: tuple[float, float] = Field(description="each effect's size scaled by a factor drawn in this range per scene")
-    surface: Literal["matte", "machined", "shiny"] = Field(description="the part's finish (a part entry's `surface` sets it)")
+    effect_scale: tuple[float, float] = Field(
+        description="each effect's size scaled by a factor drawn in this range per scene"
+    )
+    surface: Literal["matte", "machined", "shiny"] = Field(
+        description="the part's finish (a part entry's `surface` sets it)"
+    )
     models: dict[str, SensorModelParams]
     materials: dict[str, MaterialParams]
 
@@ -326,13 +342,23 @@ class ClutterParams(_Strict):
 
     def off(self) -> ClutterParams:
         """A copy that draws nothing: the plain scene."""
-        return self.model_copy(update={"n_distractors_max": 0, "camera_tilt_deg_max": 0.0, "bin_scale": (1.0, 1.0),
-                                       "wall_height_scale": (1.0, 1.0), "camera_distance_scale": (1.0, 1.0), "noise_scale": (1.0, 1.0)})
+        return self.model_copy(
+            update={
+                "n_distractors_max": 0,
+                "camera_tilt_deg_max": 0.0,
+                "bin_scale": (1.0, 1.0),
+                "wall_height_scale": (1.0, 1.0),
+                "camera_distance_scale": (1.0, 1.0),
+                "noise_scale": (1.0, 1.0),
+            }
+        )
 
     @property
     def active(self) -> bool:
         return bool(self.n_distractors_max or self.camera_tilt_deg_max) or any(
-            getattr(self, n) != (1.0, 1.0) for n in ("bin_scale", "wall_height_scale", "camera_distance_scale", "noise_scale"))
+            getattr(self, n) != (1.0, 1.0)
+            for n in ("bin_scale", "wall_height_scale", "camera_distance_scale", "noise_scale")
+        )
 
 
 class GenerateParams(_Strict):
@@ -396,9 +422,14 @@ class ImportCaptureParams(_Strict):
     def _rigid(cls, T):
         if T is not None:
             M = np.asarray(T, dtype=float)
-            if M.shape != (4, 4) or not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-6) or not np.allclose(M[3], [0, 0, 0, 1]):
+            if (
+                M.shape != (4, 4)
+                or not np.allclose(M[:3, :3] @ M[:3, :3].T, np.eye(3), atol=1e-6)
+                or not np.allclose(M[3], [0, 0, 0, 1])
+            ):
                 raise ValueError("T_cam_from_roi must be a 4 x 4 rigid transform")
         return T
+
     plane_threshold_m: float = Field(gt=0)
     plane_ransac_iterations: int = Field(ge=10)
     plane_ransac_confidence: float = Field(gt=0, lt=1, description="RANSAC stops once this sure")
@@ -511,21 +542,31 @@ class PickParams(_Strict):
     suction: SuctionParams
     jaw: JawParams
     max_grasps: int = Field(ge=1, description="generated grasps per part, before the symmetry expands them")
-    approach_cone_deg: float = Field(ge=0, le=90, description="approach at most this far from straight down the bin's up axis")
+    approach_cone_deg: float = Field(
+        ge=0, le=90, description="approach at most this far from straight down the bin's up axis"
+    )
     fallback_cone_deg: float | None = Field(
-        ge=0, le=90, description="a part with no collision-free grasp within approach_cone_deg may be taken from up to this far (null: never)"
+        ge=0,
+        le=90,
+        description="a part with no collision-free grasp within approach_cone_deg may be taken from up to this far "
+        "(null: never)",
     )
     pregrasp_distance_m: float = Field(ge=0, description="the pre-grasp pose: this far back along the approach")
     retreat_distance_m: float = Field(ge=0, description="the post-grasp pose: this far back along the approach")
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(
-        ge=0, le=1, description="a pose with more of its camera-facing surface where the camera saw through it is picked last (tighter than register's)"
+        ge=0,
+        le=1,
+        description="a pose with more of its camera-facing surface where the camera saw through it is picked last "
+        "(tighter than register's)",
     )
     order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
     height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")
     max_candidates_per_part: int = Field(ge=1, description="grasps tried per part, best-ranked first")
-    T_base_from_cam: list[list[float]] | None = Field(description="eye-to-hand calibration (binpick hand-eye); null = not calibrated")
+    T_base_from_cam: list[list[float]] | None = Field(
+        description="eye-to-hand calibration (binpick hand-eye); null = not calibrated"
+    )
 
     @field_validator("order")
     @classmethod
@@ -537,7 +578,10 @@ class PickParams(_Strict):
     @model_validator(mode="after")
     def _fallback_wider(self) -> PickParams:
         if self.fallback_cone_deg is not None and self.fallback_cone_deg < self.approach_cone_deg:
-            raise ValueError(f"pick.fallback_cone_deg ({self.fallback_cone_deg:g}) is narrower than pick.approach_cone_deg ({self.approach_cone_deg:g})")
+            raise ValueError(
+                f"pick.fallback_cone_deg ({self.fallback_cone_deg:g}) is narrower than pick.approach_cone_deg "
+                f"({self.approach_cone_deg:g})"
+            )
         return self
 
     @field_validator("T_base_from_cam")
@@ -549,8 +593,14 @@ class PickParams(_Strict):
         if M.shape != (4, 4) or not np.all(np.isfinite(M)):
             raise ValueError("pick.T_base_from_cam must be a 4 x 4 matrix of numbers")
         R = M[:3, :3]
-        if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(M[3], [0, 0, 0, 1]):
-            raise ValueError("pick.T_base_from_cam must be a rigid transform (a rotation and a translation, last row 0 0 0 1)")
+        if (
+            not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
+            or np.linalg.det(R) < 0
+            or not np.allclose(M[3], [0, 0, 0, 1])
+        ):
+            raise ValueError(
+                "pick.T_base_from_cam must be a rigid transform (a rotation and a translation, last row 0 0 0 1)"
+            )
         return T
 
 
@@ -584,8 +634,12 @@ class LearnParams(_Strict):
 
     # A pose is trusted when its verification score clears register.min_score by this much.
     trust_margin: float = Field(ge=0, le=1)
-    min_new_scenes: int = Field(ge=1, description="reviewed captures not yet learnt from before the scheduled retraining fine-tunes")
-    heldout_share: float = Field(gt=0, lt=1, description="share of the reviewed captures kept out of fine-tuning to judge it")
+    min_new_scenes: int = Field(
+        ge=1, description="reviewed captures not yet learnt from before the scheduled retraining fine-tunes"
+    )
+    heldout_share: float = Field(
+        gt=0, lt=1, description="share of the reviewed captures kept out of fine-tuning to judge it"
+    )
     finetune_epochs: int = Field(ge=1)
     finetune_learning_rate: float = Field(gt=0)
     # The fine-tuned network may lose at most this much precision or recall on either test set.
@@ -683,7 +737,9 @@ class Params(_Strict):
         if not capture or not self.captures[capture].import_capture:
             return self.import_capture
         try:
-            return ImportCaptureParams.model_validate(deep_merge(self.import_capture.model_dump(), self.captures[capture].import_capture))
+            return ImportCaptureParams.model_validate(
+                deep_merge(self.import_capture.model_dump(), self.captures[capture].import_capture)
+            )
         except ValidationError as exc:
             raise ParamsError(f"captures.{capture}.import_capture: {_one_line(exc)}") from None
 
@@ -728,7 +784,11 @@ def resolve(raw: dict[str, Any], part: str | None = None) -> dict[str, Any]:
         for section in PER_PART_SECTIONS:
             resolved[section] = deep_merge(resolved.get(section) or {}, (parts[part] or {}).get(section) or {})
         surface = (parts[part] or {}).get("surface")
-        if surface is not None and isinstance(resolved.get("generate"), dict) and isinstance(resolved["generate"].get("sensor"), dict):
+        if (
+            surface is not None
+            and isinstance(resolved.get("generate"), dict)
+            and isinstance(resolved["generate"].get("sensor"), dict)
+        ):
             resolved["generate"]["sensor"]["surface"] = surface
     return resolved
 
@@ -786,7 +846,10 @@ def check_whole(raw: dict[str, Any]) -> None:
         for section, value in overrides.items():
             if section not in SECTIONS:
                 close = difflib.get_close_matches(str(section), SECTIONS, n=1)
-                raise ParamsError(f"profiles.{name}: {section!r} is not a section a profile overrides" + (f" (did you mean {close[0]!r}?)" if close else ""))
+                raise ParamsError(
+                    f"profiles.{name}: {section!r} is not a section a profile overrides"
+                    + (f" (did you mean {close[0]!r}?)" if close else "")
+                )
             if value is not None and not isinstance(value, dict):
                 raise ParamsError(f"profiles.{name}.{section}: expected a mapping ({{}} for no change)")
     _validate({k: v for k, v in raw.items() if k != "profiles"}, "")
@@ -823,7 +886,11 @@ def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> N
     New parts get `unit` (default: a logged guess at ingest) and no symmetry; edit their entries
     to declare them. The result is validated before it replaces the file.
     """
-    _add_entries(path, "parts", {name: {"mesh": mesh, "unit": unit, "symmetry": {"kind": "none"}} for name, mesh in meshes.items()})
+    _add_entries(
+        path,
+        "parts",
+        {name: {"mesh": mesh, "unit": unit, "symmetry": {"kind": "none"}} for name, mesh in meshes.items()},
+    )
 
 
 def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str = "mm") -> None:

@@ -74,8 +74,12 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
                 _inside(root, getattr(capture, key), f"captures.{name}.{key}")
     recorded = load_set_aside(root)
     in_force = {
-        kind: {n: e for n, e in recorded[kind].items()
-               if n in (params.parts if kind == "parts" else params.captures) and e.fingerprint == fingerprint(root, kind, n, params)}
+        kind: {
+            n: e
+            for n, e in recorded[kind].items()
+            if n in (params.parts if kind == "parts" else params.captures)
+            and e.fingerprint == fingerprint(root, kind, n, params)
+        }
         for kind in recorded
     }
     parts = {n: StagePart(p.mesh, p.grasps) for n, p in params.parts.items() if n not in in_force["parts"]}
@@ -86,8 +90,11 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
     }
     demo = params.captures.get("demo")
     pipeline = PipelineVars(
-        parts, captures, params.render_demo.part,
-        demo.file if demo else DEFAULT_DEMO_FILE, (demo.truth or DEFAULT_DEMO_TRUTH) if demo else DEFAULT_DEMO_TRUTH,
+        parts,
+        captures,
+        params.render_demo.part,
+        demo.file if demo else DEFAULT_DEMO_FILE,
+        (demo.truth or DEFAULT_DEMO_TRUTH) if demo else DEFAULT_DEMO_TRUTH,
     )
     return pipeline, in_force
 
@@ -120,10 +127,15 @@ def verify_pipeline_vars(root: Path) -> None:
         doc = {}
     recorded = load_set_aside(root)
     stage_parts, stage_captures = doc.get("stage_parts") or {}, doc.get("stage_captures") or {}
-    stale = [n for n, p in params.parts.items() if stage_parts.get(n) != StagePart(p.mesh, p.grasps).as_vars() and n not in recorded["parts"]]
+    stale = [
+        n
+        for n, p in params.parts.items()
+        if stage_parts.get(n) != StagePart(p.mesh, p.grasps).as_vars() and n not in recorded["parts"]
+    ]
     stale += [n for n in stage_parts if n not in params.parts]
     stale += [
-        n for n, c in params.captures.items()
+        n
+        for n, c in params.captures.items()
         if (stage_captures.get(n) is None and n not in recorded["captures"] and c.part in stage_parts)
         or (n in stage_captures and StageCapture(c.file, c.part, c.truth, c.intrinsics).as_vars() != stage_captures[n])
     ]
@@ -139,7 +151,8 @@ def set_aside(root: Path, kind: str, name: str, reason: str) -> None:
     """Keep a failed part or capture out of the pipeline until its files or entry change."""
     params = load_params(root / "params.yaml")
     entries = load_set_aside(root)
-    entries[kind][name] = SetAside(fingerprint(root, kind, name, params), reason, dt.datetime.now(dt.UTC).isoformat(timespec="seconds"))
+    entries[kind][name] = SetAside(
+        fingerprint(root, kind, name, params), reason, dt.datetime.now(dt.UTC).isoformat(timespec="seconds")
+    )
     save_set_aside(root, entries)
     check_project(root)
-

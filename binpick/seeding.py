@@ -49,7 +49,9 @@ class SceneSeeds:
 
     @classmethod
     def of(cls, seed: int, name: str) -> SceneSeeds:
-        return cls(derive_int(seed, "import", name), derive_seed(seed, "segment", name), derive_seed(seed, "register", name))
+        return cls(
+            derive_int(seed, "import", name), derive_seed(seed, "segment", name), derive_seed(seed, "register", name)
+        )
 
     @classmethod
     def of_capture(cls, seed: int, xyz_m: np.ndarray, rgb: np.ndarray | None) -> SceneSeeds:

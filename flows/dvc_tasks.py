@@ -1,6 +1,5 @@
 """Prefect tasks that run DVC, so that DVC's cache skips every stage that is up to date."""
 
-
 import os
 import subprocess
 import sys
@@ -43,8 +42,12 @@ def prefect_run_env() -> dict[str, str]:
 def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> str:
     """`dvc repro <target>` in `root`; returns DVC's output, raises StageFailed with the error."""
     proc = subprocess.run(
-        [sys.executable, "-m", "dvc", "repro", target], cwd=root, env={**dvc_env(), **(extra_env or {})}, text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        [sys.executable, "-m", "dvc", "repro", target],
+        cwd=root,
+        env={**dvc_env(), **(extra_env or {})},
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )
     if proc.returncode != 0:
         raise StageFailed(target, failure_reason(root, proc.stdout, proc.stderr))
@@ -95,8 +98,13 @@ def lock_holder(root: Path) -> str:
     return f"another run holds the repository lock ({holder}); wait for it to finish, or stop that process"
 
 
-@task(name="dvc-repro", task_run_name="{target}", retries=1, retry_delay_seconds=2,
-      retry_condition_fn=lambda task, run, state: "lock" in str(state.message or "").lower())
+@task(
+    name="dvc-repro",
+    task_run_name="{target}",
+    retries=1,
+    retry_delay_seconds=2,
+    retry_condition_fn=lambda task, run, state: "lock" in str(state.message or "").lower(),
+)
 def repro_stage(target: str, root: Path) -> str:
     """One DVC stage; retried once only when another DVC process held the repository lock."""
     import logging

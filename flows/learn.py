@@ -51,8 +51,11 @@ def load_reviewed(folder: Path) -> dict[str, dict]:
 def approved_captures(folder: Path) -> list[Path]:
     """The labelled captures a person approved as they are now (same SHA-256), sorted by name."""
     reviewed = load_reviewed(folder)
-    return [p for p in list_labelled_captures(folder)
-            if reviewed.get(p.stem, {}).get("approved") and reviewed[p.stem]["sha256"] == file_sha256(p)]
+    return [
+        p
+        for p in list_labelled_captures(folder)
+        if reviewed.get(p.stem, {}).get("approved") and reviewed[p.stem]["sha256"] == file_sha256(p)
+    ]
 
 
 def pending_captures(folder: Path) -> list[Path]:
@@ -75,17 +78,24 @@ def review(root: Path, part: str, approve: bool = False, reject: list[str] | Non
     those named in reject (recorded as rejected)."""
     folder = Layout(root).real(part)
     if not folder.is_dir():
-        raise BinpickError(f"part {part!r} has no labelled captures: run the pipeline on its captures first (`binpick repro`)")
+        raise BinpickError(
+            f"part {part!r} has no labelled captures: run the pipeline on its captures first (`binpick repro`)"
+        )
     pending = pending_captures(folder)
     names = [p.stem for p in pending]
     unknown = sorted(set(reject or []) - set(names))
     if unknown:
-        raise BinpickError(f"--reject {unknown[0]!r}: no pending labelled capture of {part} has that name (pending: {', '.join(names) or 'none'})")
+        raise BinpickError(
+            f"--reject {unknown[0]!r}: no pending labelled capture of {part} has that name (pending: "
+            f"{', '.join(names) or 'none'})"
+        )
     if not approve:
         if not pending:
             return Review()
         out = Layout(root).work(part) / REVIEW_RECORDING
-        write_review_recording(out, part, _part_model(root, part), [(p.stem, load_labelled_capture(p)) for p in pending])
+        write_review_recording(
+            out, part, _part_model(root, part), [(p.stem, load_labelled_capture(p)) for p in pending]
+        )
         return Review(recording=out, pending=names)
     reviewed = load_reviewed(folder)
     result = Review()
@@ -120,16 +130,32 @@ def write_review_recording(path: Path, part: str, part_model, captures: list[tup
             rec.set_time("capture", sequence=step)
             n = len(c.T_cam_from_model)
             palette = instance_colours(max(n, 1))
-            rec.log("camera/labels", rr.Points3D(c.points_m, colors=instance_rgb(c.labels), radii=0.001, class_ids=c.labels.astype(np.int32)))
+            rec.log(
+                "camera/labels",
+                rr.Points3D(
+                    c.points_m, colors=instance_rgb(c.labels), radii=0.001, class_ids=c.labels.astype(np.int32)
+                ),
+            )
             rec.log("camera/parts", rr.Clear(recursive=True))
             for k, T in enumerate(c.T_cam_from_model):
                 vertices = part_model.mesh_vertices_m @ T[:3, :3].T + T[:3, 3]
-                rec.log(f"camera/parts/{k}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=part_model.mesh_faces,
-                                                       albedo_factor=np.append(palette[k % len(palette)], 90).astype(np.uint8)))
+                rec.log(
+                    f"camera/parts/{k}",
+                    rr.Mesh3D(
+                        vertex_positions=vertices,
+                        triangle_indices=part_model.mesh_faces,
+                        albedo_factor=np.append(palette[k % len(palette)], 90).astype(np.uint8),
+                    ),
+                )
             labelled = float(np.mean(c.labels != IGNORE)) if len(c.labels) else 0.0
-            rec.log("capture", rr.TextDocument(f"{name}: {n} trusted poses (scores {', '.join(f'{s:.2f}' for s in c.scores)}), "
-                                               f"{100 * labelled:.0f}% of {len(c.labels)} points labelled within "
-                                               f"{1000 * float(c.near_m):.1f} mm, the rest ignored (grey)"))
+            rec.log(
+                "capture",
+                rr.TextDocument(
+                    f"{name}: {n} trusted poses (scores {', '.join(f'{s:.2f}' for s in c.scores)}), "
+                    f"{100 * labelled:.0f}% of {len(c.labels)} points labelled within "
+                    f"{1000 * float(c.near_m):.1f} mm, the rest ignored (grey)"
+                ),
+            )
         rec.flush()
         rec.disconnect()
 
@@ -162,7 +188,11 @@ def heldout(name: str, share: float) -> bool:
 def no_worse(before: dict[str, float], after: dict[str, float], max_drop: float) -> bool:
     """Whether the new network (after) loses at most max_drop of precision and of recall against
     the served one (before) on the held-back captures and on the synthetic test scenes."""
-    return all(after[f"{s}_{m}"] >= before[f"{s}_{m}"] - max_drop for s in ("real", "synthetic") for m in ("precision", "recall"))
+    return all(
+        after[f"{s}_{m}"] >= before[f"{s}_{m}"] - max_drop
+        for s in ("real", "synthetic")
+        for m in ("precision", "recall")
+    )
 
 
 def finetune(root: Path, params: Params, part: str, force: bool = False, progress: bool = True) -> dict[str, object]:
@@ -184,33 +214,76 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     seen = learnt | set(state["extra"].get("real_heldout", []))
     approved = approved_captures(Layout(root).real(part))
     new = [p.stem for p in approved if p.stem not in seen]
-    outcome: dict[str, object] = {"part": part, "served_before": current.name, "approved": len(approved), "new": len(new)}
+    outcome: dict[str, object] = {
+        "part": part,
+        "served_before": current.name,
+        "approved": len(approved),
+        "new": len(new),
+    }
     if len(new) < lp.min_new_scenes and not force:
-        log.info("%s: %d approved captures are new, fine-tuning waits for %d (learn.min_new_scenes)", part, len(new), lp.min_new_scenes)
+        log.info(
+            "%s: %d approved captures are new, fine-tuning waits for %d (learn.min_new_scenes)",
+            part,
+            len(new),
+            lp.min_new_scenes,
+        )
         return {**outcome, "finetuned": False, "served": False}
     test = [p for p in approved if heldout(p.stem, lp.heldout_share)]
     train = [p for p in approved if not heldout(p.stem, lp.heldout_share)]
     if not test or not train:
-        raise BinpickError(f"{part}: {len(approved)} approved captures give {len(train)} to learn from and {len(test)} to judge by; "
-                           "both need at least one (approve more captures)")
+        raise BinpickError(
+            f"{part}: {len(approved)} approved captures give {len(train)} to learn from and {len(test)} to judge by; "
+            "both need at least one (approve more captures)"
+        )
     layout = Layout(root)
     scenes = layout.scenes(part)
     synthetic_train, synthetic_val = load_views(scenes / "train"), load_views(scenes / "val")
     real = Views.of_captures([load_labelled_capture(p) for p in train])
     work = layout.work(part) / "finetune"
-    log.info("%s: fine-tuning %s on %d synthetic + %d real scenes, judging on %d held-back captures", part, current.name,
-             len(synthetic_train), len(real), len(test))
-    best = finetune_fpcc(state, synthetic_train + real, synthetic_val, params.train, lp.finetune_epochs, lp.finetune_learning_rate,
-                         derive_int(params.seed, "finetune", part), work, default_device(), progress)
+    log.info(
+        "%s: fine-tuning %s on %d synthetic + %d real scenes, judging on %d held-back captures",
+        part,
+        current.name,
+        len(synthetic_train),
+        len(real),
+        len(test),
+    )
+    best = finetune_fpcc(
+        state,
+        synthetic_train + real,
+        synthetic_val,
+        params.train,
+        lp.finetune_epochs,
+        lp.finetune_learning_rate,
+        derive_int(params.seed, "finetune", part),
+        work,
+        default_device(),
+        progress,
+    )
     candidate = work / "candidate.pt"
     # The model.pt this line descends from: the served one's base (served_checkpoint checked it), or itself.
     base_sha = state["extra"]["finetuned_from"] if current == layout.served_checkpoint(part) else state["sha256"]
-    write_finetuned(best, candidate, state, base_sha, sorted(learnt | {p.stem for p in train}), sorted((seen - learnt) | {p.stem for p in test}))
+    write_finetuned(
+        best,
+        candidate,
+        state,
+        base_sha,
+        sorted(learnt | {p.stem for p in train}),
+        sorted((seen - learnt) | {p.stem for p in test}),
+    )
     before = score(current, params, scenes / "test", test)
     after = score(candidate, params, scenes / "test", test)
     serve = no_worse(before, after, lp.max_drop)
-    outcome.update({"finetuned": True, "served": serve, "n_train_real": len(real), "n_heldout_real": len(test),
-                    **{f"before_{k}": v for k, v in before.items()}, **{f"after_{k}": v for k, v in after.items()}})
+    outcome.update(
+        {
+            "finetuned": True,
+            "served": serve,
+            "n_train_real": len(real),
+            "n_heldout_real": len(test),
+            **{f"before_{k}": v for k, v in before.items()},
+            **{f"after_{k}": v for k, v in after.items()},
+        }
+    )
     if serve:
         served = layout.served_checkpoint(part)
         with atomic_path(served) as tmp:
@@ -240,7 +313,12 @@ def score(checkpoint: Path, params: Params, synthetic_test: Path, real_test: lis
         _, counts = segment_and_count(segmenter, load_scene(path), params.segment, iou, params.seed, i)
         synthetic = synthetic.add(counts)
     r, s = real.summary(), synthetic.summary()
-    return {"real_precision": r["precision"], "real_recall": r["recall"], "synthetic_precision": s["precision"], "synthetic_recall": s["recall"]}
+    return {
+        "real_precision": r["precision"],
+        "real_recall": r["recall"],
+        "synthetic_precision": s["precision"],
+        "synthetic_recall": s["recall"],
+    }
 
 
 def _register(params: Params, part: str, served: Path, outcome: dict[str, object]) -> str:
@@ -248,12 +326,22 @@ def _register(params: Params, part: str, served: Path, outcome: dict[str, object
     the serve alias."""
     from stages.common import accept_checkpoint, add_model_version, mlflow_run
 
-    with mlflow_run(f"part-{part}", f"finetune-{part}", params.tracking.mlflow_uri, {"binpick.step": "finetune"}) as run:
+    with mlflow_run(
+        f"part-{part}", f"finetune-{part}", params.tracking.mlflow_uri, {"binpick.step": "finetune"}
+    ) as run:
         import mlflow
 
-        mlflow.log_metrics({k: float(v) for k, v in outcome.items() if isinstance(v, (int, float)) and not isinstance(v, bool)})
+        mlflow.log_metrics(
+            {k: float(v) for k, v in outcome.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        )
         mlflow.log_artifact(str(served), artifact_path="model")
         add_model_version(part, served, run, f"finetune@{part}")
         version = accept_checkpoint(part, served, params.learn.serve_alias)
-    log.info("%s: the fine-tuned network is served (fpcc-%s version %s, alias %r)", part, part, version, params.learn.serve_alias)
+    log.info(
+        "%s: the fine-tuned network is served (fpcc-%s version %s, alias %r)",
+        part,
+        part,
+        version,
+        params.learn.serve_alias,
+    )
     return str(version)

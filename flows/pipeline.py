@@ -5,7 +5,6 @@ whole, names and paths safe, data/pipeline.yaml current). A part or capture whos
 set aside (data/set_aside.yaml) and the others go on; the flow's result says what failed and why.
 """
 
-
 import json
 import logging
 from dataclasses import dataclass, field
@@ -63,7 +62,9 @@ def safe_file_name(root: Path, path: Path) -> str | None:
     return None
 
 
-def new_files(root: Path, folder: Path, suffixes: set[str], listed: dict[str, str], taken: set[str]) -> tuple[list[str], dict[str, str], dict[str, str]]:
+def new_files(
+    root: Path, folder: Path, suffixes: set[str], listed: dict[str, str], taken: set[str]
+) -> tuple[list[str], dict[str, str], dict[str, str]]:
     """The files in `folder` with one of `suffixes` (lower case), as params.yaml names: those
     `listed` (relative path -> name) keep theirs; a new one gets a name from its file name, made
     unique against `taken` and each other; files whose names cannot reach a command are refused.
@@ -118,9 +119,13 @@ def add_new_captures(root: Path, folder: Path, part: str, unit: str) -> tuple[li
         raise InputError(folder, f"captures must lie inside the project {root} (DVC tracks them by relative path)")
     raw = load_raw(root / "params.yaml")
     if part not in (raw.get("parts") or {}):
-        raise InputError(root / "params.yaml", f"part {part!r} is not listed under 'parts' (have: {sorted(raw.get('parts') or {})})")
+        raise InputError(
+            root / "params.yaml", f"part {part!r} is not listed under 'parts' (have: {sorted(raw.get('parts') or {})})"
+        )
     listed = {Path(c["file"]).as_posix(): name for name, c in (raw.get("captures") or {}).items()}
-    names, new, refused = new_files(root, folder, set(CAPTURE_SUFFIXES) - {".png"}, listed, set(raw.get("captures") or {}))
+    names, new, refused = new_files(
+        root, folder, set(CAPTURE_SUFFIXES) - {".png"}, listed, set(raw.get("captures") or {})
+    )
     if new:
         add_captures(root / "params.yaml", new, part, unit)
         log.info("new captures: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))
@@ -128,7 +133,9 @@ def add_new_captures(root: Path, folder: Path, part: str, unit: str) -> tuple[li
 
 
 @flow(name="scenes", flow_run_name="scenes-{part}")
-def process_folder(root: Path, folder: Path, part: str, unit: str = "mm") -> tuple[Outcome, dict[str, dict[str, float]]]:
+def process_folder(
+    root: Path, folder: Path, part: str, unit: str = "mm"
+) -> tuple[Outcome, dict[str, dict[str, float]]]:
     """Every capture in a folder: listed in params.yaml if new, then imported, segmented and
     registered (captures already processed with unchanged inputs are skipped by DVC). A capture
     that fails is set aside and the others go on."""
@@ -168,5 +175,8 @@ def demo(root: Path, part: str = "t_joint", capture: str = "demo") -> dict[str, 
     layout = Layout(root)
     return {
         **{stage: read_metrics(layout.part_metrics(part, stage)) for stage in ("evaluate", "train")},
-        **{stage: read_metrics(layout.scene_metrics(capture, stage)) for stage in ("register", "segment", "import", "pick")},
+        **{
+            stage: read_metrics(layout.scene_metrics(capture, stage))
+            for stage in ("register", "segment", "import", "pick")
+        },
     }

@@ -36,8 +36,13 @@ def failed_stages(output: str) -> dict[str, str]:
 def repro_all(root: Path) -> Outcome:
     """Run `dvc repro --keep-going`, showing DVC's progress lines; set aside what failed."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dvc", "repro", "--keep-going"], cwd=root, env=dvc_env(), text=True,
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, bufsize=1,
+        [sys.executable, "-m", "dvc", "repro", "--keep-going"],
+        cwd=root,
+        env=dvc_env(),
+        text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        bufsize=1,
     )
     lines = []
     assert proc.stdout is not None

@@ -6,7 +6,6 @@ server), else a local one this process starts on the loopback interface and stop
 the project folder, because every run drives this project's DVC pipeline.
 """
 
-
 import contextlib
 import logging
 import os
@@ -58,8 +57,21 @@ def local_server(port: int, startup_timeout_s: float = 120.0) -> Iterator[str]:
         yield api_url
         return
     if _port_taken(port):
-        raise BinpickError(f"port {port} on 127.0.0.1 is in use by a program that is not a Prefect server: choose another with --port")
-    cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port), "--analytics-off"]
+        raise BinpickError(
+            f"port {port} on 127.0.0.1 is in use by a program that is not a Prefect server: choose another with --port"
+        )
+    cmd = [
+        sys.executable,
+        "-m",
+        "prefect",
+        "server",
+        "start",
+        "--host",
+        "127.0.0.1",
+        "--port",
+        str(port),
+        "--analytics-off",
+    ]
     env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
     server = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
@@ -67,9 +79,13 @@ def local_server(port: int, startup_timeout_s: float = 120.0) -> Iterator[str]:
         while not _healthy(api_url):
             if server.poll() is not None:
                 tail = (server.stderr.read() if server.stderr else "").strip().splitlines()[-1:]
-                raise BinpickError(f"the local Prefect server did not start on port {port}: {tail[0] if tail else 'no output'}")
+                raise BinpickError(
+                    f"the local Prefect server did not start on port {port}: {tail[0] if tail else 'no output'}"
+                )
             if time.monotonic() > deadline:
-                raise BinpickError(f"the local Prefect server did not answer at {api_url} within {startup_timeout_s:.0f} s")
+                raise BinpickError(
+                    f"the local Prefect server did not answer at {api_url} within {startup_timeout_s:.0f} s"
+                )
             time.sleep(0.5)
         log.info("local Prefect server at %s (UI: http://127.0.0.1:%d)", api_url, port)
         yield api_url
@@ -90,7 +106,9 @@ def schedule_for(orchestration: OrchestrationParams, interval_s: float | None):
     return Cron(orchestration.schedule_cron, timezone=orchestration.schedule_timezone)
 
 
-def serve_watcher(root: Path, orchestration: OrchestrationParams, interval_s: float | None = None, port: int = 4200) -> None:
+def serve_watcher(
+    root: Path, orchestration: OrchestrationParams, interval_s: float | None = None, port: int = 4200
+) -> None:
     """Serve the watcher flow on its schedule until interrupted."""
     shared = os.environ.get("PREFECT_API_URL")
     with contextlib.nullcontext(shared) if shared else local_server(port) as api_url:
@@ -102,13 +120,21 @@ def serve_watcher(root: Path, orchestration: OrchestrationParams, interval_s: fl
         from flows.watcher import watch_parts
 
         schedule = schedule_for(orchestration, interval_s)
-        when = f"every {interval_s:g} s" if interval_s else f"cron '{orchestration.schedule_cron}' ({orchestration.schedule_timezone})"
+        when = (
+            f"every {interval_s:g} s"
+            if interval_s
+            else f"cron '{orchestration.schedule_cron}' ({orchestration.schedule_timezone})"
+        )
         log.info("serving watch-parts/%s %s against %s; Ctrl-C stops", DEPLOYMENT, when, api_url)
         os.chdir(root)  # flow runs start in the project, which holds their entry point and DVC
         with temporary_settings(updates={PREFECT_API_URL: api_url}):
             watch_parts.serve(
-                name=DEPLOYMENT, schedules=[schedule], parameters={"root": str(root)}, limit=1,
-                pause_on_shutdown=False, print_starting_message=False,
+                name=DEPLOYMENT,
+                schedules=[schedule],
+                parameters={"root": str(root)},
+                limit=1,
+                pause_on_shutdown=False,
+                print_starting_message=False,
                 # by module, so that the flow-run process imports the installed flows package
                 entrypoint_type=EntrypointType.MODULE_PATH,
                 description="Registers new meshes in data/parts/ and trains every part that is not up to date.",

@@ -111,9 +111,18 @@ def load_parts(root: Path, params_path: Path) -> tuple[dict[str, Served], dict[s
         # The fine-tuned network when `binpick learn finetune` found it no worse (flows/learn.py).
         checkpoint = served_checkpoint(root, name)
         models = PartModels.load(p, needed[0], needed[1], checkpoint, needed[2], layout.verification(name))
-        served[name] = Served(models, p, np.asarray(p.pick.T_base_from_cam) if p.pick.T_base_from_cam is not None else None)
-        log.info("serving %s (%s, %d %s grasps)", name, f"segmentation ({checkpoint.name}) + registration" if models.segmenter and checkpoint else
-                 "registration only", len(models.grasps or []), p.pick.gripper)
+        served[name] = Served(
+            models, p, np.asarray(p.pick.T_base_from_cam) if p.pick.T_base_from_cam is not None else None
+        )
+        log.info(
+            "serving %s (%s, %d %s grasps)",
+            name,
+            f"segmentation ({checkpoint.name}) + registration"
+            if models.segmenter and checkpoint
+            else "registration only",
+            len(models.grasps or []),
+            p.pick.gripper,
+        )
     if not served:
         why = "; ".join(f"{n}: {r}" for n, r in not_served.items())
         raise BinpickError(f"no part of {params_path} can be served ({why or 'no parts'}): run `make repro` first")
@@ -133,13 +142,20 @@ def _not_accepted(layout: Layout, part: str) -> str | None:
     figures = json.loads(metrics.read_text())
     judged = figures.get("checkpoint_sha256")
     if judged is None:
-        log.warning("%s: %s does not name the network it judged (written before evaluate recorded digests); "
-                    "serving it as accepted: run make repro to re-judge", part, metrics.name)
+        log.warning(
+            "%s: %s does not name the network it judged (written before evaluate recorded digests); "
+            "serving it as accepted: run make repro to re-judge",
+            part,
+            metrics.name,
+        )
     elif judged != file_sha256(checkpoint):
         return "its network has not been evaluated since it was trained (run make repro)"
     if not figures.get("accepted"):
-        return (f"its network was not accepted by evaluate (segmentation precision {figures.get('precision', float('nan')):.2f}, "
-                f"recall {figures.get('recall', float('nan')):.2f} below evaluate.accept_precision / accept_recall)")
+        return (
+            "its network was not accepted by evaluate (segmentation precision "
+            f"{figures.get('precision', float('nan')):.2f}, "
+            f"recall {figures.get('recall', float('nan')):.2f} below evaluate.accept_precision / accept_recall)"
+        )
     return None
 
 
@@ -161,8 +177,12 @@ class PickService:
         self._waiting = 0
         self._count = threading.Lock()
         self._recent: deque[float] = deque()
-        self._keeper = Keeper(self.root / self.settings.keep_dir, self.settings.keep_requests, self.params.tracking.mlflow_uri if keep_mlflow else None,
-                              keep_mlflow)
+        self._keeper = Keeper(
+            self.root / self.settings.keep_dir,
+            self.settings.keep_requests,
+            self.params.tracking.mlflow_uri if keep_mlflow else None,
+            keep_mlflow,
+        )
 
     # -- checks --------------------------------------------------------------------------------
 
@@ -184,8 +204,14 @@ class PickService:
         return int(self.settings.max_request_mb * 1024 * 1024)
 
     def health(self) -> dict[str, Any]:
-        return {"status": "ok", "parts": sorted(self.parts), "not_served": self.not_served, "answered": self.answered, "waiting": self._waiting,
-                "uptime_s": round(time.monotonic() - self.started, 3)}
+        return {
+            "status": "ok",
+            "parts": sorted(self.parts),
+            "not_served": self.not_served,
+            "answered": self.answered,
+            "waiting": self._waiting,
+            "uptime_s": round(time.monotonic() - self.started, 3),
+        }
 
     def reload(self) -> dict[str, Any]:
         """Load the project's parts again (a part trained, fine-tuned or refused since) and serve
@@ -222,7 +248,11 @@ class PickService:
         if payload is not None:
             fmt = (request.format or "").lower().lstrip(".")
             if f".{fmt}" not in CAPTURE_SUFFIXES:
-                raise RequestError(400, f"an uploaded capture needs its format: one of {', '.join(s.lstrip('.') for s in CAPTURE_SUFFIXES)}")
+                raise RequestError(
+                    400,
+                    "an uploaded capture needs its format: one of "
+                    f"{', '.join(s.lstrip('.') for s in CAPTURE_SUFFIXES)}",
+                )
             path = folder / f"capture.{fmt}"
             path.write_bytes(payload)
             return path
@@ -244,7 +274,7 @@ class PickService:
             except BinpickError as exc:
                 raise RequestError(400, f"camera: {exc}") from None
             return path
-        raise RequestError(400, "a request names a capture: an upload (with its format), a \"path\" or \"camera\": true")
+        raise RequestError(400, 'a request names a capture: an upload (with its format), a "path" or "camera": true')
 
     def _answer(self, served: Served, request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
         part, unit = request.part, request.unit
@@ -276,7 +306,10 @@ class PickService:
         timings = {"read_s": t1 - t_read, **result.timings_s, "pipeline_s": t2 - t1, "total_s": t2 - t0}
         doc["request_id"] = request_id
         doc["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
-        doc["poses"] = [{"T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(), "score": round(p.score, 6)} for p in result.poses]
+        doc["poses"] = [
+            {"T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(), "score": round(p.score, 6)}
+            for p in result.poses
+        ]
         self.answered += 1
         self._keeper.keep(folder, path, doc, result, served, unit)
         return doc
@@ -288,14 +321,20 @@ class PickService:
 
 # -- HTTP ----------------------------------------------------------------------------------------
 
+
 def http_app(service: PickService):
     """The FastAPI application (and the TCP server, started with it)."""
+
     @contextlib.asynccontextmanager
     async def lifespan(app):
         server = None
         if service.settings.tcp_port:
-            server = await asyncio.start_server(lambda r, w: tcp_client(service, r, w), service.settings.host, service.settings.tcp_port,
-                                                limit=service.max_bytes * 2)
+            server = await asyncio.start_server(
+                lambda r, w: tcp_client(service, r, w),
+                service.settings.host,
+                service.settings.tcp_port,
+                limit=service.max_bytes * 2,
+            )
         try:
             yield
         finally:
@@ -303,10 +342,16 @@ def http_app(service: PickService):
                 server.close()
                 await server.wait_closed()
 
-    app = FastAPI(title="binpick pick service", version=str(PICKS_VERSION), lifespan=lifespan,
-                  description="Picks for a capture of a bin: the poses of the parts and a collision-free grasp per part, ranked. "
-                              "Send `Authorization: Bearer <token>` when the service was started with a token.")
-    errors: dict[int | str, dict[str, Any]] = {code: {"model": ErrorAnswer} for code in (400, 401, 404, 409, 413, 429, 503)}
+    app = FastAPI(
+        title="binpick pick service",
+        version=str(PICKS_VERSION),
+        lifespan=lifespan,
+        description="Picks for a capture of a bin: the poses of the parts and a collision-free grasp per part, ranked. "
+        "Send `Authorization: Bearer <token>` when the service was started with a token.",
+    )
+    errors: dict[int | str, dict[str, Any]] = {
+        code: {"model": ErrorAnswer} for code in (400, 401, 404, 409, 413, 429, 503)
+    }
 
     @app.exception_handler(RequestError)
     async def refused(request: Request, exc: RequestError) -> JSONResponse:
@@ -321,26 +366,46 @@ def http_app(service: PickService):
         authorised(request)
         return service.health()
 
-    @app.post("/reload", response_model=Health, responses=errors,
-              summary="Load the project's parts again (a part trained or fine-tuned since the service started)")
+    @app.post(
+        "/reload",
+        response_model=Health,
+        responses=errors,
+        summary="Load the project's parts again (a part trained or fine-tuned since the service started)",
+    )
     async def reload(request: Request):
         authorised(request)
         return await run_in_threadpool(service.reload)
 
-    upload_schema = {"requestBody": {"content": {
-        "application/json": {"schema": PicksRequest.model_json_schema()},
-        "application/octet-stream": {"schema": {"type": "string", "format": "binary"},
-                                     "description": "the capture file; part, format and unit as query parameters"},
-    }}}
+    upload_schema = {
+        "requestBody": {
+            "content": {
+                "application/json": {"schema": PicksRequest.model_json_schema()},
+                "application/octet-stream": {
+                    "schema": {"type": "string", "format": "binary"},
+                    "description": "the capture file; part, format and unit as query parameters",
+                },
+            }
+        }
+    }
 
-    @app.post("/picks", response_model=PicksAnswer, response_model_exclude_unset=True, responses=errors, openapi_extra=upload_schema,
-              summary="Picks for one capture: JSON naming a file or the camera, or the capture file as the body")
+    @app.post(
+        "/picks",
+        response_model=PicksAnswer,
+        response_model_exclude_unset=True,
+        responses=errors,
+        openapi_extra=upload_schema,
+        summary="Picks for one capture: JSON naming a file or the camera, or the capture file as the body",
+    )
     async def picks(request: Request):
         authorised(request)
         service.check_rate()
         declared = request.headers.get("content-length")
         if declared is not None and int(declared) > service.max_bytes:
-            raise RequestError(413, f"request of {int(declared) / 2**20:.1f} MB is over service.max_request_mb {service.settings.max_request_mb:g}")
+            raise RequestError(
+                413,
+                f"request of {int(declared) / 2**20:.1f} MB is over service.max_request_mb "
+                f"{service.settings.max_request_mb:g}",
+            )
         body = bytearray()
         async for chunk in request.stream():
             body += chunk
@@ -379,7 +444,12 @@ async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer:
             try:
                 line = await reader.readline()
             except (asyncio.LimitOverrunError, ValueError):
-                writer.write(json.dumps({"error": f"request line is over service.max_request_mb {service.settings.max_request_mb:g}"}).encode() + b"\n")
+                writer.write(
+                    json.dumps(
+                        {"error": f"request line is over service.max_request_mb {service.settings.max_request_mb:g}"}
+                    ).encode()
+                    + b"\n"
+                )
                 break
             if not line:
                 break
@@ -415,18 +485,28 @@ async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
         return {"error": str(exc), "status": exc.status}
 
 
-def run_service(root: Path, params_path: Path, host: str | None = None, http_port: int | None = None, tcp_port: int | None = None) -> None:
+def run_service(
+    root: Path, params_path: Path, host: str | None = None, http_port: int | None = None, tcp_port: int | None = None
+) -> None:
     """Load the parts, then serve until interrupted."""
     import uvicorn
 
     s = load_params(params_path).service
-    s = s.model_copy(update={k: v for k, v in {"host": host, "http_port": http_port, "tcp_port": tcp_port}.items() if v is not None})
+    s = s.model_copy(
+        update={k: v for k, v in {"host": host, "http_port": http_port, "tcp_port": tcp_port}.items() if v is not None}
+    )
     if s.host not in LOOPBACK and not os.environ.get(s.token_env):
-        raise BinpickError(f"binding to {s.host} (beyond this machine) needs a token: set the {s.token_env} environment variable")
+        raise BinpickError(
+            f"binding to {s.host} (beyond this machine) needs a token: set the {s.token_env} environment variable"
+        )
     service = PickService(root, params_path)
     service.settings = s
-    log.info("answering on http://%s:%d%s", s.host, s.http_port, f" and tcp://{s.host}:{s.tcp_port}" if s.tcp_port else "")
+    log.info(
+        "answering on http://%s:%d%s", s.host, s.http_port, f" and tcp://{s.host}:{s.tcp_port}" if s.tcp_port else ""
+    )
     try:
-        uvicorn.Server(uvicorn.Config(http_app(service), host=s.host, port=s.http_port, log_level="warning", access_log=False)).run()
+        uvicorn.Server(
+            uvicorn.Config(http_app(service), host=s.host, port=s.http_port, log_level="warning", access_log=False)
+        ).run()
     finally:
         service.close()

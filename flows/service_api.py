@@ -22,12 +22,16 @@ class PicksRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     part: str = Field(description="a part the service serves (GET /health lists them)")
-    path: str | None = Field(None, description="capture file on the service's machine, absolute or relative to the project")
+    path: str | None = Field(
+        None, description="capture file on the service's machine, absolute or relative to the project"
+    )
     camera: bool = Field(False, description="grab a frame from the connected Zivid camera")
     unit: str = Field("mm", description="unit of the capture's coordinates: mm, m or in")
     format: str | None = Field(None, description="an upload's file format: ply, pcd, zdf, csv, xyz, png")
     data_b64: str | None = Field(None, description="line protocol: the uploaded capture, base64")
-    token: str | None = Field(None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)")
+    token: str | None = Field(
+        None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)"
+    )
 
     @field_validator("unit")
     @classmethod
@@ -101,4 +105,7 @@ class ErrorAnswer(BaseModel):
 
 def validation_message(exc: ValidationError) -> str:
     """One line from pydantic's errors: `field: what is wrong`."""
-    return "; ".join(f"{'.'.join(str(x) for x in e['loc']) or 'request'}: {str(e['msg']).removeprefix('Value error, ')}" for e in exc.errors())
+    return "; ".join(
+        f"{'.'.join(str(x) for x in e['loc']) or 'request'}: {str(e['msg']).removeprefix('Value error, ')}"
+        for e in exc.errors()
+    )

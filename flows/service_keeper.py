@@ -74,27 +74,57 @@ class Keeper:
             except OSError:
                 shutil.copyfile(capture, target)
         part = served.models.part
-        write_picks_document(folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")})
+        write_picks_document(
+            folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")}
+        )
         save_poses(folder / "poses.json", part.name, result.poses)
-        (folder / "request.json").write_text(json.dumps({"request_id": doc["request_id"], "part": part.name, "timings_s": doc["timings_s"],
-                                                         "counts": doc["counts"], "source": str(capture), "unit": unit}, indent=1) + "\n")
+        (folder / "request.json").write_text(
+            json.dumps(
+                {
+                    "request_id": doc["request_id"],
+                    "part": part.name,
+                    "timings_s": doc["timings_s"],
+                    "counts": doc["counts"],
+                    "source": str(capture),
+                    "unit": unit,
+                },
+                indent=1,
+            )
+            + "\n"
+        )
         if self._stream is None:
             import rerun as rr
 
             self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
-        write_pick_recording(folder / "scene.rrd", doc["request_id"], result.cloud, part, result.poses, result.picks, served.params.pick.gripper,
-                             served.params.pick, self._stream)
+        write_pick_recording(
+            folder / "scene.rrd",
+            doc["request_id"],
+            result.cloud,
+            part,
+            result.poses,
+            result.picks,
+            served.params.pick.gripper,
+            served.params.pick,
+            self._stream,
+        )
         if self.log_mlflow:
-            with mlflow_run("service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}):
+            with mlflow_run(
+                "service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}
+            ):
                 import mlflow
 
-                mlflow.log_metrics({**doc["timings_s"], **doc["counts"],
-                                    "score_mean": float(np.mean([p.score for p in result.poses])) if result.poses else 0.0})
+                mlflow.log_metrics(
+                    {
+                        **doc["timings_s"],
+                        **doc["counts"],
+                        "score_mean": float(np.mean([p.score for p in result.poses])) if result.poses else 0.0,
+                    }
+                )
         self._prune()
 
     def _prune(self) -> None:
         kept = list_requests(self.requests)
-        for old in kept[self.limit:]:
+        for old in kept[self.limit :]:
             shutil.rmtree(old, ignore_errors=True)
             with contextlib.suppress(OSError):
                 old.parent.rmdir()  # the day's folder, once empty
@@ -104,4 +134,8 @@ def list_requests(requests: Path) -> list[Path]:
     """Kept request folders, newest first."""
     if not requests.is_dir():
         return []
-    return sorted((p for day in requests.iterdir() if day.is_dir() for p in day.iterdir() if p.is_dir()), key=lambda p: p.name, reverse=True)
+    return sorted(
+        (p for day in requests.iterdir() if day.is_dir() for p in day.iterdir() if p.is_dir()),
+        key=lambda p: p.name,
+        reverse=True,
+    )

@@ -5,7 +5,6 @@ flow; a part that fails is set aside until its mesh or entry changes, and the ot
 Then each trained part whose approved real captures (flows/learn.py) reach learn.min_new_scenes
 new ones is fine-tuned on them, and served only when no worse."""
 
-
 import json
 import logging
 import subprocess
@@ -31,7 +30,9 @@ def add_new_parts(root: Path) -> tuple[list[str], dict[str, str]]:
     Returns (names added, refused file -> reason)."""
     raw = load_raw(root / "params.yaml")
     listed = {Path(p["mesh"]).as_posix(): name for name, p in (raw.get("parts") or {}).items()}
-    _, new, refused = new_files(root, Layout(root).parts_folder, set(MESH_SUFFIXES), listed, set(raw.get("parts") or {}))
+    _, new, refused = new_files(
+        root, Layout(root).parts_folder, set(MESH_SUFFIXES), listed, set(raw.get("parts") or {})
+    )
     if new:
         add_parts(root / "params.yaml", new)
         log.info("new parts: %s", ", ".join(f"{k} ({v})" for k, v in new.items()))
@@ -46,7 +47,10 @@ def stale_parts(root: Path, parts: list[str]) -> list[str]:
         targets = [f"{stage}@{part}" for stage in PART_STAGES]
         proc = subprocess.run(
             [sys.executable, "-m", "dvc", "status", "--with-deps", "--json", *targets],
-            cwd=root, env=dvc_env(), capture_output=True, text=True,
+            cwd=root,
+            env=dvc_env(),
+            capture_output=True,
+            text=True,
         )
         if proc.returncode != 0:
             raise StageFailed(f"dvc status {part}", (proc.stderr.strip().splitlines() or ["no output"])[-1])
@@ -79,9 +83,12 @@ def finetune_part(root: Path, part: str) -> str | None:
         return f"fine-tuning failed: {exc}"
     if not result["finetuned"]:
         return None
-    return (f"fine-tuned on {result['n_train_real']} real captures: {'served' if result['served'] else 'worse, not served'} "
-            f"(held-back real P/R {result['after_real_precision']:.2f}/{result['after_real_recall']:.2f}, "
-            f"before {result['before_real_precision']:.2f}/{result['before_real_recall']:.2f})")
+    return (
+        f"fine-tuned on {result['n_train_real']} real captures: "
+        f"{'served' if result['served'] else 'worse, not served'} "
+        f"(held-back real P/R {result['after_real_precision']:.2f}/{result['after_real_recall']:.2f}, "
+        f"before {result['before_real_precision']:.2f}/{result['before_real_recall']:.2f})"
+    )
 
 
 @flow(name="watch-parts", flow_run_name="watch-parts")

@@ -32,16 +32,28 @@ def evaluate_scene(shared: tuple[str, Params], job: tuple[int, str]) -> Segmenta
     if key not in _MODELS:
         _MODELS.clear()
         _MODELS[key] = load_segmenter(Path(checkpoint), params.segment)
-    _, counts = segment_and_count(_MODELS[key], load_scene(Path(path)), params.segment, params.evaluate.iou_threshold, params.seed, index)
+    _, counts = segment_and_count(
+        _MODELS[key], load_scene(Path(path)), params.segment, params.evaluate.iou_threshold, params.seed, index
+    )
     return counts
 
 
-def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
+def run(
+    params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | None = None, progress: bool = True
+) -> dict[str, float]:
     part = InferenceSettings.from_extra(read_checkpoint(checkpoint, "cpu")["extra"], checkpoint).part
     paths = list_scenes(scenes / "test")
     jobs = [(i, str(path)) for i, path in enumerate(paths)]
     # Locally one process: the network already uses every core; a Dask cluster spreads the scenes.
-    counts = fan_out(evaluate_scene, (str(checkpoint.resolve()), params), jobs, params.orchestration, f"evaluate {part}", progress, max_workers=1)
+    counts = fan_out(
+        evaluate_scene,
+        (str(checkpoint.resolve()), params),
+        jobs,
+        params.orchestration,
+        f"evaluate {part}",
+        progress,
+        max_workers=1,
+    )
     total = SegmentationCounts()
     for c in counts:
         total = total.add(c)
@@ -66,7 +78,9 @@ def run(params: Params, checkpoint: Path, scenes: Path, metrics_path: Path | Non
         # The service serves a network only when this digest is the served file's (mtimes do not
         # survive a clone and `dvc checkout`).
         write_metrics(metrics_path, {**metrics, "checkpoint_sha256": file_sha256(checkpoint)})
-    log.info("%s: precision %.3f, recall %.3f on %d test scenes", part, metrics["precision"], metrics["recall"], len(paths))
+    log.info(
+        "%s: precision %.3f, recall %.3f on %d test scenes", part, metrics["precision"], metrics["recall"], len(paths)
+    )
     return metrics
 
 

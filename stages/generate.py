@@ -35,14 +35,23 @@ def make_scene(shared: tuple[PartModel, Params, str], job: tuple[str, int]) -> i
     return len(scene.T_cam_from_model)
 
 
-def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | None = None, progress: bool = True) -> dict[str, float]:
+def run(
+    params: Params, part_model_path: Path, out: Path, metrics_path: Path | None = None, progress: bool = True
+) -> dict[str, float]:
     part = load_part_model(part_model_path)
     g = params.generate
     jobs = [(split, i) for split, n in zip(SPLITS, (g.n_train, g.n_val, g.n_test), strict=False) for i in range(n)]
     with atomic_dir(out) as tmp:
         for split in SPLITS:
             (tmp / split).mkdir()
-        placed = fan_out(make_scene, (part, params, str(tmp.resolve())), jobs, params.orchestration, f"generate {part.name}", progress)
+        placed = fan_out(
+            make_scene,
+            (part, params, str(tmp.resolve())),
+            jobs,
+            params.orchestration,
+            f"generate {part.name}",
+            progress,
+        )
     metrics = {
         "n_scenes": float(len(jobs)),
         "objects_per_scene_mean": float(np.mean(placed)),
@@ -50,13 +59,20 @@ def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | N
     }
     if metrics_path is not None:
         write_metrics(metrics_path, metrics)
-    log.info("%s: %d scenes in %s, %.1f objects per scene", part.name, len(jobs), out, metrics["objects_per_scene_mean"])
+    log.info(
+        "%s: %d scenes in %s, %.1f objects per scene", part.name, len(jobs), out, metrics["objects_per_scene_mean"]
+    )
     if metrics["objects_per_scene_mean"] < g.placement.n_objects_min:
         # The bin or the view is too small for the part: few scenes hold a part, some none.
         log.warning(
-            "%s: only %.1f of the %d to %d objects per scene were placed (fewest %d): does the part (%.3f m across) fit the bin "
+            "%s: only %.1f of the %d to %d objects per scene were placed (fewest %d): does the part (%.3f m across) "
+            "fit the bin "
             "(generate.bin) and the camera's view (camera.distance_m)? Give the part its own in its params entry.",
-            part.name, metrics["objects_per_scene_mean"], g.placement.n_objects_min, g.placement.n_objects_max, int(metrics["objects_per_scene_min"]),
+            part.name,
+            metrics["objects_per_scene_mean"],
+            g.placement.n_objects_min,
+            g.placement.n_objects_max,
+            int(metrics["objects_per_scene_min"]),
             part.diameter_m,
         )
     return metrics

@@ -21,8 +21,14 @@ from stages.common.pick_recording import write_grasp_recording
 log = logging.getLogger("binpick.stage.grasps")
 
 
-def run(params: Params, part_model_path: Path, out: Path, grasp_file: Path | None = None, metrics_path: Path | None = None,
-        rrd_path: Path | None = None) -> dict[str, float]:
+def run(
+    params: Params,
+    part_model_path: Path,
+    out: Path,
+    grasp_file: Path | None = None,
+    metrics_path: Path | None = None,
+    rrd_path: Path | None = None,
+) -> dict[str, float]:
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
     sets = load_grasps(grasp_file) if grasp_file is not None else generate_grasps(part, params.pick)
@@ -38,7 +44,9 @@ def run(params: Params, part_model_path: Path, out: Path, grasp_file: Path | Non
             write_grasp_recording(tmp_rrd, part, sets, params.pick)
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
-            log_timings(f"part-{part.name}", f"grasps-{part.name}", params.tracking.mlflow_uri, f"grasps@{part.name}", metrics)
+            log_timings(
+                f"part-{part.name}", f"grasps-{part.name}", params.tracking.mlflow_uri, f"grasps@{part.name}", metrics
+            )
     log.info("%s: %s in %.2f s", part.name, ", ".join(f"{len(s)} {k}" for k, s in sets.items()), grasps_s)
     return metrics
 
@@ -54,7 +62,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--rrd", type=Path, help="rerun recording of the part with its grasps")
     args = p.parse_args(argv)
     start(args)
-    run(load_params(args.params, args.part), args.model, args.out, Path(args.grasp_file) if args.grasp_file else None, args.metrics, args.rrd)
+    run(
+        load_params(args.params, args.part),
+        args.model,
+        args.out,
+        Path(args.grasp_file) if args.grasp_file else None,
+        args.metrics,
+        args.rrd,
+    )
     return 0
 
 

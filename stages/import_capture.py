@@ -22,13 +22,24 @@ log = logging.getLogger("binpick.stage.import_capture")
 
 
 def run(
-    params: Params, capture_path: Path, options: ImportOptions, out: Path, metrics_path: Path | None = None, name: str | None = None
+    params: Params,
+    capture_path: Path,
+    options: ImportOptions,
+    out: Path,
+    metrics_path: Path | None = None,
+    name: str | None = None,
 ) -> dict[str, float]:
     t0 = time.perf_counter()
     capture = load_capture(capture_path, options)
     try:
         digest = capture_digest(capture.xyz_m, capture.rgb)
-        cloud = clean_capture(capture.xyz_m, capture.rgb, capture.shape, params.import_capture_for(name), SceneSeeds.of_capture_digest(params.seed, digest).clean)
+        cloud = clean_capture(
+            capture.xyz_m,
+            capture.rgb,
+            capture.shape,
+            params.import_capture_for(name),
+            SceneSeeds.of_capture_digest(params.seed, digest).clean,
+        )
     except BinpickError as exc:
         raise BinpickError(f"{capture_path}: {exc}") from None
     metrics = {
@@ -45,8 +56,21 @@ def run(
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
             if name:
-                log_timings("scenes", f"import-{name}", params.tracking.mlflow_uri, f"import_capture@{name}", metrics, {"capture": name})
-    log.info("%s: %d points -> %d after cleaning (%.2f s)", capture_path, len(capture.xyz_m), len(cloud.points_m), metrics["import_s"])
+                log_timings(
+                    "scenes",
+                    f"import-{name}",
+                    params.tracking.mlflow_uri,
+                    f"import_capture@{name}",
+                    metrics,
+                    {"capture": name},
+                )
+    log.info(
+        "%s: %d points -> %d after cleaning (%.2f s)",
+        capture_path,
+        len(capture.xyz_m),
+        len(cloud.points_m),
+        metrics["import_s"],
+    )
     return metrics
 
 
@@ -56,7 +80,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--name", default="", help="a capture listed in params.yaml: its unit, columns and intrinsics apply")
     p.add_argument("--capture", required=True, type=Path, help="capture file (.ply, .pcd, .zdf, .csv/.xyz, depth .png)")
     p.add_argument("--unit", help="unit of the coordinates or depth values (default mm, as Zivid writes)")
-    p.add_argument("--columns", help=f"text captures: column names (default {','.join(DEFAULT_TEXT_COLUMNS)}), e.g. x,y,z,r,g,b,_")
+    p.add_argument(
+        "--columns", help=f"text captures: column names (default {','.join(DEFAULT_TEXT_COLUMNS)}), e.g. x,y,z,r,g,b,_"
+    )
     p.add_argument("--intrinsics", help="depth images: JSON file with fx, fy, cx, cy")
     p.add_argument("--out", required=True, type=Path, help="clean cloud to write (.npz)")
     p.add_argument("--metrics", type=Path)
@@ -71,7 +97,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     unit = args.unit or (listed.unit if listed else "mm")
     columns = args.columns.split(",") if args.columns else (listed.columns if listed else list(DEFAULT_TEXT_COLUMNS))
     intrinsics = args.intrinsics or (listed.intrinsics if listed else "")
-    options = ImportOptions(unit=unit, columns=tuple(c.strip() for c in columns), intrinsics=Path(intrinsics) if intrinsics else None)
+    options = ImportOptions(
+        unit=unit, columns=tuple(c.strip() for c in columns), intrinsics=Path(intrinsics) if intrinsics else None
+    )
     run(params, args.capture, options, args.out, args.metrics, args.name or None)
     return 0
 

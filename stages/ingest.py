@@ -16,7 +16,9 @@ from stages.common import entry, parser, start, write_metrics
 log = logging.getLogger("binpick.stage.ingest")
 
 
-def run(params: Params, part: str, mesh_path: Path, out: Path, metrics_path: Path | None = None) -> dict[str, float | str]:
+def run(
+    params: Params, part: str, mesh_path: Path, out: Path, metrics_path: Path | None = None
+) -> dict[str, float | str]:
     model, metrics = ingest_part(params, part, mesh_path)
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
         save_part_model(tmp_out, model)

@@ -23,25 +23,49 @@ from stages.common import entry, parser, start, write_metrics
 log = logging.getLogger("binpick.stage.label")
 
 
-def run(params: Params, part: str, cloud_path: Path, poses_path: Path, ppf_path: Path, out: Path, metrics_path: Path | None = None) -> dict[str, float]:
+def run(
+    params: Params,
+    part: str,
+    cloud_path: Path,
+    poses_path: Path,
+    ppf_path: Path,
+    out: Path,
+    metrics_path: Path | None = None,
+) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
     posed_part, poses = load_poses(poses_path)
     if posed_part != part:
         raise InputError(poses_path, f"holds poses of part {posed_part!r}, not {part!r}")
     ppf = load_ppf_model(ppf_path)
-    labelled = label_capture(cloud, poses, ppf.dense_points_m, ppf.diameter_m, params.registration.min_score, params.learn.trust_margin,
-                             params.import_capture.voxel_size_m)
+    labelled = label_capture(
+        cloud,
+        poses,
+        ppf.dense_points_m,
+        ppf.diameter_m,
+        params.registration.min_score,
+        params.learn.trust_margin,
+        params.import_capture.voxel_size_m,
+    )
     n = len(labelled.labels)
     metrics = {
-        "n_poses": float(len(poses)), "n_trusted": float(len(labelled.T_cam_from_model)),
-        "labelled_fraction": float(np.mean(labelled.labels != IGNORE)) if n else 0.0, "near_mm": 1000.0 * float(labelled.near_m),
+        "n_poses": float(len(poses)),
+        "n_trusted": float(len(labelled.T_cam_from_model)),
+        "labelled_fraction": float(np.mean(labelled.labels != IGNORE)) if n else 0.0,
+        "near_mm": 1000.0 * float(labelled.near_m),
     }
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
         save_labelled_capture(tmp_out, labelled)
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
-    log.info("%s: %d of %d poses trusted, %.0f%% of %d points labelled (within %.1f mm), the rest ignored", cloud_path, metrics["n_trusted"],
-             len(poses), 100 * metrics["labelled_fraction"], n, metrics["near_mm"])
+    log.info(
+        "%s: %d of %d poses trusted, %.0f%% of %d points labelled (within %.1f mm), the rest ignored",
+        cloud_path,
+        metrics["n_trusted"],
+        len(poses),
+        100 * metrics["labelled_fraction"],
+        n,
+        metrics["near_mm"],
+    )
     return metrics
 
 

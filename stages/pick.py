@@ -25,15 +25,26 @@ from stages.common.pick_recording import write_pick_recording
 log = logging.getLogger("binpick.stage.pick")
 
 
-def run(params: Params, name: str, cloud_path: Path, poses_path: Path, part_model_path: Path, grasps_path: Path, out: Path,
-        metrics_path: Path | None = None, rrd_path: Path | None = None) -> dict[str, float]:
+def run(
+    params: Params,
+    name: str,
+    cloud_path: Path,
+    poses_path: Path,
+    part_model_path: Path,
+    grasps_path: Path,
+    out: Path,
+    metrics_path: Path | None = None,
+    rrd_path: Path | None = None,
+) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
     _, poses = load_poses(poses_path)
     part = load_part_model(part_model_path)
     kind = params.pick.gripper
     grasps = load_grasps(grasps_path)[kind]
     t0 = time.perf_counter()
-    plan = pick(cloud, poses, part, grasps, params.pick, params.import_capture_for(name if name in params.captures else None))
+    plan = pick(
+        cloud, poses, part, grasps, params.pick, params.import_capture_for(name if name in params.captures else None)
+    )
     pick_s = time.perf_counter() - t0
     metrics = {"pick_s": pick_s, **plan.counts()}
     T_base = np.asarray(params.pick.T_base_from_cam) if params.pick.T_base_from_cam is not None else None
@@ -43,7 +54,12 @@ def run(params: Params, name: str, cloud_path: Path, poses_path: Path, part_mode
             write_pick_recording(tmp_rrd, name, cloud, part, poses, plan, kind, params.pick)
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
-        with mlflow_run("scenes", f"picks-{name}", params.tracking.mlflow_uri, {"part": part.name, "capture": name, "dvc_stage": f"pick@{name}", "gripper": kind}):
+        with mlflow_run(
+            "scenes",
+            f"picks-{name}",
+            params.tracking.mlflow_uri,
+            {"part": part.name, "capture": name, "dvc_stage": f"pick@{name}", "gripper": kind},
+        ):
             import mlflow
 
             mlflow.log_metrics(metrics)
@@ -66,7 +82,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--rrd", type=Path, help="rerun recording of the picks")
     args = p.parse_args(argv)
     start(args)
-    run(load_params(args.params, args.part), args.name, args.cloud, args.poses, args.part_model, args.grasps, args.out, args.metrics, args.rrd)
+    run(
+        load_params(args.params, args.part),
+        args.name,
+        args.cloud,
+        args.poses,
+        args.part_model,
+        args.grasps,
+        args.out,
+        args.metrics,
+        args.rrd,
+    )
     return 0
 
 

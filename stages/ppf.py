@@ -20,7 +20,9 @@ log = logging.getLogger("binpick.stage.ppf")
 def run(params: Params, part_model_path: Path, out: Path, metrics_path: Path | None = None) -> dict[str, float]:
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
-    model = train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), params.registration)
+    model = train_ppf(
+        part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), params.registration
+    )
     train_s = time.perf_counter() - t0
     save_ppf_model(out, model)
     metrics = {"train_s": train_s, "model_points": float(len(model.points_m)), "pairs": float(len(model.keys))}

@@ -49,7 +49,13 @@ def run(
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
     chosen = load_verification(verification) if verification is not None else None
-    result = register(cloud, labels, ppf, with_verification(params.registration, chosen), scene_seeds(params.seed, cloud.capture_digest, cloud_path).register)
+    result = register(
+        cloud,
+        labels,
+        ppf,
+        with_verification(params.registration, chosen),
+        scene_seeds(params.seed, cloud.capture_digest, cloud_path).register,
+    )
     register_s = time.perf_counter() - t0
     estimates = result.poses
     metrics: dict[str, float] = {
@@ -69,7 +75,9 @@ def run(
             np.array([e.T_cam_from_model for e in estimates]).reshape(-1, 4, 4),
             np.array([t.T_cam_from_model for t in truth]).reshape(-1, 4, 4),
             np.array([1.0 if t.visible_fraction is None else t.visible_fraction for t in truth]),
-            ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+            ppf.dense_points_m,
+            ppf.symmetries,
+            ppf.diameter_m,
         )
         metrics.update(summary)
     timings = {"register_s": register_s}
@@ -77,22 +85,54 @@ def run(
     with atomic_paths(out, rrd_path, metrics_path) as (tmp_out, tmp_rrd, tmp_metrics):
         save_poses(tmp_out, part.name, estimates)
         if tmp_rrd is not None:
-            write_scene_recording(tmp_rrd, name, cloud, labels, part, estimates, truth, {k.removesuffix("_s"): v for k, v in timings.items()})
+            write_scene_recording(
+                tmp_rrd,
+                name,
+                cloud,
+                labels,
+                part,
+                estimates,
+                truth,
+                {k.removesuffix("_s"): v for k, v in timings.items()},
+            )
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
         _log_run(params, name, part.name, metrics, timings, estimates)
-    log.info("%s: %d poses (%s, %.0f segments) in %.2f s", name, len(estimates), params.registration.mode, metrics["n_segments"], register_s)
+    log.info(
+        "%s: %d poses (%s, %.0f segments) in %.2f s",
+        name,
+        len(estimates),
+        params.registration.mode,
+        metrics["n_segments"],
+        register_s,
+    )
     return metrics
 
 
-def _log_run(params: Params, name: str, part: str, metrics: dict[str, float], timings: dict[str, float], estimates: list) -> None:
-    with mlflow_run("scenes", f"scene-{name}", params.tracking.mlflow_uri, {"part": part, "capture": name, "dvc_stage": f"register@{name}"}):
+def _log_run(
+    params: Params, name: str, part: str, metrics: dict[str, float], timings: dict[str, float], estimates: list
+) -> None:
+    with mlflow_run(
+        "scenes",
+        f"scene-{name}",
+        params.tracking.mlflow_uri,
+        {"part": part, "capture": name, "dvc_stage": f"register@{name}"},
+    ):
         import mlflow
 
         mlflow.log_metrics({k: v for k, v in {**metrics, **timings}.items() if np.isfinite(v)})
         for k, e in enumerate(estimates):
             mlflow.log_metric("pose_score", e.score, step=k)
-        mlflow.log_dict({"part": part, "poses": [{"segment": e.segment, "score": e.score, "T_cam_from_model": e.T_cam_from_model.tolist()} for e in estimates]}, "poses.json")
+        mlflow.log_dict(
+            {
+                "part": part,
+                "poses": [
+                    {"segment": e.segment, "score": e.score, "T_cam_from_model": e.T_cam_from_model.tolist()}
+                    for e in estimates
+                ],
+            },
+            "poses.json",
+        )
 
 
 @entry
@@ -108,12 +148,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--truth", default="", help="ground-truth poses (.json), '' for none")
     p.add_argument("--metrics", type=Path)
     p.add_argument("--rrd", type=Path, help="rerun recording to write")
-    p.add_argument("--verification", type=Path, help="the part's verification thresholds (verify stage); none: register's defaults")
+    p.add_argument(
+        "--verification", type=Path, help="the part's verification thresholds (verify stage); none: register's defaults"
+    )
     args = p.parse_args(argv)
     start(args)
     run(
-        load_params(args.params, args.part), args.name, args.cloud, args.segments, args.ppf, args.part_model, args.out,
-        Path(args.truth) if args.truth else None, args.metrics, args.rrd, args.verification,
+        load_params(args.params, args.part),
+        args.name,
+        args.cloud,
+        args.segments,
+        args.ppf,
+        args.part_model,
+        args.out,
+        Path(args.truth) if args.truth else None,
+        args.metrics,
+        args.rrd,
+        args.verification,
     )
     return 0
 

@@ -42,7 +42,14 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
     # The demo bin stays the plain one whatever clutter the training scenes have: its figures
     # stay comparable from run to run.
     generate = params.generate.model_copy(update={"clutter": params.generate.clutter.off()})
-    scene = generate_scene(part, generate, camera, ViewParams.of_import(params.import_capture), seed, n_objects=params.render_demo.n_objects)
+    scene = generate_scene(
+        part,
+        generate,
+        camera,
+        ViewParams.of_import(params.import_capture),
+        seed,
+        n_objects=params.render_demo.n_objects,
+    )
     H, W = scene.labels.shape
     records = [
         PartPose(T, 1.0, i, visible_fraction=float(v))
@@ -50,7 +57,12 @@ def run(params: Params, part_model_path: Path, out: Path, truth: Path) -> int:
     ]
     with atomic_paths(out, truth) as (tmp_out, tmp_truth):  # the capture and its truth together
         assert tmp_truth is not None  # asked for
-        save_ply(tmp_out, PointCloudData(xyz=scene.xyz_m.reshape(-1, 3) * MM_PER_M, rgb=grey_shading(scene.xyz_m).reshape(-1, 3), shape=(H, W)))
+        save_ply(
+            tmp_out,
+            PointCloudData(
+                xyz=scene.xyz_m.reshape(-1, 3) * MM_PER_M, rgb=grey_shading(scene.xyz_m).reshape(-1, 3), shape=(H, W)
+            ),
+        )
         save_poses(tmp_truth, part.name, records)
     log.info("%s: %dx%d capture with %d parts -> %s", part.name, W, H, len(records), out)
     return len(records)

@@ -20,20 +20,42 @@ from stages.common import entry, log_timings, parser, start, write_metrics
 log = logging.getLogger("binpick.stage.segment")
 
 
-def run(params: Params, cloud_path: Path, checkpoint: Path, out: Path, metrics_path: Path | None = None, name: str | None = None) -> dict[str, float]:
+def run(
+    params: Params,
+    cloud_path: Path,
+    checkpoint: Path,
+    out: Path,
+    metrics_path: Path | None = None,
+    name: str | None = None,
+) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
     segmenter = load_segmenter(checkpoint, params.segment)
     t0 = time.perf_counter()
-    labels = segmenter.segment(cloud.points_m, cloud.normals, np.random.default_rng(scene_seeds(params.seed, cloud.capture_digest, cloud_path).segment))
+    labels = segmenter.segment(
+        cloud.points_m,
+        cloud.normals,
+        np.random.default_rng(scene_seeds(params.seed, cloud.capture_digest, cloud_path).segment),
+    )
     seconds = time.perf_counter() - t0
     n_inst = int(labels.max()) + 1 if len(labels) else 0
-    metrics = {"segment_s": seconds, "n_instances": float(n_inst), "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0}
+    metrics = {
+        "segment_s": seconds,
+        "n_instances": float(n_inst),
+        "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0,
+    }
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
         save_segments(tmp_out, labels)
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
             if name:
-                log_timings("scenes", f"segment-{name}", params.tracking.mlflow_uri, f"segment@{name}", metrics, {"capture": name})
+                log_timings(
+                    "scenes",
+                    f"segment-{name}",
+                    params.tracking.mlflow_uri,
+                    f"segment@{name}",
+                    metrics,
+                    {"capture": name},
+                )
     log.info("%s: %d instances in %.2f s", cloud_path, n_inst, seconds)
     return metrics
 

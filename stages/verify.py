@@ -24,17 +24,44 @@ from stages.common import entry, mlflow_run, parser, start, write_metrics
 log = logging.getLogger("binpick.stage.verify")
 
 
-def run(params: Params, part_model_path: Path, ppf_path: Path, checkpoint: Path, scenes: Path, out: Path,
-        metrics_path: Path | None = None) -> dict[str, float]:
+def run(
+    params: Params,
+    part_model_path: Path,
+    ppf_path: Path,
+    checkpoint: Path,
+    scenes: Path,
+    out: Path,
+    metrics_path: Path | None = None,
+) -> dict[str, float]:
     part = load_part_model(part_model_path)
-    models = PartModels(part, load_ppf_model(ppf_path), load_segmenter(checkpoint, params.segment), params.import_capture, params.registration)
+    models = PartModels(
+        part,
+        load_ppf_model(ppf_path),
+        load_segmenter(checkpoint, params.segment),
+        params.import_capture,
+        params.registration,
+    )
     val = [load_scene(p) for p in list_scenes(scenes / "val")]
     threshold, support, stats = calibrate_verification(val, models, params.seed, part.name)
-    log.info("%s: pose verification on %d validation scenes: at most %.2f seen through (%d right poses up to %.2f, %d wrong from %.2f), "
-             "at least %.2f visible support (right poses from %.2f, wrong up to %.2f)", part.name, len(val), threshold, stats["n_right"],
-             stats["right_max"], stats["n_wrong"], stats["wrong_min"], support, stats["right_support_min"], stats["wrong_support_max"])
+    log.info(
+        "%s: pose verification on %d validation scenes: at most %.2f seen through (%d right poses up to %.2f, %d "
+        "wrong from %.2f), "
+        "at least %.2f visible support (right poses from %.2f, wrong up to %.2f)",
+        part.name,
+        len(val),
+        threshold,
+        stats["n_right"],
+        stats["right_max"],
+        stats["n_wrong"],
+        stats["wrong_min"],
+        support,
+        stats["right_support_min"],
+        stats["wrong_support_max"],
+    )
     metrics = {"max_seen_through": threshold, "min_visible_support": support}
-    with mlflow_run(f"part-{part.name}", f"verify-{part.name}", params.tracking.mlflow_uri, {"dvc_stage": f"verify@{part.name}"}):
+    with mlflow_run(
+        f"part-{part.name}", f"verify-{part.name}", params.tracking.mlflow_uri, {"dvc_stage": f"verify@{part.name}"}
+    ):
         import mlflow
 
         # What it was chosen on goes to MLflow only: which borderline validation poses ICP's
@@ -54,7 +81,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--model", required=True, type=Path, help="part model (.npz)")
     p.add_argument("--ppf", required=True, type=Path, help="the part's PPF model (.npz)")
     p.add_argument("--checkpoint", required=True, type=Path, help="the part's trained network (.pt)")
-    p.add_argument("--scenes", required=True, type=Path, help="data set folder of the generate stage (its val/ split is used)")
+    p.add_argument(
+        "--scenes", required=True, type=Path, help="data set folder of the generate stage (its val/ split is used)"
+    )
     p.add_argument("--out", required=True, type=Path, help="verification thresholds to write (.json)")
     p.add_argument("--metrics", type=Path)
     args = p.parse_args(argv)

@@ -55,7 +55,9 @@ def box_part_model(extents_m):
     from binpick.params import SymmetryParams
     from binpick.part.model import make_part_model
 
-    return make_part_model("box", trimesh.creation.box(extents=extents_m), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    return make_part_model(
+        "box", trimesh.creation.box(extents=extents_m), SymmetryParams(), 20000, np.random.default_rng(0), "m"
+    )
 
 
 def copy_project(root: Path, params_text: str | None = None) -> Path:
@@ -65,7 +67,9 @@ def copy_project(root: Path, params_text: str | None = None) -> Path:
     import subprocess
 
     for name in ("binpick", "stages", "flows", ".dvc"):
-        shutil.copytree(ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache", "config.local"))
+        shutil.copytree(
+            ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache", "config.local")
+        )
     for name in ("dvc.yaml", "pyproject.toml", ".gitignore", ".dvcignore"):
         shutil.copy(ROOT / name, root / name)
     (root / "data" / "parts").mkdir(parents=True, exist_ok=True)

@@ -50,7 +50,7 @@ def test_clutter_bench_reports_both_scorings():
         assert key in part and f"baseline_{key}" in part and key in result and f"baseline_{key}" in result
     assert part["n_scenes"] == 1 and part["pose_recall"] >= 0.5 and part["false_poses_outside_bin"] == 0
     # The one scene is counted in the band of tilt its camera was drawn in (0 to 45 degrees).
-    (band, figures), = result["by_tilt"].items()
+    ((band, figures),) = result["by_tilt"].items()
     assert 0 <= int(band.split("-")[0]) < 45 and figures["n_scenes"] == 1
 
 
@@ -73,12 +73,20 @@ def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
 
     result = bench_picking(PARAMS, ["t_joint"], n_bins=1, parts_per_bin=(3, 3), checkpoints={})
     part = result["parts"]["t_joint"]
-    for key in ("pick_success_rate", "clearance_rate", "wrong_part_picks", "collisions", "cycle_s_median", "n_bins", "n_attempts"):
+    for key in (
+        "pick_success_rate",
+        "clearance_rate",
+        "wrong_part_picks",
+        "collisions",
+        "cycle_s_median",
+        "n_bins",
+        "n_attempts",
+    ):
         assert key in part and key in result
     # Every attempt is accounted for: good, wrong part, collision or no pick.
     assert part["n_attempts"] >= part["parts_settled"] * part["clearance_rate"]
     assert part["clearance_rate"] >= 2 / 3 and part["wrong_part_picks"] + part["collisions"] <= 1
-    (band, figures), = result["by_tilt"].items()
+    ((band, figures),) = result["by_tilt"].items()
     assert result["tilt_deg_max"] == 45.0 and figures["n_attempts"] == part["n_attempts"]
 
 
@@ -153,17 +161,31 @@ def test_scene_bench_bins_hold_twenty_long_parts(t_joint):
     from flows.bench.scene import scene_generate_settings
 
     # The gear shaft's proportions: a 0.44 m body of 60 mm girth with a 100 mm gear on it.
-    body, gear = trimesh.creation.cylinder(radius=0.03, height=0.44), trimesh.creation.cylinder(radius=0.05, height=0.06)
+    body, gear = (
+        trimesh.creation.cylinder(radius=0.03, height=0.44),
+        trimesh.creation.cylinder(radius=0.05, height=0.06),
+    )
     gear.apply_translation([0.0, 0.0, 0.1])
-    shaft = make_part_model("shaft", trimesh.util.concatenate([body, gear]), SymmetryParams(kind="revolution", axis=(0, 0, 1)),
-                            20000, np.random.default_rng(0), "m")
+    shaft = make_part_model(
+        "shaft",
+        trimesh.util.concatenate([body, gear]),
+        SymmetryParams(kind="revolution", axis=(0, 0, 1)),
+        20000,
+        np.random.default_rng(0),
+        "m",
+    )
 
     def held(part, g, seeds=(0, 1, 2)):
-        return [len(place_objects(part.points_m, 20, g.bin, g.placement, np.random.default_rng(k)).T_bin_from_model) for k in seeds]
+        return [
+            len(place_objects(part.points_m, 20, g.bin, g.placement, np.random.default_rng(k)).T_bin_from_model)
+            for k in seeds
+        ]
 
     p = picking_settings(PARAMS, shaft)
     # The premise: the training scenes' 8 drops a part leave room in such a bin unfound.
-    eight = p.generate.model_copy(update={"placement": p.generate.placement.model_copy(update={"mode": "drop", "candidates_per_object": 8})})
+    eight = p.generate.model_copy(
+        update={"placement": p.generate.placement.model_copy(update={"mode": "drop", "candidates_per_object": 8})}
+    )
     assert min(held(shaft, eight)) < 20
     assert held(shaft, scene_generate_settings(shaft, p)) == [20, 20, 20]
     assert held(t_joint, scene_generate_settings(t_joint, picking_settings(PARAMS, t_joint))) == [20, 20, 20]

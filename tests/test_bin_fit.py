@@ -32,8 +32,13 @@ def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
     carton.apply_translation([bin_params.inner_x_m / 2 + 0.12, 0.0, 0.04])
     # The bin turned by 20 degrees on the table and seen from a camera tilted by 10 degrees.
     T_table_bin = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(20.0)), np.zeros(3))
-    T_cam_table = invert_T(T_bin_from_cam(0.8)) @ make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(10.0)), np.zeros(3))
-    meshes = [(transform_points(T_cam_table @ T_table_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), part]]
+    T_cam_table = invert_T(T_bin_from_cam(0.8)) @ make_T(
+        axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(10.0)), np.zeros(3)
+    )
+    meshes = [
+        (transform_points(T_cam_table @ T_table_bin, np.asarray(m.vertices)), np.asarray(m.faces))
+        for m in [*bin_meshes(bin_params), part]
+    ]
     meshes += [(transform_points(T_cam_table, np.asarray(m.vertices)), np.asarray(m.faces)) for m in (table, carton)]
     labels_of_meshes = [-1] * len(bin_meshes(bin_params)) + [1, -1, -1]  # the part is 1
     frame = render(meshes, labels_of_meshes, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
@@ -93,7 +98,12 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
     cup, _ = ingest_part(params, "cup", scan / "coffee_cup_model.ply")
     ppf = train_ppf(cup.points_m, cup.normals, cup.diameter_m, symmetry_transforms(cup.symmetry), PARAMS.registration)
     result = register(cloud, None, ppf, changed(PARAMS.registration, mode="whole_scene", max_instances=10), seed=0)
-    centres = transform_points(invert_T(box.T_cam_from_bin), np.array([p.T_cam_from_model[:3, :3] @ cup.centre_m + p.T_cam_from_model[:3, 3] for p in result.poses]).reshape(-1, 3))
+    centres = transform_points(
+        invert_T(box.T_cam_from_bin),
+        np.array([p.T_cam_from_model[:3, :3] @ cup.centre_m + p.T_cam_from_model[:3, 3] for p in result.poses]).reshape(
+            -1, 3
+        ),
+    )
     assert np.all((centres >= box.inner_min_m - 1e-9) & (centres <= box.inner_max_m + 1e-9))
     assert all(p.seen_through <= DEFAULT_MAX_SEEN_THROUGH for p in result.poses)  # no network: the prior
 
@@ -105,7 +115,11 @@ def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
     def box(size_m, height_m, tilt_deg=0.0):
         R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi + np.radians(tilt_deg))  # z toward the camera
         half = np.asarray(size_m) / 2
-        return BinBox(make_T(R, np.array([0.0, 0.0, 0.8])), np.array([-half[0], -half[1], 0.004]), np.array([half[0], half[1], height_m]))
+        return BinBox(
+            make_T(R, np.array([0.0, 0.0, 0.8])),
+            np.array([-half[0], -half[1], 0.004]),
+            np.array([half[0], half[1], height_m]),
+        )
 
     assert implausible(box([0.4, 0.3], 0.15), 0.12) == []
     assert implausible(box([0.4, 0.3], 0.15, tilt_deg=45.0), 0.12) == []  # an oblique camera

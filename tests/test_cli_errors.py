@@ -36,8 +36,18 @@ def test_ingest_wrong_unit_is_reported(tmp_path):
     # The shipped part is in millimetres; declared as metres it would be 64 m long.
     params = (ROOT / "params.yaml").read_text().replace("    unit: mm\n    symmetry", "    unit: m\n    symmetry", 1)
     (tmp_path / "params.yaml").write_text(params)
-    proc = _run("-m", "stages.ingest", "--params", str(tmp_path / "params.yaml"), "--part", "t_joint",
-                "--mesh", str(ROOT / "data/parts/t_joint.stl"), "--out", str(tmp_path / "p.npz"))
+    proc = _run(
+        "-m",
+        "stages.ingest",
+        "--params",
+        str(tmp_path / "params.yaml"),
+        "--part",
+        "t_joint",
+        "--mesh",
+        str(ROOT / "data/parts/t_joint.stl"),
+        "--out",
+        str(tmp_path / "p.npz"),
+    )
     _assert_one_line_error(proc, "t_joint.stl", "unit")
 
 
@@ -46,15 +56,29 @@ def test_import_bad_capture(tmp_path):
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 100\nproperty float x\nend_header\n\x00\x00")
     proc = _run("-m", "stages.import_capture", "--capture", str(bad), "--out", str(tmp_path / "c.npz"))
     _assert_one_line_error(proc, "scan.ply")
-    proc = _run("-m", "stages.import_capture", "--capture", str(tmp_path / "scan.xyz"), "--out", str(tmp_path / "c.npz"))
+    proc = _run(
+        "-m", "stages.import_capture", "--capture", str(tmp_path / "scan.xyz"), "--out", str(tmp_path / "c.npz")
+    )
     _assert_one_line_error(proc, "scan.xyz")
     assert not (tmp_path / "c.npz").exists()
 
 
 def test_broken_params_file(tmp_path):
     (tmp_path / "params.yaml").write_text("profile: [unclosed\n")
-    proc = _run("-m", "stages.segment", "--params", str(tmp_path / "params.yaml"), "--part", "t_joint",
-                "--cloud", "c.npz", "--checkpoint", "m.pt", "--out", str(tmp_path / "s.npz"))
+    proc = _run(
+        "-m",
+        "stages.segment",
+        "--params",
+        str(tmp_path / "params.yaml"),
+        "--part",
+        "t_joint",
+        "--cloud",
+        "c.npz",
+        "--checkpoint",
+        "m.pt",
+        "--out",
+        str(tmp_path / "s.npz"),
+    )
     _assert_one_line_error(proc, "params.yaml", "YAML")
 
 
@@ -74,7 +98,17 @@ def test_binpick_outside_a_project(tmp_path, args):
 def test_calibrate_a_damaged_checkpoint(tmp_path):
     bad = tmp_path / "model.pt"
     bad.write_bytes(b"not a checkpoint")
-    proc = _run("-m", "flows.cli", "calibrate", "--checkpoint", str(bad), "--scenes", str(tmp_path), "--out", str(tmp_path / "out.pt"))
+    proc = _run(
+        "-m",
+        "flows.cli",
+        "calibrate",
+        "--checkpoint",
+        str(bad),
+        "--scenes",
+        str(tmp_path),
+        "--out",
+        str(tmp_path / "out.pt"),
+    )
     _assert_one_line_error(proc, "model.pt", "not a readable checkpoint")
     assert not (tmp_path / "out.pt").exists()
 
@@ -88,10 +122,16 @@ def _bad_captures(tmp_path):
 
     files = {}
     same = tmp_path / "same.ply"  # a thousand identical points
-    same.write_text("ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\nproperty float z\nend_header\n" + "1 2 500\n" * 1000)
+    same.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 1000\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+        + "1 2 500\n" * 1000
+    )
     files["identical points"] = ([str(same)], "distinct points")
     pcd = tmp_path / "size3.pcd"
-    pcd.write_text("VERSION 0.7\nFIELDS x y z\nSIZE 3 3 3\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA ascii\n1 1 500\n2 1 500\n")
+    pcd.write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 3 3 3\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2\nHEIGHT 1\nPOINTS 2\nDATA ascii\n1 1 "
+        "500\n2 1 500\n"
+    )
     files["PCD SIZE 3"] = ([str(pcd)], "TYPE F with SIZE 3")
     zdf = tmp_path / "random.zdf"
     zdf.write_bytes(np.random.default_rng(0).bytes(4096))
@@ -105,11 +145,20 @@ def _bad_captures(tmp_path):
     Image.fromarray(np.full((120, 160), 500, np.uint16)).save(depth)
     wrong = tmp_path / "k_full_res.json"
     wrong.write_text(json.dumps({"fx": 2660.0, "fy": 2660.0, "cx": 960.0, "cy": 600.0}))
-    files["intrinsics of another resolution"] = ([str(depth), "--intrinsics", str(wrong)], "outside the 160 x 120 image")
+    files["intrinsics of another resolution"] = (
+        [str(depth), "--intrinsics", str(wrong)],
+        "outside the 160 x 120 image",
+    )
     return files
 
 
-CAPTURE_CASES = ["identical points", "PCD SIZE 3", "random bytes as .zdf", "8-bit PNG as depth", "intrinsics of another resolution"]
+CAPTURE_CASES = [
+    "identical points",
+    "PCD SIZE 3",
+    "random bytes as .zdf",
+    "8-bit PNG as depth",
+    "intrinsics of another resolution",
+]
 
 
 @pytest.mark.parametrize("case", CAPTURE_CASES)
@@ -124,7 +173,16 @@ def test_bad_captures_get_one_line(tmp_path, case):
 def test_an_output_path_that_cannot_be_written(tmp_path):
     blocker = tmp_path / "results"
     blocker.write_text("a file where a folder should be")
-    proc = _run("-m", "stages.ingest", "--part", "t_joint", "--mesh", str(ROOT / "data/parts/t_joint.stl"), "--out", str(blocker / "part.npz"))
+    proc = _run(
+        "-m",
+        "stages.ingest",
+        "--part",
+        "t_joint",
+        "--mesh",
+        str(ROOT / "data/parts/t_joint.stl"),
+        "--out",
+        str(blocker / "part.npz"),
+    )
     _assert_one_line_error(proc, "results", "cannot read or write")
 
 
@@ -138,9 +196,15 @@ def test_eval_labels_refuses_bad_input(tmp_path, case):
     gt = _labels(tmp_path / "gt.txt", [(i * 0.001, 0.1, 0.5, i % 3) for i in range(50)])
     pred, extra, needle = gt, [], ""
     if case == "nan coordinates":
-        pred, needle = _labels(tmp_path / "p.txt", [("nan" if i == 4 else i * 0.001, 0.1, 0.5, i % 3) for i in range(50)]), "non-finite coordinates"
+        pred, needle = (
+            _labels(tmp_path / "p.txt", [("nan" if i == 4 else i * 0.001, 0.1, 0.5, i % 3) for i in range(50)]),
+            "non-finite coordinates",
+        )
     elif case == "huge labels":
-        pred, needle = _labels(tmp_path / "p.txt", [(i * 0.001, 0.1, 0.5, 10**12 + i) for i in range(50)]), "small integers"
+        pred, needle = (
+            _labels(tmp_path / "p.txt", [(i * 0.001, 0.1, 0.5, 10**12 + i) for i in range(50)]),
+            "small integers",
+        )
     elif case == "iou above 1":
         extra, needle = ["--iou", "1.5"], "(0, 1]"
     elif case == "iou 0":
@@ -170,8 +234,14 @@ def test_serve_names_a_foreign_program_on_the_prefect_port(tmp_path):
     threading.Thread(target=server.serve_forever, daemon=True).start()
     try:
         env = {k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}
-        proc = subprocess.run([sys.executable, "-m", "flows.cli", "serve", "--port", str(server.server_port)], cwd=ROOT,
-                              capture_output=True, text=True, timeout=120, env=env)
+        proc = subprocess.run(
+            [sys.executable, "-m", "flows.cli", "serve", "--port", str(server.server_port)],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            env=env,
+        )
     finally:
         server.shutdown()
     _assert_one_line_error(proc, f"port {server.server_port}", "not a Prefect server")
@@ -182,16 +252,22 @@ def test_a_crashed_stage_and_a_held_lock_are_reported_by_their_cause(tmp_path):
 
     from flows.dvc_tasks import failure_reason
 
-    crashed = ("Running stage 'segment@x':\n> python -m stages.segment\nTraceback (most recent call last):\n"
-               "  File \"x.py\", line 3, in f\nZeroDivisionError: division by zero\n"
-               "ERROR: failed to reproduce 'segment@x': failed to run: python -m stages.segment, exited with 1\n")
+    crashed = (
+        "Running stage 'segment@x':\n> python -m stages.segment\nTraceback (most recent call last):\n"
+        '  File "x.py", line 3, in f\nZeroDivisionError: division by zero\n'
+        "ERROR: failed to reproduce 'segment@x': failed to run: python -m stages.segment, exited with 1\n"
+    )
     assert failure_reason(tmp_path, crashed, "").startswith("the stage crashed: ZeroDivisionError: division by zero")
     own = "error: data/x.ply: holds no points\nERROR: failed to reproduce 'import_capture@x'\n"
     assert failure_reason(tmp_path, "", own) == "data/x.ply: holds no points"
     (tmp_path / ".dvc" / "tmp").mkdir(parents=True)
-    (tmp_path / ".dvc" / "tmp" / "rwlock").write_text(json.dumps({"write": {"data/x": {"pid": 4242, "cmd": "dvc repro train@t_joint"}}}))
+    (tmp_path / ".dvc" / "tmp" / "rwlock").write_text(
+        json.dumps({"write": {"data/x": {"pid": 4242, "cmd": "dvc repro train@t_joint"}}})
+    )
     locked = failure_reason(tmp_path, "", "ERROR: Unable to acquire lock. Most likely another DVC process is running")
-    assert "another run holds the repository lock (pid 4242: dvc repro train@t_joint)" in locked and "delete" not in locked
+    assert (
+        "another run holds the repository lock (pid 4242: dvc repro train@t_joint)" in locked and "delete" not in locked
+    )
 
 
 def _bad_meshes(tmp_path):
@@ -222,7 +298,18 @@ def _bad_meshes(tmp_path):
 def test_bad_meshes_get_one_line_and_no_model(tmp_path, case):
     path, needle = _bad_meshes(tmp_path)[case]
     out = tmp_path / "models" / "part.npz"
-    proc = _run("-m", "stages.ingest", "--part", "t_joint", "--mesh", str(path), "--out", str(out), "--metrics", str(tmp_path / "m.json"))
+    proc = _run(
+        "-m",
+        "stages.ingest",
+        "--part",
+        "t_joint",
+        "--mesh",
+        str(path),
+        "--out",
+        str(out),
+        "--metrics",
+        str(tmp_path / "m.json"),
+    )
     _assert_one_line_error(proc, needle)
     assert not out.exists() and not (tmp_path / "m.json").exists()
 
@@ -233,8 +320,20 @@ def test_label_stage_refuses_poses_of_another_part(tmp_path):
     poses = tmp_path / "poses.json"
     poses.write_text(json.dumps({"part": "other", "unit": "m", "frame": "camera", "poses": []}))
     cloud = tmp_path / "cloud.npz"
-    proc = _run("-m", "stages.label", "--part", "t_joint", "--cloud", str(cloud), "--poses", str(poses), "--ppf", str(tmp_path / "ppf.npz"),
-                "--out", str(tmp_path / "l.npz"))
+    proc = _run(
+        "-m",
+        "stages.label",
+        "--part",
+        "t_joint",
+        "--cloud",
+        str(cloud),
+        "--poses",
+        str(poses),
+        "--ppf",
+        str(tmp_path / "ppf.npz"),
+        "--out",
+        str(tmp_path / "l.npz"),
+    )
     _assert_one_line_error(proc, "cloud.npz", "not found")
     assert not (tmp_path / "l.npz").exists()
 

@@ -64,8 +64,12 @@ def test_runs_of_killed_stages_are_ended(tmp_path):
         client = mlflow.MlflowClient()
         import socket
 
-        dead = client.create_run(experiment, tags={"binpick.pid": str(_dead_pid()), "binpick.host": socket.gethostname()}, run_name="train-x")
-        alive = client.create_run(experiment, tags={"binpick.pid": str(os.getpid()), "binpick.host": socket.gethostname()}, run_name="train-x")
+        dead = client.create_run(
+            experiment, tags={"binpick.pid": str(_dead_pid()), "binpick.host": socket.gethostname()}, run_name="train-x"
+        )
+        alive = client.create_run(
+            experiment, tags={"binpick.pid": str(os.getpid()), "binpick.host": socket.gethostname()}, run_name="train-x"
+        )
         assert end_dead_runs("part-x") == [dead.info.run_id]
         assert client.get_run(dead.info.run_id).info.status == "KILLED"
         assert client.get_run(alive.info.run_id).info.status == "RUNNING"
@@ -92,18 +96,23 @@ def test_a_stage_dies_with_the_dvc_run_that_started_it(tmp_path):
     """dvc -> shell -> stage: after kill -9 of the `dvc` process the stage stops (the shell between
     them lives on, so the parent-death signal alone would not do)."""
     stage = tmp_path / "stage.py"
-    stage.write_text(textwrap.dedent(f"""
+    stage.write_text(
+        textwrap.dedent(f"""
         import sys, time
         sys.path.insert(0, {str(ROOT)!r})
         from binpick.lifetime import die_with_parent, find_ancestor, watch_ancestor
         die_with_parent()
         watch_ancestor(find_ancestor("dvc"), interval_s=0.2)
-        open({str(tmp_path / 'started')!r}, "w").close()
+        open({str(tmp_path / "started")!r}, "w").close()
         time.sleep(60)
-        open({str(tmp_path / 'outputs')!r}, "w").close()
-    """))
+        open({str(tmp_path / "outputs")!r}, "w").close()
+    """)
+    )
     fake_dvc = tmp_path / "dvc"  # a process whose program is `dvc`, running the stage through a shell
-    fake_dvc.write_text(f"#!{sys.executable}\nimport subprocess, sys\nsubprocess.run(['/bin/sh', '-c', '{sys.executable} {stage}; echo done'])\n")
+    fake_dvc.write_text(
+        f"#!{sys.executable}\nimport subprocess, sys\nsubprocess.run(['/bin/sh', '-c', '{sys.executable} {stage}; "
+        "echo done'])\n"
+    )
     fake_dvc.chmod(0o755)
     dvc = subprocess.Popen([str(fake_dvc), "repro"])
     deadline = time.monotonic() + 30

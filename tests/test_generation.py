@@ -34,7 +34,13 @@ def test_drop_placement_has_no_interpenetration_and_stays_in_the_bin(t_joint):
 
 def test_a_full_bin_keeps_the_objects_that_fit(t_joint):
     small = changed(PARAMS.generate.bin, inner_x_m=0.1, inner_y_m=0.1)
-    placed = place_objects(t_joint.points_m, 200, small, changed(PARAMS.generate.placement, max_pile_height_m=0.06), np.random.default_rng(0))
+    placed = place_objects(
+        t_joint.points_m,
+        200,
+        small,
+        changed(PARAMS.generate.placement, max_pile_height_m=0.06),
+        np.random.default_rng(0),
+    )
     assert 0 < len(placed.T_bin_from_model) < 200
     assert placed.n_requested == 200
 
@@ -43,7 +49,10 @@ def test_camera_sees_the_floor_at_its_distance():
     cam = changed(PARAMS.camera, downscale=8)
     intr = camera_of(cam)
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
-    meshes = [(transform_points(T_cam_bin, m.vertices), m.faces) for m in bin_meshes(changed(PARAMS.generate.bin, wall_height_m=0.0))]
+    meshes = [
+        (transform_points(T_cam_bin, m.vertices), m.faces)
+        for m in bin_meshes(changed(PARAMS.generate.bin, wall_height_m=0.0))
+    ]
     r = render(meshes, [-1] * len(meshes), intr)
     assert (intr.height, intr.width) == r.labels.shape
     z = r.xyz_m[..., 2]
@@ -60,7 +69,9 @@ def test_objects_over_a_cached_background_equal_one_cast_of_everything(t_joint):
     T_cam_bin = invert_T(T_bin_from_cam(cam.distance_m))
     gen = PARAMS.generate
     placed = place_objects(t_joint.points_m, 8, gen.bin, gen.placement, np.random.default_rng(2))
-    objects = [(transform_points(T_cam_bin @ T, t_joint.mesh_vertices_m), t_joint.mesh_faces) for T in placed.T_bin_from_model]
+    objects = [
+        (transform_points(T_cam_bin @ T, t_joint.mesh_vertices_m), t_joint.mesh_faces) for T in placed.T_bin_from_model
+    ]
     clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in bin_meshes(gen.bin)]
     together = render(objects + clutter, list(range(len(objects))) + [-1] * len(clutter), intr)
     over = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
@@ -81,7 +92,11 @@ def test_noise_grows_with_range_and_grazing_returns_drop():
         normals = np.broadcast_to(np.array([0, 0, -1], np.float32), xyz.shape).copy()
         from binpick.generation.camera import Render
 
-        noisy = apply_sensor_noise(Render(xyz, normals, np.zeros((H, W), np.int32)), changed(PARAMS.generate.noise, max_incidence_deg=89.0), rng)
+        noisy = apply_sensor_noise(
+            Render(xyz, normals, np.zeros((H, W), np.int32)),
+            changed(PARAMS.generate.noise, max_incidence_deg=89.0),
+            rng,
+        )
         out.append(np.nanstd((noisy.xyz_m - xyz)[..., 2]))
     expected = [0.0002 + 0.0004 * d**2 for d in (0.5, 1.5)]
     assert np.allclose(out, expected, rtol=0.1)
@@ -143,14 +158,21 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
     from binpick.generation.placement import place_objects
     from binpick.generation.scene import settle_in_bin
 
-    gen = changed(PARAMS.generate, placement=changed(PARAMS.generate.placement, mode="physics", heights="u_shaped", n_objects_min=10, n_objects_max=10))
+    gen = changed(
+        PARAMS.generate,
+        placement=changed(
+            PARAMS.generate.placement, mode="physics", heights="u_shaped", n_objects_min=10, n_objects_max=10
+        ),
+    )
     start = place_objects(t_joint.points_m, 10, gen.bin, gen.placement, np.random.default_rng(3)).T_bin_from_model
     runs = [settle_in_bin(t_joint, start, gen, np.random.default_rng(4)) for _ in range(2)]
     np.testing.assert_array_equal(runs[0], runs[1])
     settled = runs[0]
     assert len(settled) >= 8
     centres = settled[:, :3, :3] @ t_joint.centre_m + settled[:, :3, 3]
-    assert centres[:, 2].mean() < (start[:, :3, :3] @ t_joint.centre_m + start[:, :3, 3])[:, 2].mean() - 0.01  # they fell
+    assert (
+        centres[:, 2].mean() < (start[:, :3, :3] @ t_joint.centre_m + start[:, :3, 3])[:, 2].mean() - 0.01
+    )  # they fell
     half = np.array([gen.bin.inner_x_m, gen.bin.inner_y_m]) / 2
     assert (np.abs(centres[:, :2]) < half).all() and (centres[:, 2] > 0).all()
     assert max_penetration_mm(t_joint, settled, np.random.default_rng(0)) <= 1.0
@@ -166,7 +188,10 @@ def test_start_heights_follow_the_chosen_law():
     # U-shaped: the outer fifths hold far more than the middle fifth (Beta(0.5, 0.5): 0.59 vs 0.13)
     outer, middle = np.mean((u < 0.02) | (u > 0.08)), np.mean((u > 0.04) & (u < 0.06))
     assert outer > 0.5 and middle < 0.2
-    d = {start_height(rng, changed(PARAMS.generate.placement, heights="discrete", height_levels_m=[0.0, 0.05]), b) for _ in range(50)}
+    d = {
+        start_height(rng, changed(PARAMS.generate.placement, heights="discrete", height_levels_m=[0.0, 0.05]), b)
+        for _ in range(50)
+    }
     assert d == {0.0, 0.05}
     assert start_height(rng, PARAMS.generate.placement, b) == 0.0
 
@@ -183,15 +208,24 @@ def test_clutter_adds_distractors_and_tilts_the_camera(t_joint):
     off = PARAMS.generate.clutter.off()
     on = PARAMS.generate.model_copy(update={"clutter": changed(off, n_distractors_max=6, camera_tilt_deg_max=25.0)})
     busy = generate_scene(t_joint, on, camera, view, 3, n_objects=4)
-    tilted_only = generate_scene(t_joint, on.model_copy(update={"clutter": changed(on.clutter, n_distractors_max=0)}), camera, view, 3, n_objects=4)
+    tilted_only = generate_scene(
+        t_joint,
+        on.model_copy(update={"clutter": changed(on.clutter, n_distractors_max=0)}),
+        camera,
+        view,
+        3,
+        n_objects=4,
+    )
     # The camera's optical axis is no longer the bin's vertical, and the same tilt is drawn with
     # or without distractors (they are drawn last).
     assert abs(invert_T(busy.T_cam_from_bin)[2, 2]) < 0.9999
     assert np.allclose(busy.T_cam_from_bin, tilted_only.T_cam_from_bin)
+
     # Background points standing well above the bin floor that the plain scene does not have: distractors.
     def raised_background(scene):
         pts = scene.xyz_m.reshape(-1, 3)[scene.labels.reshape(-1) < 0]
         pts = pts[np.all(np.isfinite(pts), axis=1)]
         height = transform_points(invert_T(scene.T_cam_from_bin), pts)[:, 2]
         return int((height > 0.01).sum())
+
     assert raised_background(busy) > raised_background(tilted_only) + 50

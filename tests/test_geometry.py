@@ -62,8 +62,12 @@ def test_ransac_finds_the_largest_plane_the_same_way_every_time():
     same seed (the hypotheses and the stopping point follow the seed, not the threads); the
     wall's points are not its inliers."""
     rng = np.random.default_rng(3)
-    floor = np.column_stack([rng.uniform(-0.3, 0.3, 6000), rng.uniform(-0.3, 0.3, 6000), 0.8 + rng.normal(0, 0.0005, 6000)])
-    wall = np.column_stack([0.3 + rng.normal(0, 0.0005, 4000), rng.uniform(-0.3, 0.3, 4000), rng.uniform(0.5, 0.8, 4000)])
+    floor = np.column_stack(
+        [rng.uniform(-0.3, 0.3, 6000), rng.uniform(-0.3, 0.3, 6000), 0.8 + rng.normal(0, 0.0005, 6000)]
+    )
+    wall = np.column_stack(
+        [0.3 + rng.normal(0, 0.0005, 4000), rng.uniform(-0.3, 0.3, 4000), rng.uniform(0.5, 0.8, 4000)]
+    )
     pts = np.vstack([floor, wall])
     first, inliers = fit_plane_ransac(pts, 0.003, 1000, seed=7)
     assert abs(abs(first[2]) - 1.0) < 1e-3 and abs(abs(first[3]) - 0.8) < 1e-3

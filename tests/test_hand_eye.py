@@ -13,12 +13,20 @@ pytest.importorskip("cv2", reason="hand-eye calibration uses OpenCV (pip install
 
 def _random_T(rng, angle_deg, scale_m):
     axis = rng.normal(size=3)
-    return make_T(axis_angle_to_R(axis / np.linalg.norm(axis), np.radians(rng.uniform(-angle_deg, angle_deg))), rng.normal(0, scale_m, 3))
+    return make_T(
+        axis_angle_to_R(axis / np.linalg.norm(axis), np.radians(rng.uniform(-angle_deg, angle_deg))),
+        rng.normal(0, scale_m, 3),
+    )
 
 
 def _noisy(T, rng, mm, deg):
     axis = rng.normal(size=3)
-    return make_T(axis_angle_to_R(axis / np.linalg.norm(axis), np.radians(rng.normal(0, deg))), rng.normal(0, mm / 1000, 3)) @ T
+    return (
+        make_T(
+            axis_angle_to_R(axis / np.linalg.norm(axis), np.radians(rng.normal(0, deg))), rng.normal(0, mm / 1000, 3)
+        )
+        @ T
+    )
 
 
 def _angle_deg(R):
@@ -28,7 +36,10 @@ def _angle_deg(R):
 @pytest.mark.parametrize("setup", ["eye_to_hand", "eye_in_hand"])
 def test_the_known_camera_pose_is_recovered_under_noise(setup):
     rng = np.random.default_rng(0)
-    X = make_T(axis_angle_to_R(np.array([1.0, 0.2, 0.0]) / np.linalg.norm([1.0, 0.2, 0.0]), np.radians(150)), np.array([0.6, -0.1, 1.2]))
+    X = make_T(
+        axis_angle_to_R(np.array([1.0, 0.2, 0.0]) / np.linalg.norm([1.0, 0.2, 0.0]), np.radians(150)),
+        np.array([0.6, -0.1, 1.2]),
+    )
     board = _random_T(rng, 30, 0.1)
     flange = np.array([make_T(np.eye(3), np.array([0.5, 0.0, 0.4])) @ _random_T(rng, 35, 0.08) for _ in range(12)])
     if setup == "eye_to_hand":  # X = T_base_from_cam, board = T_flange_from_target
@@ -52,7 +63,12 @@ def test_ill_posed_sets_are_refused():
     shifted = np.array([make_T(np.eye(3), rng.normal(0, 0.1, 3)) for _ in range(5)])
     with pytest.raises(BinpickError, match="turns by less than"):
         solve_hand_eye(shifted, some, "eye_to_hand")
-    one_axis = np.array([make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(a)), rng.normal(0, 0.1, 3)) for a in (0, 20, 45, 70, 90)])
+    one_axis = np.array(
+        [
+            make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(a)), rng.normal(0, 0.1, 3))
+            for a in (0, 20, 45, 70, 90)
+        ]
+    )
     with pytest.raises(BinpickError, match="one axis only"):
         solve_hand_eye(one_axis, some, "eye_to_hand")
     with pytest.raises(BinpickError, match="one of each"):
@@ -80,7 +96,10 @@ def test_the_board_pose_is_found_in_a_rendered_image():
     """A 9 x 6 checkerboard of 25 mm squares rendered by ray casting at a known pose: found in the
     colour image alone (solvePnP) and with the organized cloud (rigid fit of the corners)."""
     pattern, square = (9, 6), 0.025
-    T = make_T(axis_angle_to_R(np.array([1.0, 0.3, 0.1]) / np.linalg.norm([1.0, 0.3, 0.1]), np.radians(20)), np.array([-0.1, -0.06, 0.6]))
+    T = make_T(
+        axis_angle_to_R(np.array([1.0, 0.3, 0.1]) / np.linalg.norm([1.0, 0.3, 0.1]), np.radians(20)),
+        np.array([-0.1, -0.06, 0.6]),
+    )
     image, xyz, K = _render_board(T, pattern, square)
     found = board_pose(image, pattern, square, K)
     assert found is not None
@@ -102,7 +121,9 @@ def test_the_command_calibrates_from_captures_of_a_board_on_the_flange(tmp_path)
 
     rng = np.random.default_rng(3)
     pattern, square = (7, 6), 0.03  # odd by even: the corner order cannot flip by half a turn
-    T_base_cam = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(180)), np.array([0.4, 0.0, 1.0]))  # looking down
+    T_base_cam = make_T(
+        axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(180)), np.array([0.4, 0.0, 1.0])
+    )  # looking down
     T_flange_board = make_T(np.eye(3), np.array([-0.09, -0.06, 0.02]))
     pairs = []
     for k in range(6):
@@ -112,19 +133,44 @@ def test_the_command_calibrates_from_captures_of_a_board_on_the_flange(tmp_path)
         T_cam_board = invert_T(T_base_cam) @ T_base_flange @ T_flange_board
         image, xyz, _ = _render_board(T_cam_board, pattern, square)
         H, W = image.shape
-        save_ply(tmp_path / f"cap{k}.ply", PointCloudData(xyz.reshape(-1, 3).astype(np.float32) * 1000.0,
-                                                           np.repeat(image.reshape(-1, 1), 3, 1), None, (H, W)))
+        save_ply(
+            tmp_path / f"cap{k}.ply",
+            PointCloudData(
+                xyz.reshape(-1, 3).astype(np.float32) * 1000.0, np.repeat(image.reshape(-1, 1), 3, 1), None, (H, W)
+            ),
+        )
         pairs.append({"capture": f"cap{k}.ply", "T_base_from_flange": T_base_flange.tolist()})
     (tmp_path / "pairs.json").write_text(json.dumps({"pairs": pairs}))
-    run = [sys.executable, "-m", "flows.cli", "hand-eye", "--pairs", str(tmp_path / "pairs.json"), "--pattern", "7x6",
-           "--square-mm", "30", "--out", str(tmp_path / "he.json")]
+    run = [
+        sys.executable,
+        "-m",
+        "flows.cli",
+        "hand-eye",
+        "--pairs",
+        str(tmp_path / "pairs.json"),
+        "--pattern",
+        "7x6",
+        "--square-mm",
+        "30",
+        "--out",
+        str(tmp_path / "he.json"),
+    ]
     proc = subprocess.run(run, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     found = np.asarray(json.loads((tmp_path / "he.json").read_text())["T_base_from_cam"])
-    assert np.linalg.norm(found[:3, 3] - T_base_cam[:3, 3]) < 0.005 and _angle_deg(found[:3, :3].T @ T_base_cam[:3, :3]) < 0.5
+    assert (
+        np.linalg.norm(found[:3, 3] - T_base_cam[:3, 3]) < 0.005
+        and _angle_deg(found[:3, :3].T @ T_base_cam[:3, :3]) < 0.5
+    )
     # --apply: the result becomes the pick setting, comments kept, the file still valid.
     (tmp_path / "params.yaml").write_text((ROOT / "params.yaml").read_text())
-    proc = subprocess.run([*run, "--apply", "--params", str(tmp_path / "params.yaml")], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    proc = subprocess.run(
+        [*run, "--apply", "--params", str(tmp_path / "params.yaml")],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     from binpick.params import load_params
 

@@ -59,9 +59,18 @@ CASES = {
     "mesh path": (lambda raw: raw["parts"]["t_joint"].__setitem__("mesh", f"data/parts/{HOSTILE}.stl"), "mesh path"),
     "mesh outside": (lambda raw: raw["parts"]["t_joint"].__setitem__("mesh", "../outside/part.stl"), "no '..'"),
     "mesh absolute": (lambda raw: raw["parts"]["t_joint"].__setitem__("mesh", "/etc/passwd"), "mesh path"),
-    "capture file": (lambda raw: raw["captures"]["demo"].__setitem__("file", f"data/captures/{HOSTILE}.ply"), "file path"),
-    "truth path": (lambda raw: raw["captures"]["demo"].__setitem__("truth", "data/x';touch INJECTED;'.json"), "truth path"),
-    "intrinsics path": (lambda raw: raw["captures"]["demo"].__setitem__("intrinsics", "data/`touch INJECTED`.json"), "intrinsics path"),
+    "capture file": (
+        lambda raw: raw["captures"]["demo"].__setitem__("file", f"data/captures/{HOSTILE}.ply"),
+        "file path",
+    ),
+    "truth path": (
+        lambda raw: raw["captures"]["demo"].__setitem__("truth", "data/x';touch INJECTED;'.json"),
+        "truth path",
+    ),
+    "intrinsics path": (
+        lambda raw: raw["captures"]["demo"].__setitem__("intrinsics", "data/`touch INJECTED`.json"),
+        "intrinsics path",
+    ),
 }
 
 
@@ -73,8 +82,13 @@ def test_names_and_paths_in_params_never_reach_a_shell(project, case):
     _one_error_line(_run(project, "-m", "flows.cli", "check"), "params.yaml", needle)
     _no_injection(project, before)
     # A stage DVC would start refuses to run on a params.yaml that no longer matches what DVC read.
-    proc = subprocess.run([sys.executable, "-m", "stages.ppf", "--part", "t_joint", "--model", "m.npz", "--out", "o.npz"],
-                          cwd=project, capture_output=True, text=True, env={**__import__("os").environ, "DVC_STAGE": "ppf@t_joint"})
+    proc = subprocess.run(
+        [sys.executable, "-m", "stages.ppf", "--part", "t_joint", "--model", "m.npz", "--out", "o.npz"],
+        cwd=project,
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, "DVC_STAGE": "ppf@t_joint"},
+    )
     _one_error_line(proc, "params.yaml")
     _no_injection(project, before)
 
@@ -115,14 +129,29 @@ def test_scenes_refuses_capture_files_whose_names_would_reach_a_shell(project):
 
 
 SETTINGS_MISTAKES = {
-    "misspelt section": (lambda raw: raw.__setitem__("trian", {"epochs": 3}), "unknown top-level key 'trian' (did you mean 'train'?)"),
+    "misspelt section": (
+        lambda raw: raw.__setitem__("trian", {"epochs": 3}),
+        "unknown top-level key 'trian' (did you mean 'train'?)",
+    ),
     "misspelt orchestration key": (lambda raw: raw["orchestration"].__setitem__("worker", 2), "orchestration.worker"),
     "bad value under an override": (lambda raw: raw["generate"].__setitem__("n_train", -5), "generate.n_train"),
-    "capture of an unknown part": (lambda raw: raw["captures"]["demo"].__setitem__("part", "gear"), "names part 'gear'"),
+    "capture of an unknown part": (
+        lambda raw: raw["captures"]["demo"].__setitem__("part", "gear"),
+        "names part 'gear'",
+    ),
     "negative seed": (lambda raw: raw.__setitem__("seed", -1), "seed"),
-    "typo in a part override": (lambda raw: raw["parts"]["t_joint"].__setitem__("train", {"epoch": 3}), "parts.t_joint: train.epoch"),
-    "misspelt profile section": (lambda raw: raw["profiles"]["quick"].__setitem__("trian", {}), "profiles.quick: 'trian'"),
-    "bad value in another profile": (lambda raw: raw["profiles"]["cpu"]["train"].__setitem__("epochs", 0), "profiles.cpu: train.epochs"),
+    "typo in a part override": (
+        lambda raw: raw["parts"]["t_joint"].__setitem__("train", {"epoch": 3}),
+        "parts.t_joint: train.epoch",
+    ),
+    "misspelt profile section": (
+        lambda raw: raw["profiles"]["quick"].__setitem__("trian", {}),
+        "profiles.quick: 'trian'",
+    ),
+    "bad value in another profile": (
+        lambda raw: raw["profiles"]["cpu"]["train"].__setitem__("epochs", 0),
+        "profiles.cpu: train.epochs",
+    ),
 }
 
 
@@ -132,7 +161,17 @@ def test_the_whole_settings_file_is_validated(project, case):
     _edit(project, change)
     _one_error_line(_run(project, "-m", "flows.cli", "check"), needle)
     # The stages validate the whole file too, whatever part of it they read.
-    proc = _run(project, "-m", "stages.ingest", "--part", "t_joint", "--mesh", "data/parts/t_joint.stl", "--out", "data/models/x/part.npz")
+    proc = _run(
+        project,
+        "-m",
+        "stages.ingest",
+        "--part",
+        "t_joint",
+        "--mesh",
+        "data/parts/t_joint.stl",
+        "--out",
+        "data/models/x/part.npz",
+    )
     _one_error_line(proc, needle)
     assert not (project / "data/models/x").exists()
 
@@ -150,7 +189,9 @@ def test_a_failing_capture_is_set_aside_and_blocks_nothing(project):
     assert "failed, set aside: bin_a (data/captures/monday/bin_a.ply:" in first.stdout
     assert "bin_a" not in yaml.safe_load((project / "data/pipeline.yaml").read_text())["stage_captures"]
     assert "bin_a" in yaml.safe_load((project / "data/set_aside.yaml").read_text())["captures"]
-    status = subprocess.run([sys.executable, "-m", "dvc", "status", "import_capture@demo"], cwd=project, capture_output=True, text=True)
+    status = subprocess.run(
+        [sys.executable, "-m", "dvc", "status", "import_capture@demo"], cwd=project, capture_output=True, text=True
+    )
     assert status.returncode == 0, status.stderr  # the rest of the pipeline still parses and runs
     second = _run(project, "-m", "flows.cli", "scenes", "data/captures/monday", "--part", "t_joint")
     assert second.returncode == 0 and "still set aside: bin_a" in second.stdout, second.stdout + second.stderr
@@ -172,8 +213,12 @@ def test_truth_and_intrinsics_files_are_dependencies(project):
     (project / "data/captures/cam/truth.json").write_text("{}")
 
     def add(raw):
-        raw["captures"]["cam"] = {"file": "data/captures/cam/depth.png", "part": "t_joint", "intrinsics": "data/captures/cam/k.json",
-                                  "truth": "data/captures/cam/truth.json"}
+        raw["captures"]["cam"] = {
+            "file": "data/captures/cam/depth.png",
+            "part": "t_joint",
+            "intrinsics": "data/captures/cam/k.json",
+            "truth": "data/captures/cam/truth.json",
+        }
         raw["captures"]["bare"] = {"file": "data/captures/cam/depth.png", "part": "t_joint"}
 
     _edit(project, add)

@@ -17,13 +17,19 @@ def _view(t_joint, rng):
     """Surface points of the T-joint facing +z (a camera's view from above), moved by a known pose,
     with 0.3 mm noise: (points (n, 3) scene frame, T_scene_from_model)."""
     facing = t_joint.normals[:, 2] > 0.2
-    T_scene_from_model = make_T(axis_angle_to_R(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), 0.7), np.array([0.02, -0.01, 0.45]))
+    T_scene_from_model = make_T(
+        axis_angle_to_R(np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8]), 0.7),
+        np.array([0.02, -0.01, 0.45]),
+    )
     points = transform_points(T_scene_from_model, t_joint.points_m[facing][::3])
     return points + rng.normal(0.0, 0.0003, points.shape), T_scene_from_model
 
 
 def _start(T_model_from_scene, angle_deg, offset_m):
-    nudge = make_T(axis_angle_to_R(np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0), np.radians(angle_deg)), np.array([offset_m, -offset_m, offset_m]))
+    nudge = make_T(
+        axis_angle_to_R(np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0), np.radians(angle_deg)),
+        np.array([offset_m, -offset_m, offset_m]),
+    )
     return nudge @ T_model_from_scene
 
 
@@ -33,7 +39,9 @@ def test_a_pose_off_by_degrees_and_millimetres_is_recovered(t_joint):
     T = point_to_plane_icp(scene, t_joint.points_m, t_joint.normals, _start(truth, 4.0, 0.002), 0.008, 30, 1e-6)
     # The model points where the pose found puts them, against where they are: 4 degrees and
     # 3.5 mm off at the start.
-    moved = np.linalg.norm(transform_points(invert_T(T), t_joint.points_m) - transform_points(T_scene_from_model, t_joint.points_m), axis=1)
+    moved = np.linalg.norm(
+        transform_points(invert_T(T), t_joint.points_m) - transform_points(T_scene_from_model, t_joint.points_m), axis=1
+    )
     assert moved.mean() < 0.0002, moved.mean()
     assert rotation_angle_deg(T[:3, :3], truth[:3, :3]) < 0.2
 
@@ -58,7 +66,10 @@ def test_points_beyond_the_distance_limit_do_not_pull():
 def test_the_same_input_gives_the_same_bits(t_joint):
     scene, T_scene_from_model = _view(t_joint, np.random.default_rng(2))
     start = _start(invert_T(T_scene_from_model), 3.0, 0.001)
-    results = {point_to_plane_icp(scene, t_joint.points_m, t_joint.normals, start, 0.006, 30, 1e-6).tobytes() for _ in range(20)}
+    results = {
+        point_to_plane_icp(scene, t_joint.points_m, t_joint.normals, start, 0.006, 30, 1e-6).tobytes()
+        for _ in range(20)
+    }
     assert len(results) == 1
 
 

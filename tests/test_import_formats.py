@@ -99,7 +99,10 @@ def test_real_zivid_export(shared_data):
     """The Zivid One CSV fragment: its last row is cut (6 of 7 columns). It is the first ~six
     image rows of a frame, a strip in which no support plane is defined: import keeps every
     point, in metres, and reports no plane."""
-    cap = load_capture(shared_data / "scans/zivid_one_fragment/zivid_one_fragment.csv", ImportOptions("mm", ("x", "y", "z", "r", "g", "b", "contrast")))
+    cap = load_capture(
+        shared_data / "scans/zivid_one_fragment/zivid_one_fragment.csv",
+        ImportOptions("mm", ("x", "y", "z", "r", "g", "b", "contrast")),
+    )
     assert len(cap.xyz_m) == 10970  # the 10,970 complete rows; the cut last row is skipped
     assert 1.0 < np.median(cap.xyz_m[:, 2]) < 1.3  # about a metre from the camera, in metres
     cloud = clean_capture(cap.xyz_m, cap.rgb, None, PARAMS.import_capture, 0)

@@ -77,7 +77,9 @@ def _t_joint_in_inches(tmp_path):
 
 
 def test_an_inch_part_declared_mm_is_refused_naming_the_unit(tmp_path):
-    with pytest.raises(InputError, match=r"read as 'mm' the part is 2\.691 mm across.*points per instance.*declare `unit: in`"):
+    with pytest.raises(
+        InputError, match=r"read as 'mm' the part is 2\.691 mm across.*points per instance.*declare `unit: in`"
+    ):
         ingest_part(_params_for(tmp_path, "mm"), "t_joint", _t_joint_in_inches(tmp_path))
 
 
@@ -113,8 +115,21 @@ def test_an_assembly_of_separate_bodies_is_refused(tmp_path):
 
 def test_the_stage_reports_a_wrong_unit_in_one_line(tmp_path):
     proc = subprocess.run(
-        [sys.executable, "-m", "stages.ingest", "--part", "t_joint", "--mesh", str(_t_joint_in_inches(tmp_path)), "--out", str(tmp_path / "p.npz")],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "stages.ingest",
+            "--part",
+            "t_joint",
+            "--mesh",
+            str(_t_joint_in_inches(tmp_path)),
+            "--out",
+            str(tmp_path / "p.npz"),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2 and "Traceback" not in proc.stderr
     assert [line for line in proc.stderr.splitlines() if line.startswith("error:")][0].endswith("(parts.t_joint.unit)")

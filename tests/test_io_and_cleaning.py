@@ -87,15 +87,26 @@ def test_cloud_and_pose_files_roundtrip(tmp_path):
     assert np.array_equal(back.points_m, cloud.points_m) and np.array_equal(back.pixel_index, cloud.pixel_index)
     T = np.eye(4)
     T[:3, 3] = [0.01, 0.02, 0.5]
-    written = [PartPose(T, 0.9, 3, visible_fraction=0.5), PartPose(T, 0.7, seen_through=0.123456, visible_support=0.9, turned_by_near_symmetry=True)]
+    written = [
+        PartPose(T, 0.9, 3, visible_fraction=0.5),
+        PartPose(T, 0.7, seen_through=0.123456, visible_support=0.9, turned_by_near_symmetry=True),
+    ]
     save_poses(tmp_path / "p.json", "t_joint", written)
     part, poses = load_poses(tmp_path / "p.json")
     assert part == "t_joint" and np.allclose(poses[0].T_cam_from_model, T) and poses[0].segment == 3
     assert (poses[0].visible_fraction, poses[0].seen_through, poses[0].turned_by_near_symmetry) == (0.5, None, False)
     # The typed fields are stored under "extra" as before, rounded only in the file.
     assert json.loads((tmp_path / "p.json").read_text())["poses"][1]["extra"] == {
-        "turned_by_near_symmetry": 1.0, "seen_through": 0.1235, "visible_support": 0.9}
-    assert (poses[1].seen_through, poses[1].visible_support, poses[1].turned_by_near_symmetry, poses[1].extra) == (0.1235, 0.9, True, None)
+        "turned_by_near_symmetry": 1.0,
+        "seen_through": 0.1235,
+        "visible_support": 0.9,
+    }
+    assert (poses[1].seen_through, poses[1].visible_support, poses[1].turned_by_near_symmetry, poses[1].extra) == (
+        0.1235,
+        0.9,
+        True,
+        None,
+    )
     (tmp_path / "bad.json").write_text('{"part": "x"}')
     with pytest.raises(InputError, match="bad.json"):
         load_poses(tmp_path / "bad.json")
@@ -107,7 +118,12 @@ def test_region_of_interest_in_a_bin_frame():
 
     xyz, on_box = _bin_frame()
     T_cam_bin = invert_T(T_bin_from_cam(0.5))  # bin floor 0.5 m below the camera, z up
-    roi = changed(PARAMS.import_capture, roi_min_m=(-0.02, -0.05, -0.01), roi_max_m=(0.05, 0.05, 0.1), T_cam_from_roi=tuple(map(tuple, T_cam_bin)))
+    roi = changed(
+        PARAMS.import_capture,
+        roi_min_m=(-0.02, -0.05, -0.01),
+        roi_max_m=(0.05, 0.05, 0.1),
+        T_cam_from_roi=tuple(map(tuple, T_cam_bin)),
+    )
     cloud = clean_capture(xyz, None, (240, 320), roi, 0)
     # Only the box top (30 mm above the floor) between x = -20 and +30 mm of the bin frame is left.
     x_bin = cloud.points_m[:, 0]  # the camera's x is the bin's x
@@ -146,7 +162,10 @@ def test_points_outside_the_bin_walls_are_dropped():
     outside = trimesh.creation.box(extents=[0.08, 0.05, 0.12])  # a carton beside the bin
     outside.apply_translation([bin_params.inner_x_m / 2 + 0.09, 0.0, 0.04])
     T_cam_bin = invert_T(T_bin_from_cam(0.8))  # far enough to see past the bin
-    meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(bin_params), table, inside, outside]]
+    meshes = [
+        (transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces))
+        for m in [*bin_meshes(bin_params), table, inside, outside]
+    ]
     labels = [-1] * (len(meshes) - 3) + [-1, 0, 1]
     camera = PARAMS.camera.model_copy(update={"downscale": 4})
     frame = render(meshes, labels, camera_of(camera))
@@ -186,7 +205,9 @@ def test_walls_are_found_under_a_heap_of_flat_layers():
     labels = [-1] * (len(scene) - len(plates) - 1) + [0] * len(plates) + [1]
     frame = render(meshes, labels, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
     H, W = frame.labels.shape
-    cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(PARAMS.import_capture, crop_to_walls=True), 0)
+    cloud = clean_capture(
+        frame.xyz_m.reshape(-1, 3), None, (H, W), changed(PARAMS.import_capture, crop_to_walls=True), 0
+    )
     kept = frame.labels.reshape(-1)[cloud.pixel_index]
     assert len(cloud.wall_planes) >= 2
     # Upright (the bin's walls are), and at the inner faces: 0.15 m and 0.10 m from the bin's axis.
@@ -211,7 +232,9 @@ def test_a_wall_runs_along_the_floor_and_a_part_side_does_not():
     assert _long_and_low(patch(-0.2, 0.2, 0.15, 3000), floor, plane, 0.02)
     side = patch(0.0, 0.08, 0.12, 600)
     assert not _long_and_low(side, floor, plane, 0.02)
-    assert not _long_and_low(np.vstack([side, patch(0.2, 0.26, 0.12, 400), patch(0.4, 0.45, 0.1, 300)]), floor, plane, 0.02)
+    assert not _long_and_low(
+        np.vstack([side, patch(0.2, 0.26, 0.12, 400), patch(0.4, 0.45, 0.1, 300)]), floor, plane, 0.02
+    )
 
 
 def test_walls_stand_square_to_each_other():
@@ -245,14 +268,31 @@ def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region()
 
     valid = np.isfinite(xyz).all(axis=1)
     r = np.linalg.norm(xyz.astype(np.float64), axis=1)
-    in_box = np.all((transform_points(T_roi_from_cam, xyz.astype(np.float64)) >= lo) & (transform_points(T_roi_from_cam, xyz.astype(np.float64)) <= hi), axis=1)
+    in_box = np.all(
+        (transform_points(T_roi_from_cam, xyz.astype(np.float64)) >= lo)
+        & (transform_points(T_roi_from_cam, xyz.astype(np.float64)) <= hi),
+        axis=1,
+    )
     keep = valid & (r >= params.min_range_m) & (r <= params.max_range_m) & in_box
     expected = np.flatnonzero(keep)[view_grid(xyz[keep], ViewParams.of_import(params))]
 
     got_valid, got_keep, lo_xyz, hi_xyz, key_lo, key_hi, n_valid, n_keep = _screen(
-        xyz, params.min_range_m**2, params.max_range_m**2, True, np.ascontiguousarray(T_roi_from_cam[:3, :3]), T_roi_from_cam[:3, 3].copy(), lo, hi, 1.0 / voxel
+        xyz,
+        params.min_range_m**2,
+        params.max_range_m**2,
+        True,
+        np.ascontiguousarray(T_roi_from_cam[:3, :3]),
+        T_roi_from_cam[:3, 3].copy(),
+        lo,
+        hi,
+        1.0 / voxel,
     )
-    assert np.array_equal(got_valid, valid) and np.array_equal(got_keep, keep) and n_valid == valid.sum() and n_keep == keep.sum()
+    assert (
+        np.array_equal(got_valid, valid)
+        and np.array_equal(got_keep, keep)
+        and n_valid == valid.sum()
+        and n_keep == keep.sum()
+    )
     assert np.allclose(lo_xyz, np.nanmin(xyz, axis=0)) and np.allclose(hi_xyz, np.nanmax(xyz, axis=0))
     span = key_hi - key_lo + 1
     kept, flat = _kept_voxel_keys(xyz, got_keep, n_keep, key_lo, span, 1.0 / voxel)

@@ -32,7 +32,9 @@ def test_loading_every_library_module_loads_no_framework():
         "[importlib.import_module(m) for m in all_modules('binpick')]\n"
         f"print(sorted({{m.split('.')[0] for m in sys.modules}} & set({FORBIDDEN_IN_LIBRARY!r})))"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT / "tests", capture_output=True, text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT / "tests", capture_output=True, text=True, check=True
+    ).stdout
     assert out.strip() == "[]"
 
 
@@ -72,13 +74,21 @@ def test_training_depends_on_no_registration_or_picking_code():
     """A change to registration, verification or picking re-runs verify and the scene stages,
     never a network's training (10 minutes to hours a part); picking needs no network."""
     stages = {name: (module, deps) for name, module, deps in _stages()}
-    scene_code = ("binpick/registration", "binpick/picking/plan.py", "binpick/scene", "binpick/scene/verification_threshold.py", "binpick/picking/gripper.py")
+    scene_code = (
+        "binpick/registration",
+        "binpick/picking/plan.py",
+        "binpick/scene",
+        "binpick/scene/verification_threshold.py",
+        "binpick/picking/gripper.py",
+    )
     module, deps = stages["train"]
     imported = [p.relative_to(ROOT).as_posix() for p in closure(module).values()]
     assert not [d for d in deps if d.startswith(scene_code)]
     assert not [f for f in imported if f.startswith(scene_code[:-1])]
     module, deps = stages["pick"]
-    assert not [f for f in (p.relative_to(ROOT).as_posix() for p in closure(module).values()) if f.startswith("binpick/network")]
+    assert not [
+        f for f in (p.relative_to(ROOT).as_posix() for p in closure(module).values()) if f.startswith("binpick/network")
+    ]
 
 
 def test_the_library_starts_no_application_process():
@@ -87,5 +97,9 @@ def test_the_library_starts_no_application_process():
     import re
 
     pattern = re.compile(r"""["']-m["']\s*,\s*["'](flows|stages)\b|-m (flows|stages)\.""")
-    offences = [f"{module_file(name).relative_to(ROOT)}" for name in all_modules("binpick") if pattern.search(module_file(name).read_text())]
+    offences = [
+        f"{module_file(name).relative_to(ROOT)}"
+        for name in all_modules("binpick")
+        if pattern.search(module_file(name).read_text())
+    ]
     assert not offences, offences

@@ -10,9 +10,17 @@ from binpick.layout import Layout
 
 ROOT = Path(__file__).resolve().parents[1]
 PART, CAPTURE = "sample_part", "sample_capture"
-ITEM = {"mesh": "data/parts/sample_part.stl", "grasps": "", "grasps_dep": "data/parts/sample_part.stl", "part": PART,
-        "file": "data/captures/c.ply", "truth": "", "truth_dep": "data/captures/c.ply", "intrinsics": "",
-        "intrinsics_dep": "data/captures/c.ply"}
+ITEM = {
+    "mesh": "data/parts/sample_part.stl",
+    "grasps": "",
+    "grasps_dep": "data/parts/sample_part.stl",
+    "part": PART,
+    "file": "data/captures/c.ply",
+    "truth": "",
+    "truth_dep": "data/captures/c.ply",
+    "intrinsics": "",
+    "intrinsics_dep": "data/captures/c.ply",
+}
 
 
 def _render(value: str, key: str) -> str:
@@ -25,7 +33,9 @@ def _render(value: str, key: str) -> str:
 def _stage_files(stage: dict, key: str) -> tuple[set[str], set[str]]:
     """(outs and metrics, data/ deps) of one foreach stage rendered for `key`."""
     do = stage["do"]
-    outs = {_render(o if isinstance(o, str) else next(iter(o)), key) for o in do.get("outs", []) + do.get("metrics", [])}
+    outs = {
+        _render(o if isinstance(o, str) else next(iter(o)), key) for o in do.get("outs", []) + do.get("metrics", [])
+    }
     deps = {_render(d, key) for d in do.get("deps", []) if d.startswith(("data/", "${item"))}
     return outs, {d for d in deps if d.startswith("data/") and not d.startswith(("data/parts/", "data/captures/"))}
 
@@ -60,5 +70,11 @@ def test_dvc_outs_are_the_layout_paths():
 
 def test_layout_is_under_the_root(tmp_path):
     L = Layout(tmp_path)
-    for path in (L.checkpoint("p"), L.poses("c"), L.labelled_capture("p", "c"), L.pipeline_vars, L.scene_metrics("c", "pick")):
+    for path in (
+        L.checkpoint("p"),
+        L.poses("c"),
+        L.labelled_capture("p", "c"),
+        L.pipeline_vars,
+        L.scene_metrics("c", "pick"),
+    ):
         assert path.is_relative_to(tmp_path / "data")

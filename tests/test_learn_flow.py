@@ -22,27 +22,54 @@ from flows.learn import approved_captures, finetune, heldout, no_worse, pending_
 from settings import PARAMS, changed
 
 PART = "toy"
-TRAIN = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=2, loss_anchors=64, patience_epochs=10)
+TRAIN = changed(
+    PARAMS.train,
+    width=8,
+    embedding_dim=4,
+    k_neighbours=8,
+    n_points=200,
+    batch_size=2,
+    epochs=2,
+    loss_anchors=64,
+    patience_epochs=10,
+)
 
 
 def _patches(rng, k):
     """k flat 3 cm squares 5 cm apart, 100 points each: points (100 k, 3), labels (100 k,)."""
-    pts = np.concatenate([rng.uniform([0.05 * i, 0, 0.5], [0.05 * i + 0.03, 0.03, 0.5], (100, 3)) for i in range(k)]).astype(np.float32)
+    pts = np.concatenate(
+        [rng.uniform([0.05 * i, 0, 0.5], [0.05 * i + 0.03, 0.03, 0.5], (100, 3)) for i in range(k)]
+    ).astype(np.float32)
     return pts, np.repeat(np.arange(k), 100).astype(np.int16)
 
 
 def _scene(rng) -> SyntheticScene:
     pts, labels = _patches(rng, int(rng.integers(2, 5)))
-    return SyntheticScene(np.zeros((1, 1, 3), np.float32), np.full((1, 1), -1, np.int16), np.eye(3), np.zeros((0, 4, 4)), np.zeros(0), np.eye(4),
-                          pts, np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)), labels)
+    return SyntheticScene(
+        np.zeros((1, 1, 3), np.float32),
+        np.full((1, 1), -1, np.int16),
+        np.eye(3),
+        np.zeros((0, 4, 4)),
+        np.zeros(0),
+        np.eye(4),
+        pts,
+        np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)),
+        labels,
+    )
 
 
 def _capture(rng) -> LabelledCapture:
     """Three patches, the last one unexplained (ignored)."""
     pts, labels = _patches(rng, 3)
     labels[labels == 2] = IGNORE
-    return LabelledCapture(pts, np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)), labels, np.tile(np.eye(4), (2, 1, 1)),
-                           np.array([0.8, 0.7]), np.asarray(0.002))
+    return LabelledCapture(
+        pts,
+        np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)),
+        labels,
+        np.tile(np.eye(4), (2, 1, 1)),
+        np.array([0.8, 0.7]),
+        np.asarray(0.002),
+    )
 
 
 @pytest.fixture
@@ -57,25 +84,42 @@ def project(tmp_path):
     from binpick.network.train import load_views
 
     scenes = tmp_path / "data" / "scenes" / PART
-    train_fpcc(load_views(scenes / "train"), load_views(scenes / "val"), TRAIN, 0.02, 1, tmp_path / "work", PART, 0.06, progress=False)
+    train_fpcc(
+        load_views(scenes / "train"),
+        load_views(scenes / "val"),
+        TRAIN,
+        0.02,
+        1,
+        tmp_path / "work",
+        PART,
+        0.06,
+        progress=False,
+    )
     (tmp_path / "data" / "fpcc" / PART).mkdir(parents=True)
     (tmp_path / "work" / "best.pt").replace(tmp_path / "data" / "fpcc" / PART / "model.pt")
     (tmp_path / "data" / "models" / PART).mkdir(parents=True)
     save_part_model(tmp_path / "data" / "models" / PART / "part.npz", box_part_model([0.03, 0.03, 0.002]))
     folder = Layout(tmp_path).real(PART)
     folder.mkdir(parents=True)
-    names = [n for n in (f"c{i}" for i in range(40)) if heldout(n, 0.5)][:2] + [n for n in (f"c{i}" for i in range(40)) if not heldout(n, 0.5)][:2]
+    names = [n for n in (f"c{i}" for i in range(40)) if heldout(n, 0.5)][:2] + [
+        n for n in (f"c{i}" for i in range(40)) if not heldout(n, 0.5)
+    ][:2]
     for name in names:
         save_labelled_capture(folder / f"{name}.npz", _capture(rng))
     return tmp_path
 
 
 def _settings(tmp_path, **learn):
-    return PARAMS.model_copy(update={
-        "train": TRAIN, "segment": changed(PARAMS.segment, n_points=200, min_points=10),
-        "learn": changed(PARAMS.learn, **{"min_new_scenes": 4, "finetune_epochs": 1, "heldout_share": 0.5, **learn}),
-        "tracking": changed(PARAMS.tracking, mlflow_uri=f"sqlite:///{tmp_path / 'mlflow' / 'mlflow.db'}"),
-    })
+    return PARAMS.model_copy(
+        update={
+            "train": TRAIN,
+            "segment": changed(PARAMS.segment, n_points=200, min_points=10),
+            "learn": changed(
+                PARAMS.learn, **{"min_new_scenes": 4, "finetune_epochs": 1, "heldout_share": 0.5, **learn}
+            ),
+            "tracking": changed(PARAMS.tracking, mlflow_uri=f"sqlite:///{tmp_path / 'mlflow' / 'mlflow.db'}"),
+        }
+    )
 
 
 def test_captures_are_learnt_from_only_once_approved_as_they_are(project):
@@ -90,7 +134,9 @@ def test_captures_are_learnt_from_only_once_approved_as_they_are(project):
     # Labelled again (other content): reviewed again before it is used.
     again = folder / f"{shown.pending[1]}.npz"
     save_labelled_capture(again, _capture(np.random.default_rng(99)))
-    assert [p.stem for p in pending_captures(folder)] == [again.stem] and again.stem not in [p.stem for p in approved_captures(folder)]
+    assert [p.stem for p in pending_captures(folder)] == [again.stem] and again.stem not in [
+        p.stem for p in approved_captures(folder)
+    ]
     assert json.loads((folder / "reviewed.json").read_text())[shown.pending[0]]["approved"] is False
 
 
@@ -110,7 +156,9 @@ def test_finetuning_waits_for_enough_new_captures_then_serves_a_network_no_worse
     extra = read_checkpoint(served)["extra"]
     assert extra["finetuned_from"] == read_checkpoint(base)["sha256"]
     # It learnt from the two captures the hash does not hold back.
-    assert extra["real_scenes"] == sorted(p.stem for p in Layout(project).real(PART).glob("*.npz") if not heldout(p.stem, 0.5))
+    assert extra["real_scenes"] == sorted(
+        p.stem for p in Layout(project).real(PART).glob("*.npz") if not heldout(p.stem, 0.5)
+    )
     mlflow.set_tracking_uri(f"sqlite:///{project / 'mlflow' / 'mlflow.db'}")
     version = mlflow.MlflowClient().get_model_version_by_alias(f"fpcc-{PART}", PARAMS.learn.serve_alias)
     assert str(version.version) == result["version"]

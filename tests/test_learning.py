@@ -26,7 +26,14 @@ def captured(t_joint):
     """A rendered bin of 6 parts as the import stage cleans it, with each cleaned point's true
     instance (from the rendered label image; -1 = bin or floor)."""
     plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})
-    scene = generate_scene(t_joint, plain, changed(PARAMS.camera, downscale=2), ViewParams.of_import(PARAMS.import_capture), 11, n_objects=6)
+    scene = generate_scene(
+        t_joint,
+        plain,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams.of_import(PARAMS.import_capture),
+        11,
+        n_objects=6,
+    )
     H, W = scene.labels.shape
     cloud = clean(scene.xyz_m.reshape(-1, 3), None, (H, W), PARAMS.import_capture, 0)
     truth = scene.labels.reshape(-1)[cloud.pixel_index]
@@ -35,7 +42,10 @@ def captured(t_joint):
 
 def _poses(scene, trusted_ids):
     """The rendered poses, those in trusted_ids scored with margin, the others just passing."""
-    return [PartPose(T, MIN_SCORE + (MARGIN + 0.05 if i in trusted_ids else 0.05)) for i, T in enumerate(scene.T_cam_from_model)]
+    return [
+        PartPose(T, MIN_SCORE + (MARGIN + 0.05 if i in trusted_ids else 0.05))
+        for i, T in enumerate(scene.T_cam_from_model)
+    ]
 
 
 def test_a_capture_labelled_from_known_poses_labels_every_point_of_those_parts(captured, t_joint):
@@ -44,13 +54,22 @@ def test_a_capture_labelled_from_known_poses_labels_every_point_of_those_parts(c
     assert len(seen) >= 4, "the rendered bin should show at least 4 parts"
     trusted_ids = set(seen[:-1])
     untrusted = seen[-1]
-    labelled = label_capture(cloud, _poses(scene, trusted_ids), t_joint.points_m, t_joint.diameter_m, MIN_SCORE, MARGIN,
-                             PARAMS.import_capture.voxel_size_m)
+    labelled = label_capture(
+        cloud,
+        _poses(scene, trusted_ids),
+        t_joint.points_m,
+        t_joint.diameter_m,
+        MIN_SCORE,
+        MARGIN,
+        PARAMS.import_capture.voxel_size_m,
+    )
     # Trusted poses keep the rendered order, so trusted pose j is instance sorted(trusted_ids)[j].
     instance_of = np.array(sorted(trusted_ids))
     assert len(labelled.T_cam_from_model) == len(trusted_ids)
     for j, i in enumerate(instance_of):
-        np.testing.assert_array_equal(labelled.labels[truth == i], j, err_msg=f"a point of trusted part {i} is not labelled as it")
+        np.testing.assert_array_equal(
+            labelled.labels[truth == i], j, err_msg=f"a point of trusted part {i} is not labelled as it"
+        )
     # The part that just passed, and whatever is not a part, is ignored: not called another part.
     assert np.all(labelled.labels[truth == untrusted] == IGNORE)
     assert np.all(labelled.labels[truth < 0] == IGNORE)
@@ -58,7 +77,15 @@ def test_a_capture_labelled_from_known_poses_labels_every_point_of_those_parts(c
 
 def test_labels_survive_the_file(captured, t_joint, tmp_path):
     scene, cloud, _ = captured
-    labelled = label_capture(cloud, _poses(scene, {0, 1}), t_joint.points_m, t_joint.diameter_m, MIN_SCORE, MARGIN, PARAMS.import_capture.voxel_size_m)
+    labelled = label_capture(
+        cloud,
+        _poses(scene, {0, 1}),
+        t_joint.points_m,
+        t_joint.diameter_m,
+        MIN_SCORE,
+        MARGIN,
+        PARAMS.import_capture.voxel_size_m,
+    )
     save_labelled_capture(tmp_path / "c.npz", labelled)
     back = load_labelled_capture(tmp_path / "c.npz")
     np.testing.assert_array_equal(back.labels, labelled.labels)
@@ -67,7 +94,9 @@ def test_labels_survive_the_file(captured, t_joint, tmp_path):
 
 def test_a_point_goes_to_the_nearest_trusted_surface_within_reach():
     # Two unit-spaced planes of model points; a point 1 mm off the first is its, 4 mm off is nobody's.
-    grid = np.stack(np.meshgrid(np.linspace(-0.02, 0.02, 41), np.linspace(-0.02, 0.02, 41), [0.0]), axis=-1).reshape(-1, 3)
+    grid = np.stack(np.meshgrid(np.linspace(-0.02, 0.02, 41), np.linspace(-0.02, 0.02, 41), [0.0]), axis=-1).reshape(
+        -1, 3
+    )
     T0, T1 = np.eye(4), np.eye(4)
     T0[:3, 3] = [0.0, 0.0, 0.5]
     T1[:3, 3] = [0.0, 0.0, 0.51]

@@ -2,7 +2,15 @@ import numpy as np
 
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import axis_angle_to_R, make_T
-from binpick.metrics.pose import add, add_s, mssd, pose_errors, rotation_error_deg, scene_pose_metrics, translation_error_m
+from binpick.metrics.pose import (
+    add,
+    add_s,
+    mssd,
+    pose_errors,
+    rotation_error_deg,
+    scene_pose_metrics,
+    translation_error_m,
+)
 from binpick.metrics.segmentation import iou_matrix, scene_counts
 from binpick.params import SymmetryParams
 
@@ -37,7 +45,9 @@ def test_pose_errors_recover_known_offsets():
     T = make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.3), np.array([0.0, 0.0, 0.5]))
     shifted = T.copy()
     shifted[:3, 3] += [0.002, 0.0, 0.0]
-    assert np.isclose(translation_error_m(shifted, T, np.array([5.0, 0, 0])), 0.002)  # a pure shift moves every point alike
+    assert np.isclose(
+        translation_error_m(shifted, T, np.array([5.0, 0, 0])), 0.002
+    )  # a pure shift moves every point alike
     assert np.isclose(add(shifted, T, pts), 0.002)
     rotated = T @ make_T(axis_angle_to_R(np.array([1.0, 0, 0]), np.radians(10)), np.zeros(3))
     assert np.isclose(rotation_error_deg(rotated, T), 10.0)

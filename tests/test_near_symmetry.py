@@ -35,7 +35,9 @@ def mug():
     handle.apply_translation(HANDLE_CENTRE_M)
     mesh = trimesh.util.concatenate([body, handle])
     part = make_part_model("mug", mesh, SymmetryParams(), 8000, np.random.default_rng(0), "m")
-    return mesh, train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration)
+    return mesh, train_ppf(
+        part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration
+    )
 
 
 def _axis_of(T: np.ndarray) -> np.ndarray:
@@ -60,7 +62,14 @@ def test_a_mugs_turns_about_its_axis_are_near_symmetries_and_no_turn_of_the_t_jo
 def test_a_plain_cylinders_turns_are_exact_symmetries_and_not_tried():
     """A part with an undeclared symmetry (a spacer dropped in without params): its turns map all of
     it onto itself, so none is a near symmetry to try at every pose."""
-    spacer = make_part_model("spacer", trimesh.creation.cylinder(radius=9.0, height=30.0, sections=48), SymmetryParams(), 8000, np.random.default_rng(0), "mm")
+    spacer = make_part_model(
+        "spacer",
+        trimesh.creation.cylinder(radius=9.0, height=30.0, sections=48),
+        SymmetryParams(),
+        8000,
+        np.random.default_rng(0),
+        "mm",
+    )
     inlier = PARAMS.registration.score_inlier_rel * spacer.diameter_m
     assert len(near_symmetries(spacer.points_m, symmetry_transforms(spacer.symmetry), inlier)) == 0
 
@@ -74,7 +83,9 @@ def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mu
     floor.apply_translation((0.0, 0.0, 0.655))
     intr = PinholeCamera(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
     vertices = transform_points(T_true, np.asarray(mesh.vertices))
-    frame = render([(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
+    frame = render(
+        [(vertices, np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr
+    )
     cloud = clean(frame.xyz_m.reshape(-1, 3), None, (intr.height, intr.width), PARAMS.import_capture, seed=0)
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
     scales = Scales.of(ppf, PARAMS.registration)
@@ -84,7 +95,9 @@ def test_a_pose_with_the_handle_where_the_camera_saw_the_floor_is_turned_back(mu
     def handle_off_mm(T: np.ndarray) -> float:
         """How far the posed handle's centre lies from the true one (the test mug's body is also
         symmetric under a half turn about the handle's axis, which keeps the handle in place)."""
-        return 1000.0 * float(np.linalg.norm(transform_points(T, HANDLE_CENTRE_M[None]) - transform_points(T_true, HANDLE_CENTRE_M[None])))
+        return 1000.0 * float(
+            np.linalg.norm(transform_points(T, HANDLE_CENTRE_M[None]) - transform_points(T_true, HANDLE_CENTRE_M[None]))
+        )
 
     half_turn = next(S for S in ppf.near_symmetries if abs(_axis_of(S)[2]) > 0.99 and abs(S[0, 0] + 1.0) < 0.01)
     assert handle_off_mm(T_true @ half_turn) > 70.0  # the handle on the other side
@@ -104,7 +117,9 @@ def lidded_cup():
     bar.apply_translation((0.012, 0.0, 0.0525))
     mesh = trimesh.util.concatenate([body, bar])
     part = make_part_model("lidded_cup", mesh, SymmetryParams(), 20000, np.random.default_rng(0), "m")
-    return mesh, train_ppf(part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration)
+    return mesh, train_ppf(
+        part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration
+    )
 
 
 @pytest.mark.parametrize(("noise_m", "seed"), [(0.0005, 0), (0.0005, 1), (0.0015, 0), (0.0015, 1)])
@@ -117,7 +132,14 @@ def test_a_turned_pose_is_turned_back_by_a_relief_on_the_lid_at_low_and_high_noi
     floor = trimesh.creation.box(extents=(1.0, 1.0, 0.01))
     floor.apply_translation((0.0, 0.0, 0.505))
     intr = PinholeCamera(width=320, height=240, fx=400.0, fy=400.0, cx=159.5, cy=119.5)
-    frame = render([(transform_points(T_true, np.asarray(mesh.vertices)), np.asarray(mesh.faces)), (np.asarray(floor.vertices), np.asarray(floor.faces))], [0, -1], intr)
+    frame = render(
+        [
+            (transform_points(T_true, np.asarray(mesh.vertices)), np.asarray(mesh.faces)),
+            (np.asarray(floor.vertices), np.asarray(floor.faces)),
+        ],
+        [0, -1],
+        intr,
+    )
     xyz = frame.xyz_m.reshape(-1, 3).astype(np.float64)
     rng = np.random.default_rng(seed)
     xyz = xyz * (1.0 + rng.normal(0.0, noise_m, len(xyz)) / np.maximum(xyz[:, 2], 1e-6))[:, None]  # along the ray

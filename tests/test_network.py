@@ -61,7 +61,9 @@ def test_edgeconv_equals_the_mlp_applied_to_every_edge(training):
 def test_forward_shapes(backbone):
     model = FPCC(FPCCConfig(backbone=backbone, k_neighbours=8, width=16, embedding_dim=12))
     p = torch.rand(2, 256, 3) * 0.1
-    emb, ctr = model(input_features(p, torch.nn.functional.normalize(torch.randn(2, 256, 3), dim=-1), "normals", 0.03), p)
+    emb, ctr = model(
+        input_features(p, torch.nn.functional.normalize(torch.randn(2, 256, 3), dim=-1), "normals", 0.03), p
+    )
     assert emb.shape == (2, 256, 12) and ctr.shape == (2, 256)
     assert ctr.min() >= 0 and ctr.max() <= 1
 
@@ -125,8 +127,14 @@ def test_cluster_matches_the_rule_read_literally():
     points = rng.normal(size=(6, 3))[truth] * 0.1 + rng.normal(scale=0.01, size=(600, 3))
     embedding = rng.normal(size=(6, 16))[truth] * 2.0 + rng.normal(scale=0.3, size=(600, 16))
     centre = rng.random(600)
-    for params in (ClusterParams(0.5, 0.03, 1.5, 5), ClusterParams(0.2, 0.01, 2.5, 1), ClusterParams(0.8, 0.1, 1.6, 20)):
-        assert np.array_equal(cluster(points, embedding, centre, params), _cluster_by_definition(points, embedding, centre, params))
+    for params in (
+        ClusterParams(0.5, 0.03, 1.5, 5),
+        ClusterParams(0.2, 0.01, 2.5, 1),
+        ClusterParams(0.8, 0.1, 1.6, 20),
+    ):
+        assert np.array_equal(
+            cluster(points, embedding, centre, params), _cluster_by_definition(points, embedding, centre, params)
+        )
 
 
 class _OracleNet(torch.nn.Module):
@@ -148,7 +156,9 @@ class _OracleNet(torch.nn.Module):
 
 def test_block_inference_labels_every_point_and_merges_across_blocks():
     rng = np.random.default_rng(0)
-    pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (700, 3)) for b in range(3)])
+    pts = np.concatenate(
+        [rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (700, 3)) for b in range(3)]
+    )
     normals = np.tile([0.0, 0.0, -1.0], (len(pts), 1))
     truth = np.repeat(np.arange(3), 700)
     # Blocks of 1,000 points, parts of 700: as in a real bin, a block holds a part or more (a
@@ -174,7 +184,9 @@ def _toy_views(n_scenes, rng):
     P, N, L = [], [], []
     for _ in range(n_scenes):
         k = rng.integers(2, 5)
-        pts = np.concatenate([rng.uniform([0.05 * i, 0, 0.5], [0.05 * i + 0.03, 0.03, 0.5], (100, 3)) for i in range(k)])
+        pts = np.concatenate(
+            [rng.uniform([0.05 * i, 0, 0.5], [0.05 * i + 0.03, 0.03, 0.5], (100, 3)) for i in range(k)]
+        )
         P.append(pts.astype(np.float32))
         N.append(np.tile(np.array([0, 0, -1], np.float32), (len(pts), 1)))
         L.append(np.repeat(np.arange(k), 100))
@@ -184,9 +196,21 @@ def _toy_views(n_scenes, rng):
 def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path, caplog):
     rng = np.random.default_rng(0)
     train, val = _toy_views(6, rng), _toy_views(2, rng)
-    params = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=3, loss_anchors=64, patience_epochs=10)
+    params = changed(
+        PARAMS.train,
+        width=8,
+        embedding_dim=4,
+        k_neighbours=8,
+        n_points=200,
+        batch_size=2,
+        epochs=3,
+        loss_anchors=64,
+        patience_epochs=10,
+    )
     full, m_full = train_fpcc(train, val, params, 0.02, 5, tmp_path / "a", "toy", 0.06, progress=False)
-    train_fpcc(train, val, params.model_copy(update={"epochs": 2}), 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False)
+    train_fpcc(
+        train, val, params.model_copy(update={"epochs": 2}), 0.02, 5, tmp_path / "b", "toy", 0.06, progress=False
+    )
     # Stand-in for a run that crashed after two epochs: the two-epoch run's last.pt, relabelled
     # with the three-epoch params. Training on must then end exactly where the full run ended.
     state = torch.load(tmp_path / "b" / "last.pt", weights_only=True)
@@ -203,7 +227,17 @@ def test_training_resumes_to_the_same_weights_as_an_uninterrupted_run(tmp_path, 
 def test_a_damaged_resume_point_restarts_training_with_a_warning(tmp_path, caplog):
     rng = np.random.default_rng(0)
     train, val = _toy_views(4, rng), _toy_views(2, rng)
-    params = changed(PARAMS.train, width=8, embedding_dim=4, k_neighbours=8, n_points=200, batch_size=2, epochs=2, loss_anchors=64, patience_epochs=10)
+    params = changed(
+        PARAMS.train,
+        width=8,
+        embedding_dim=4,
+        k_neighbours=8,
+        n_points=200,
+        batch_size=2,
+        epochs=2,
+        loss_anchors=64,
+        patience_epochs=10,
+    )
     (tmp_path / "w").mkdir()
     (tmp_path / "w" / "last.pt").write_bytes(b"PK\x03\x04 truncated by a crash")
     with caplog.at_level("WARNING", logger="binpick.network.train"):
@@ -256,11 +290,21 @@ def test_calibration_finds_the_embedding_threshold_that_separates_the_instances(
     rng = np.random.default_rng(0)
     views = []
     for _ in range(2):
-        pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)])
+        pts = np.concatenate(
+            [rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)]
+        )
         views.append((pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)), np.repeat(np.arange(3), 300)))
     net = _CloseBandsNet()
-    default = segment_scene(net, views[0][0], views[0][1], "normals", 0.03, 2048,
-                            ClusterParams(DEFAULT_CENTRE_THRESHOLD, 0.03, DEFAULT_EMBEDDING_THRESHOLD, 10), np.random.default_rng(1))
+    default = segment_scene(
+        net,
+        views[0][0],
+        views[0][1],
+        "normals",
+        0.03,
+        2048,
+        ClusterParams(DEFAULT_CENTRE_THRESHOLD, 0.03, DEFAULT_EMBEDDING_THRESHOLD, 10),
+        np.random.default_rng(1),
+    )
     assert scene_counts(default, views[0][2], 0.5).summary()["precision"] < 0.5
     chosen = calibrate_clustering(net, views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1))
     assert chosen["embedding_threshold"] < 1.3 and chosen["precision"] == chosen["recall"] == 1.0
@@ -285,16 +329,27 @@ def test_calibration_drops_slivers_by_instance_size():
     rng = np.random.default_rng(0)
     views = []
     for _ in range(2):
-        pts = np.concatenate([rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)])
+        pts = np.concatenate(
+            [rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)]
+        )
         views.append((pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)), np.repeat(np.arange(3), 300)))
     sliver_points = max(int(np.sum(p[:, 0] - np.floor((p[:, 0] + 0.05) / 0.1) * 0.1 > 0.03)) for p, _, _ in views) // 3
-    kept_all = segment_scene(_SliverNet(), views[0][0], views[0][1], "normals", 0.03, 2048, ClusterParams(0.5, 0.03, 1.5, 10), rng)
+    kept_all = segment_scene(
+        _SliverNet(), views[0][0], views[0][1], "normals", 0.03, 2048, ClusterParams(0.5, 0.03, 1.5, 10), rng
+    )
     assert len(np.unique(kept_all[kept_all >= 0])) == 6  # three parts and their three slivers
-    chosen = calibrate_clustering(_SliverNet(), views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1))
+    chosen = calibrate_clustering(
+        _SliverNet(), views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1)
+    )
     assert chosen["precision"] == chosen["recall"] == 1.0
     assert sliver_points < chosen["min_instance_points"] < 300 - sliver_points
-    calibrated = CalibratedClustering(chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"]))
-    assert cluster_params(changed(PARAMS.segment, min_points=10), 0.1, calibrated).min_points == chosen["min_instance_points"]
+    calibrated = CalibratedClustering(
+        chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"])
+    )
+    assert (
+        cluster_params(changed(PARAMS.segment, min_points=10), 0.1, calibrated).min_points
+        == chosen["min_instance_points"]
+    )
 
 
 def test_segment_params_override_calibrated_thresholds():
@@ -319,9 +374,15 @@ def test_scenes_that_show_no_part_are_left_out_of_training_and_none_at_all_is_re
     from binpick.network.train import load_views
     from binpick.view import ViewParams
 
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=8), ViewParams(0.002, 0.006), seed=3, n_objects=2)
-    empty = dataclasses.replace(scene, view_points_m=np.zeros((0, 3), np.float32), view_normals=np.zeros((0, 3), np.float32),
-                                view_labels=np.zeros(0, np.int16))
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=8), ViewParams(0.002, 0.006), seed=3, n_objects=2
+    )
+    empty = dataclasses.replace(
+        scene,
+        view_points_m=np.zeros((0, 3), np.float32),
+        view_normals=np.zeros((0, 3), np.float32),
+        view_labels=np.zeros(0, np.int16),
+    )
     save_scene(tmp_path / "mixed" / "scene_000000.npz", scene, png=False)
     save_scene(tmp_path / "mixed" / "scene_000001.npz", empty, png=False)
     save_scene(tmp_path / "none" / "scene_000000.npz", empty, png=False)
@@ -363,12 +424,18 @@ def test_older_checkpoints_keep_their_verification_thresholds(tmp_path):
     model = FPCC(FPCCConfig(k_neighbours=4, width=8, embedding_dim=6)).eval()
     extra = InferenceSettings("toy", 0.06, "normals", 0.02, PARAMS.train).to_extra()
     save_checkpoint(tmp_path / "m.pt", model, None, 3, {"loss": 1.0}, extra)
-    for name, chosen in (("both.pt", {"max_seen_through": 0.41, "min_visible_support": 0.66}), ("old.pt", {"max_seen_through": 0.41})):
+    for name, chosen in (
+        ("both.pt", {"max_seen_through": 0.41, "min_visible_support": 0.66}),
+        ("old.pt", {"max_seen_through": 0.41}),
+    ):
         state = read_checkpoint(tmp_path / "m.pt")
         state["extra"] = {**state["extra"], "verification": chosen}
         state.pop("sha256")
         write_state(tmp_path / name, state)
-    assert (read_settings(tmp_path / "old.pt").max_seen_through, read_settings(tmp_path / "old.pt").min_visible_support) == (0.41, None)
+    assert (
+        read_settings(tmp_path / "old.pt").max_seen_through,
+        read_settings(tmp_path / "old.pt").min_visible_support,
+    ) == (0.41, None)
     both = load_segmenter(tmp_path / "both.pt", PARAMS.segment)
     assert chosen_verification(tmp_path / "absent.json", both) == Verification(0.41, 0.66)
     save_verification(tmp_path / "verification.json", Verification(0.38, 0.52, "abc"))

@@ -42,7 +42,12 @@ def test_a_large_part_overrides_camera_and_import_grid(tmp_path, monkeypatch):
     """A large part sets its own camera distance and voxel grid; its captures import on that grid,
     so the network sees at inference the density it was trained on."""
     raw = yaml.safe_load((ROOT / "params.yaml").read_text())
-    raw["parts"]["shaft"] = {"mesh": "shaft.stl", "unit": "m", "camera": {"distance_m": 1.4}, "import_capture": {"voxel_size_m": 0.008}}
+    raw["parts"]["shaft"] = {
+        "mesh": "shaft.stl",
+        "unit": "m",
+        "camera": {"distance_m": 1.4},
+        "import_capture": {"voxel_size_m": 0.008},
+    }
     raw["captures"]["monday"] = {"file": "monday.ply", "part": "shaft"}
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(raw))
@@ -53,8 +58,15 @@ def test_a_large_part_overrides_camera_and_import_grid(tmp_path, monkeypatch):
     from stages import import_capture
 
     seen = []
-    monkeypatch.setattr(import_capture, "run", lambda params, *args, **kwargs: seen.append(params.import_capture.voxel_size_m))
-    assert import_capture.main(["--params", str(path), "--name", "monday", "--capture", "monday.ply", "--out", str(tmp_path / "c.npz")]) == 0
+    monkeypatch.setattr(
+        import_capture, "run", lambda params, *args, **kwargs: seen.append(params.import_capture.voxel_size_m)
+    )
+    assert (
+        import_capture.main(
+            ["--params", str(path), "--name", "monday", "--capture", "monday.ply", "--out", str(tmp_path / "c.npz")]
+        )
+        == 0
+    )
     assert seen == [0.008]
 
 
@@ -71,8 +83,12 @@ def _write(tmp_path, raw):
 def _minimal():
     """The project's sections (params.yaml is the one source of values), one part, one profile."""
     raw = {k: v for k, v in load_raw(ROOT / "params.yaml").items() if k not in ("parts", "captures", "profiles")}
-    return raw | {"profile": "q", "profiles": {"q": {s: {} for s in SECTIONS}}, "parts": {"a": {"mesh": "a.stl", "unit": "mm"}},
-                  "render_demo": raw["render_demo"] | {"part": "a"}}
+    return raw | {
+        "profile": "q",
+        "profiles": {"q": {s: {} for s in SECTIONS}},
+        "parts": {"a": {"mesh": "a.stl", "unit": "mm"}},
+        "render_demo": raw["render_demo"] | {"part": "a"},
+    }
 
 
 def test_a_key_missing_from_the_file_fails_naming_it(tmp_path):

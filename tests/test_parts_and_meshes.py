@@ -92,7 +92,9 @@ def test_real_parts_load_in_metres(shared_data, name, unit, extent_m):
     assert mesh.is_watertight
 
 
-@pytest.mark.parametrize("name", ["ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe", "hex_nut", "featuretype_inch"])
+@pytest.mark.parametrize(
+    "name", ["ipa_gear_shaft", "ipa_ring_screw", "zju_three_way_pipe", "hex_nut", "featuretype_inch"]
+)
 def test_declared_symmetries_of_the_benchmark_parts_map_each_onto_itself(shared_data, name):
     """A wrong symmetry turns right poses into errors (and the reverse): every declared transform
     must put the part's surface back onto itself, within the 1 mm of sensor noise the benchmarks

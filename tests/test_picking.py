@@ -20,14 +20,20 @@ from binpick.io.picks import load_picks, save_picks
 from binpick.params import SymmetryParams, load_params
 from binpick.part.model import make_part_model
 from binpick.picking.grasps import expand_by_symmetry, jaw_grasps, suction_grasps
-from binpick.picking.gripper import Box, Cylinder, covering_spheres, jaw_primitives, lowest_height, signed_distance, swept
+from binpick.picking.gripper import (
+    Box,
+    Cylinder,
+    covering_spheres,
+    jaw_primitives,
+    lowest_height,
+    signed_distance,
+    swept,
+)
 from binpick.picking.plan import BIN, CAPTURED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
 FLOOR = np.array([0.0, 0.0, -1.0, 0.5])  # camera 0.5 m above the floor, looking down (+z)
-
-
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +43,9 @@ def box_part():
 
 def lying(x: float, y: float, yaw_deg: float = 0.0) -> np.ndarray:
     """T_cam_from_model of the box lying on the floor (its z up toward the camera) at x, y."""
-    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(yaw_deg))
+    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(
+        np.array([0.0, 0.0, 1.0]), np.radians(yaw_deg)
+    )
     return make_T(R, np.array([x, y, 0.5 - EXTENTS[2] / 2]))
 
 
@@ -70,21 +78,31 @@ def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(pick_settings):
     too few to see its lip: the patches are read from a denser sample of the mesh, and the grasps
     lie on the faces with the approach into them."""
     extents = np.array([0.5, 0.3, 0.2])
-    big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    big = make_part_model(
+        "big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m"
+    )
     grasps = suction_grasps(big, pick_settings)
     assert len(grasps) >= 10
     for T in grasps.T_model_from_tool:
         p, z = T[:3, 3], T[:3, 2]
         face = int(np.argmax(np.abs(p) / (extents / 2)))
-        assert abs(abs(p[face]) - extents[face] / 2) < 1e-4 and np.allclose(z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3)
+        assert abs(abs(p[face]) - extents[face] / 2) < 1e-4 and np.allclose(
+            z, -np.sign(p[face]) * np.eye(3)[face], atol=1e-3
+        )
 
 
 def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings):
     """A rod of 12 facets declared a solid of revolution: its side grasps approach along the
     cylinder's own normal (straight at the axis), not their facet's, which lies up to 15 degrees
     around from it."""
-    rod = make_part_model("rod", trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12), SymmetryParams(kind="revolution"), 20000,
-                          np.random.default_rng(0), "m")
+    rod = make_part_model(
+        "rod",
+        trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12),
+        SymmetryParams(kind="revolution"),
+        20000,
+        np.random.default_rng(0),
+        "m",
+    )
     grasps = suction_grasps(rod, pick_settings)
     side = [T for T in grasps.T_model_from_tool if abs(T[2, 2]) < 0.5]
     assert len(side) >= 5
@@ -126,7 +144,10 @@ def test_covering_spheres_hold_every_point_near_the_gripper(pick_settings):
     """The collision check measures only points inside the covering spheres: every point within
     the margin of the swept gripper (by the exact signed distance) must lie in one of them."""
     rng = np.random.default_rng(3)
-    for body in (swept(jaw_primitives(pick_settings.jaw, 0.03), 0.05), swept([Cylinder(0.005, -0.02, 0.0), Cylinder(0.015, -0.17, -0.02)], 0.05)):
+    for body in (
+        swept(jaw_primitives(pick_settings.jaw, 0.03), 0.05),
+        swept([Cylinder(0.005, -0.02, 0.0), Cylinder(0.015, -0.17, -0.02)], 0.05),
+    ):
         for margin in (0.002, 0.05):
             points = rng.uniform([-0.15, -0.15, -0.35], [0.15, 0.15, 0.1], size=(200000, 3))
             near = points[signed_distance(points, body) <= margin]
@@ -138,7 +159,17 @@ def test_covering_spheres_hold_every_point_near_the_gripper(pick_settings):
 def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, pick_settings):
     grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.01, -0.02, yaw_deg=30.0)
-    plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
+    plan = plan_picks(
+        T[None],
+        np.array([0.8]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        seen_surface(T, box_part),
+        FLOOR,
+        pick_settings,
+    )
     assert len(plan.picks) == 1 and not plan.unpicked
     pick = plan.picks[0]
     grasp = grasps.T_model_from_tool[pick.grasp_index]
@@ -147,7 +178,9 @@ def test_a_grasp_applied_to_a_known_pose_lands_where_the_pose_puts_it(box_part, 
     # approach straight down the camera's view (+z), pre-grasp straight above it.
     assert pick.T_cam_from_grasp[2, 3] == pytest.approx(0.5 - EXTENTS[2], abs=1e-4)
     assert pick.T_cam_from_grasp[:3, 2] == pytest.approx([0.0, 0.0, 1.0], abs=1e-3)
-    assert pick.T_cam_from_pregrasp[:3, 3] == pytest.approx(pick.T_cam_from_grasp[:3, 3] - [0, 0, pick_settings.pregrasp_distance_m], abs=1e-4)
+    assert pick.T_cam_from_pregrasp[:3, 3] == pytest.approx(
+        pick.T_cam_from_grasp[:3, 3] - [0, 0, pick_settings.pregrasp_distance_m], abs=1e-4
+    )
     assert pick.clearance_m > pick_settings.clearance_m
     assert pick.height_m == pytest.approx(EXTENTS[2] / 2, abs=1e-4)
 
@@ -160,12 +193,32 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settin
     T = lying(0.0, 0.0)
     seen = seen_surface(T, box_part)
     no_floor = np.full(4, np.nan)
-    alone = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen, no_floor, pick_settings).picks[0]
+    alone = plan_picks(
+        T[None],
+        np.array([0.8]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        seen,
+        no_floor,
+        pick_settings,
+    ).picks[0]
     assert alone.clearance_m == pytest.approx(0.05)  # the cap
     G = alone.T_cam_from_grasp
     for gap in (0.006, 0.015, 0.035):
         point = G[:3, 3] - 0.06 * G[:3, 2] + (pick_settings.suction.tool_radius_m + gap) * G[:3, 0]
-        plan = plan_picks(T[None], np.array([0.8]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.vstack([seen, point]), no_floor, pick_settings)
+        plan = plan_picks(
+            T[None],
+            np.array([0.8]),
+            grasps,
+            box_part.points_m,
+            box_part.normals,
+            box_part.centre_m,
+            np.vstack([seen, point]),
+            no_floor,
+            pick_settings,
+        )
         assert plan.picks[0].grasp_id == alone.grasp_id
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
 
@@ -177,9 +230,19 @@ def test_a_gripper_into_a_neighbour_is_refused(box_part, pick_settings):
     above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))
     T = np.stack([target, above])
     captured = np.concatenate([seen_surface(target, box_part), seen_surface(above, box_part)])
-    plan = plan_picks(T, np.array([0.9, 0.5]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
+    plan = plan_picks(
+        T,
+        np.array([0.9, 0.5]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+    )
     assert [p.pose_index for p in plan.picks] == [1]  # the top one is free
-    (index, reason), = plan.unpicked
+    ((index, reason),) = plan.unpicked
     assert index == 0 and "part 1" in reason
     assert any(r.pose_index == 0 and "1" in r.reason.split(", ") for r in plan.rejected)
 
@@ -188,19 +251,50 @@ def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part,
     grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
     captured = seen_surface(T, box_part)
-    free = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
+    free = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+    )
     assert len(free.picks) == 1 and not free.rejected
     # Measured walls (points of two vertical planes) above the part, closer together than the
     # tool is wide: no grasp on its top can be reached.
     ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.47, 60))
     wall = np.concatenate([np.column_stack([np.full(ys.size, x), ys.ravel(), zs.ravel()]) for x in (-0.01, 0.01)])
-    blocked = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, np.concatenate([captured, wall]), FLOOR, pick_settings)
+    blocked = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        np.concatenate([captured, wall]),
+        FLOOR,
+        pick_settings,
+    )
     assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
     # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
     # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
     box = BinBox(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
-    walled = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings, box)
+    walled = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+        box,
+    )
     assert not walled.picks and BIN in walled.unpicked[0][1]
 
 
@@ -210,18 +304,32 @@ def test_a_large_parts_measured_surface_is_its_own_not_an_obstacle(pick_settings
     5.6 mm apart on it, farther than own_points_m), and the cup comes down on the top face. A
     point 10 mm above the face under the grasp is not its own: that grasp is refused."""
     extents = np.array([0.5, 0.3, 0.2])
-    big = make_part_model("big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    big = make_part_model(
+        "big_box", trimesh.creation.box(extents=extents), SymmetryParams(), 20000, np.random.default_rng(0), "m"
+    )
     grasps = suction_grasps(big, pick_settings)
     floor = np.array([0.0, 0.0, -1.0, 0.8])
     T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.8 - extents[2] / 2]))
     xs, ys = np.meshgrid(np.arange(-0.25, 0.25, 0.001), np.arange(-0.15, 0.15, 0.001))
     top = np.column_stack([xs.ravel(), ys.ravel(), 0.6 + np.random.default_rng(1).normal(0.0, 0.0003, xs.size)])
-    plan = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, top, floor, pick_settings)
+    plan = plan_picks(
+        T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, top, floor, pick_settings
+    )
     assert len(plan.picks) == 1 and not plan.rejected
     G = plan.picks[0].T_cam_from_grasp
     assert G[2, 3] == pytest.approx(0.6, abs=1e-4)
     above = G[:3, 3] - 0.01 * G[:3, 2]
-    again = plan_picks(T[None], np.array([0.9]), grasps, big.points_m, big.normals, big.centre_m, np.vstack([top, above]), floor, pick_settings)
+    again = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        big.points_m,
+        big.normals,
+        big.centre_m,
+        np.vstack([top, above]),
+        floor,
+        pick_settings,
+    )
     assert again.picks[0].grasp_id != plan.picks[0].grasp_id
     assert any(r.grasp_id == plan.picks[0].grasp_id and r.reason == CAPTURED for r in again.rejected)
 
@@ -236,11 +344,31 @@ def test_a_pose_with_too_much_surface_seen_through_is_picked_last(box_part, pick
     T = np.stack([high, low])
     captured = np.concatenate([seen_surface(t, box_part) for t in T])
     limit = pick_settings.max_seen_through
-    plan = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings,
-                      seen_through=np.array([limit + 0.01, limit - 0.01]))
+    plan = plan_picks(
+        T,
+        np.array([0.9, 0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+        seen_through=np.array([limit + 0.01, limit - 0.01]),
+    )
     assert [(p.pose_index, p.trusted) for p in plan.picks] == [(1, True), (0, False)]
-    unknown = plan_picks(T, np.array([0.9, 0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings,
-                         seen_through=np.array([np.nan, np.nan]))
+    unknown = plan_picks(
+        T,
+        np.array([0.9, 0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+        seen_through=np.array([np.nan, np.nan]),
+    )
     assert [(p.pose_index, p.trusted) for p in unknown.picks] == [(0, True), (1, True)]  # highest first
 
 
@@ -250,10 +378,29 @@ def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
     high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
     T = np.stack([low_bad, low_good, high])
     captured = np.concatenate([seen_surface(t, box_part) for t in T])
-    plan = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
+    plan = plan_picks(
+        T,
+        np.array([0.4, 0.9, 0.3]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings,
+    )
     assert [p.pose_index for p in plan.picks] == [2, 1, 0]
-    by_score = plan_picks(T, np.array([0.4, 0.9, 0.3]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR,
-                          pick_settings.model_copy(update={"order": ["score", "height"]}))
+    by_score = plan_picks(
+        T,
+        np.array([0.4, 0.9, 0.3]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        pick_settings.model_copy(update={"order": ["score", "height"]}),
+    )
     assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
 
 
@@ -263,7 +410,17 @@ def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, p
     T = lying(0.0, 0.0)
     measured = seen_surface(T, box_part)
     # The part measured 15 mm lower than its pose says: the pose's top face is in the air.
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, measured + [0.0, 0.0, 0.015], FLOOR, pick_settings)
+    plan = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        measured + [0.0, 0.0, 0.015],
+        FLOOR,
+        pick_settings,
+    )
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
@@ -271,7 +428,12 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, p
     """Measured points on the cup's contact plane within its seal tolerance are not enough: a
     patch tilted 30 degrees from the approach (a pose turned the wrong way about an edge) has
     three quarters of the cup's points that close to the plane, and no cup seals on it."""
-    top = GraspSet("suction", ["top"], tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1))
+    top = GraspSet(
+        "suction",
+        ["top"],
+        tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None],
+        np.zeros(1),
+    )
     T = lying(0.0, 0.0)
     contact = transform_points(T, np.array([[0.0, 0.0, EXTENTS[2] / 2]]))[0]
     a, b = np.meshgrid(np.linspace(-0.008, 0.008, 33), np.linspace(-0.008, 0.008, 33))
@@ -281,16 +443,38 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, p
         return contact + np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T
 
     for tilt_deg, picked in ((0.0, True), (8.0, True), (30.0, False)):
-        plan = plan_picks(T[None], np.array([0.9]), top, box_part.points_m, box_part.normals, box_part.centre_m, patch(tilt_deg), FLOOR, pick_settings)
+        plan = plan_picks(
+            T[None],
+            np.array([0.9]),
+            top,
+            box_part.points_m,
+            box_part.normals,
+            box_part.centre_m,
+            patch(tilt_deg),
+            FLOOR,
+            pick_settings,
+        )
         assert bool(plan.picks) == picked, tilt_deg
         if not picked:
             assert "not where the camera measured" in plan.unpicked[0][1]
 
 
 def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, pick_settings):
-    only_side = GraspSet("suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1))
+    only_side = GraspSet(
+        "suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1)
+    )
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), only_side, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
+    plan = plan_picks(
+        T[None],
+        np.array([0.9]),
+        only_side,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        seen_surface(T, box_part),
+        FLOOR,
+        pick_settings,
+    )
     assert not plan.picks and "cone" in plan.unpicked[0][1]
 
 
@@ -315,7 +499,17 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
 
     def plan(fallback_deg):
         cones = pick_settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
-        return plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, cones)
+        return plan_picks(
+            T[None],
+            np.array([0.9]),
+            grasps,
+            box_part.points_m,
+            box_part.normals,
+            box_part.centre_m,
+            captured,
+            FLOOR,
+            cones,
+        )
 
     (pick,) = plan(60.0).picks
     assert pick.T_cam_from_grasp[:3, 2] == pytest.approx(-at_50, abs=1e-6)
@@ -325,8 +519,17 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
 
 
 def test_symmetry_expands_grasps_and_drops_repeats(pick_settings):
-    g = GraspSet("suction", ["a", "b"], np.stack([tool_frame(np.array([0.01, 0, 0.0]), np.array([0, 0, -1.0])),
-                                                  tool_frame(np.array([0.0, 0.0, 0.0]), np.array([0, 0, -1.0]))]), np.zeros(2))
+    g = GraspSet(
+        "suction",
+        ["a", "b"],
+        np.stack(
+            [
+                tool_frame(np.array([0.01, 0, 0.0]), np.array([0, 0, -1.0])),
+                tool_frame(np.array([0.0, 0.0, 0.0]), np.array([0, 0, -1.0])),
+            ]
+        ),
+        np.zeros(2),
+    )
     sym = symmetry_transforms(SymmetryParams(kind="n_fold", axis=(0.0, 0.0, 1.0), order=4))
     out = expand_by_symmetry(g, sym)
     # 'a' has three new images about z; 'b' lies on the axis: its images are itself.
@@ -346,10 +549,13 @@ def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part
     cases = {
         '{"suction": [{"point_m": [0, 0, 0]}]}': "missing 'approach'",
         '{"suction": [{"point_m": [0, 0, 0], "approach": [0, 0, 0]}]}': "must not be zero",
-        '{"jaw": [{"centre_m": [0, 0, 0], "approach": [0, 0, 1], "closing": [0, 1, 1], "width_m": 0.01}]}': "perpendicular",
+        '{"jaw": [{"centre_m": [0, 0, 0], "approach": [0, 0, 1], "closing": [0, 1, 1], "width_m": 0.01}]}': (
+            "perpendicular"
+        ),
         '{"unit": "mm", "suction": []}': "metres",
-        '{"suction": [{"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}, {"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}]}': "used twice",
-        '[1, 2]': "not a binpick grasp file",
+        '{"suction": [{"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}, '
+        '{"id": "x", "point_m": [0, 0, 0], "approach": [0, 0, 1]}]}': "used twice",
+        "[1, 2]": "not a binpick grasp file",
     }
     for text, words in cases.items():
         path.write_text(text)
@@ -361,13 +567,25 @@ def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part
 def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, pick_settings):
     grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
-    plan = plan_picks(T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, seen_surface(T, box_part), FLOOR, pick_settings)
+    plan = plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        seen_surface(T, box_part),
+        FLOOR,
+        pick_settings,
+    )
     T_base_from_cam = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 1.1), np.array([0.4, -0.1, 0.8]))
     path = tmp_path / "picks.json"
     save_picks(path, "c", "box", "suction", plan, T_base_from_cam)
     doc = load_picks(path)
     first = doc["picks"][0]
-    assert np.allclose(np.array(first["base"]["grasp"]), T_base_from_cam @ np.array(first["camera"]["grasp"]), atol=1e-8)
+    assert np.allclose(
+        np.array(first["base"]["grasp"]), T_base_from_cam @ np.array(first["camera"]["grasp"]), atol=1e-8
+    )
     assert doc["calibrated"] is True
     path.write_text(json.dumps({"format": "something else"}))
     with pytest.raises(InputError, match="not a binpick pick list"):
@@ -377,7 +595,11 @@ def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, pick_settings
 def test_pick_settings_refuse_a_non_rigid_base_transform(tmp_path):
     from binpick.errors import ParamsError
 
-    text = (ROOT / "params.yaml").read_text().replace("T_base_from_cam: null", "T_base_from_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
+    text = (
+        (ROOT / "params.yaml")
+        .read_text()
+        .replace("T_base_from_cam: null", "T_base_from_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
+    )
     path = tmp_path / "params.yaml"
     path.write_text(text)
     with pytest.raises(ParamsError, match="rigid"):

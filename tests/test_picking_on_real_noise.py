@@ -27,7 +27,12 @@ def box_part():
 
 
 def top_grasp() -> GraspSet:
-    return GraspSet("suction", ["top"], tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1))
+    return GraspSet(
+        "suction",
+        ["top"],
+        tool_frame(np.array([0.0, 0.0, EXTENTS[2] / 2]), np.array([0.0, 0.0, -1.0]))[None],
+        np.zeros(1),
+    )
 
 
 def lying(T_cam_from_floor: np.ndarray) -> np.ndarray:
@@ -35,9 +40,15 @@ def lying(T_cam_from_floor: np.ndarray) -> np.ndarray:
     return T_cam_from_floor @ make_T(np.eye(3), np.array([0.0, 0.0, EXTENTS[2] / 2]))
 
 
-def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Generator, half_m: np.ndarray = EXTENTS[:2] / 2,
-                 spacing_m: float = 0.001) -> np.ndarray:
-    """The box's top face (model +z; its middle 2 half_m) on a grid of spacing_m, with Gaussian noise along the camera's rays."""
+def measured_top(
+    T_cam_from_model: np.ndarray,
+    noise_m: float,
+    rng: np.random.Generator,
+    half_m: np.ndarray = EXTENTS[:2] / 2,
+    spacing_m: float = 0.001,
+) -> np.ndarray:
+    """The box's top face (model +z; its middle 2 half_m) on a grid of spacing_m, with Gaussian
+    noise along the camera's rays."""
     a, b = np.meshgrid(np.arange(-half_m[0], half_m[0], spacing_m), np.arange(-half_m[1], half_m[1], spacing_m))
     pts = transform_points(T_cam_from_model, np.column_stack([a.ravel(), b.ravel(), np.full(a.size, EXTENTS[2] / 2)]))
     rays = pts / np.linalg.norm(pts, axis=1, keepdims=True)
@@ -45,8 +56,18 @@ def measured_top(T_cam_from_model: np.ndarray, noise_m: float, rng: np.random.Ge
 
 
 def plan(box_part, pick_settings, T, captured, floor=FLOOR, bin_box=None, grasps=None):
-    return plan_picks(T[None], np.array([0.9]), top_grasp() if grasps is None else grasps, box_part.points_m, box_part.normals,
-                      box_part.centre_m, captured, floor, pick_settings, bin_box)
+    return plan_picks(
+        T[None],
+        np.array([0.9]),
+        top_grasp() if grasps is None else grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        floor,
+        pick_settings,
+        bin_box,
+    )
 
 
 @pytest.mark.parametrize("sigma_m", [0.0003, 0.001, 0.002])
@@ -103,7 +124,9 @@ def test_a_tilted_bin_box_gives_the_approach_cone_its_up_axis(box_part, pick_set
     """An oblique camera: the bin's floor tilted by tilt_deg from the image plane. The plane found
     in the capture is a wall (or none): the bin box's z axis is the up axis, and the part lying on
     the bin floor is taken straight down that axis."""
-    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg))
+    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(
+        np.array([1.0, 0.0, 0.0]), np.radians(tilt_deg)
+    )
     T_cam_from_bin = make_T(R, np.array([0.0, 0.0, 0.6]))
     box = BinBox(T_cam_from_bin, np.array([-0.2, -0.15, 0.005]), np.array([0.2, 0.15, 0.15]))
     T = lying(T_cam_from_bin)

@@ -18,7 +18,15 @@ TINY = {
     "ingest": {"n_surface_points": 8000},
     "camera": {"downscale": 8},
     "generate": {"n_train": 6, "n_val": 2, "n_test": 2, "placement": {"n_objects_min": 2, "n_objects_max": 4}},
-    "train": {"n_points": 512, "width": 8, "embedding_dim": 8, "k_neighbours": 8, "epochs": 2, "batch_size": 2, "loss_anchors": 128},
+    "train": {
+        "n_points": 512,
+        "width": 8,
+        "embedding_dim": 8,
+        "k_neighbours": 8,
+        "epochs": 2,
+        "batch_size": 2,
+        "loss_anchors": 128,
+    },
     "evaluate": {"accept_precision": 0.0, "accept_recall": 0.0},  # every model is accepted
     "import_capture": {},
     "segment": {"n_points": 512},
@@ -40,7 +48,9 @@ def project(tmp_path_factory):
 def _dvc(root, *args):
     from flows.dvc_tasks import dvc_env
 
-    return subprocess.run([sys.executable, "-m", "dvc", *args], cwd=root, env=dvc_env(), capture_output=True, text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "dvc", *args], cwd=root, env=dvc_env(), capture_output=True, text=True, timeout=600
+    )
 
 
 @pytest.mark.slow
@@ -61,10 +71,21 @@ def test_demo_flow_runs_every_stage_and_dvc_is_clean_after(project):
     assert len(truth["poses"]) == 4
     assert results["register"]["n_ground_truth"] == 4
     # The recording holds what a reviewer looks for, under entity paths that mirror the frames.
-    printed = subprocess.run([str(Path(sys.executable).parent / "rerun"), "rrd", "print", str(project / "data/results/demo/scene.rrd")],
-                             capture_output=True, text=True, timeout=120)
+    printed = subprocess.run(
+        [str(Path(sys.executable).parent / "rerun"), "rrd", "print", str(project / "data/results/demo/scene.rrd")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert printed.returncode == 0, printed.stderr
-    for entity in ("/camera/scene ", "/camera/segments ", "/camera/floor_plane ", "/camera/parts/0/mesh ", "/camera/truth/0 ", "/timings "):
+    for entity in (
+        "/camera/scene ",
+        "/camera/segments ",
+        "/camera/floor_plane ",
+        "/camera/parts/0/mesh ",
+        "/camera/truth/0 ",
+        "/timings ",
+    ):
         assert entity in printed.stdout, entity
     assert (project / "data/fpcc/t_joint/model.pt").is_file()
 
@@ -167,7 +188,9 @@ def _completed_flow_runs(api_url):
     import urllib.request
 
     body = json.dumps({"flow_runs": {"state": {"type": {"any_": ["COMPLETED"]}}}, "limit": 200}).encode()
-    request = urllib.request.Request(f"{api_url}/flow_runs/filter", data=body, headers={"Content-Type": "application/json"})
+    request = urllib.request.Request(
+        f"{api_url}/flow_runs/filter", data=body, headers={"Content-Type": "application/json"}
+    )
     try:
         with urllib.request.urlopen(request, timeout=30) as response:
             return json.loads(response.read())
@@ -198,7 +221,12 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     env.pop("PREFECT_API_URL", None)
     proc = subprocess.Popen(
         [sys.executable, "-m", "flows.cli", "serve", "--interval-s", "5", "--port", str(port)],
-        cwd=project, env=env, start_new_session=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        cwd=project,
+        env=env,
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     api_url = f"http://127.0.0.1:{port}/api"
     scheduled = []
@@ -219,9 +247,16 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
         except subprocess.TimeoutExpired:
             os.killpg(proc.pid, signal.SIGKILL)
             output, _ = proc.communicate()
-    reached = [p.relative_to(project).as_posix() for p in (
-        project / "data/metrics/spacer/ingest.json", project / "data/scenes/spacer", project / "data/fpcc/spacer/model.pt",
-        project / "data/metrics/spacer/evaluate.json") if p.exists()]
+    reached = [
+        p.relative_to(project).as_posix()
+        for p in (
+            project / "data/metrics/spacer/ingest.json",
+            project / "data/scenes/spacer",
+            project / "data/fpcc/spacer/model.pt",
+            project / "data/metrics/spacer/evaluate.json",
+        )
+        if p.exists()
+    ]
     # Serve's own log lines (not the tracebacks an interrupt prints) say where the runs were.
     said = "\n".join(line for line in output.splitlines() if line[:1].isdigit())[-3000:]
     assert scheduled, f"no scheduled watcher run completed; the spacer had {reached}; serve said:\n{said}"
@@ -230,7 +265,9 @@ def test_served_schedule_fires_and_trains_a_new_part_only(project):
     (spacer_run,) = _train_runs(project, "spacer")
     assert spacer_run.data.tags["prefect.flow_run_name"] == "train-spacer"
     assert spacer_run.data.tags["dvc_stage"] == "train@spacer"
-    assert "samples/samples.rrd" in {a.path for a in __import__("mlflow").MlflowClient().list_artifacts(spacer_run.info.run_id, "samples")}
+    assert "samples/samples.rrd" in {
+        a.path for a in __import__("mlflow").MlflowClient().list_artifacts(spacer_run.info.run_id, "samples")
+    }
 
 
 def _quality_metrics(project, part):
@@ -254,7 +291,8 @@ def test_one_parts_params_rerun_only_its_stages_and_a_rerun_reproduces_it(projec
         return next(o["md5"] for o in lock["outs"] if o["path"] == out)
 
     before = (
-        _quality_metrics(project, "bracket_block"), file_sha256(project / "data/fpcc/bracket_block/model.pt"),
+        _quality_metrics(project, "bracket_block"),
+        file_sha256(project / "data/fpcc/bracket_block/model.pt"),
         lock_hash("generate@bracket_block", "data/scenes/bracket_block"),
     )
     yaml_rt = YAML()
@@ -273,7 +311,8 @@ def test_one_parts_params_rerun_only_its_stages_and_a_rerun_reproduces_it(projec
     assert again.returncode == 0, again.stderr
     assert "Running stage 'train@bracket_block'" in again.stdout
     after = (
-        _quality_metrics(project, "bracket_block"), file_sha256(project / "data/fpcc/bracket_block/model.pt"),
+        _quality_metrics(project, "bracket_block"),
+        file_sha256(project / "data/fpcc/bracket_block/model.pt"),
         lock_hash("generate@bracket_block", "data/scenes/bracket_block"),
     )
     assert after == before

@@ -20,7 +20,13 @@ from settings import PARAMS, changed
 
 @pytest.fixture(scope="module")
 def ppf(t_joint):
-    return train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), PARAMS.registration)
+    return train_ppf(
+        t_joint.points_m,
+        t_joint.normals,
+        t_joint.diameter_m,
+        symmetry_transforms(t_joint.symmetry),
+        PARAMS.registration,
+    )
 
 
 def test_ppf_model_roundtrip(tmp_path, ppf):
@@ -46,7 +52,9 @@ def test_a_ppf_model_written_before_near_symmetries_and_its_grid_reads_with_none
 
 
 def test_recovers_the_pose_of_a_rendered_part(t_joint, ppf):
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4)
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4
+    )
     xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
     syms = symmetry_transforms(t_joint.symmetry)
     checked = 0
@@ -89,7 +97,9 @@ def test_a_wrong_fit_on_a_fragment_of_a_part_found_whole_is_suppressed(t_joint, 
     explained by the right pose, so it goes; a second part elsewhere stays."""
     from binpick.registration.matching import suppress_duplicates
 
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6
+    )
     pts = scene.view_points_m.astype(np.float64)
     right, elsewhere = scene.T_cam_from_model[0], scene.T_cam_from_model[1]
     wrong = right @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(30)), np.array([0.004, 0.0, 0.0]))
@@ -104,11 +114,24 @@ def test_whole_scene_matching_finds_every_part_without_segments(t_joint, ppf):
     from binpick.metrics.pose import scene_pose_metrics
     from binpick.registration.matching import match_scene
 
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
-    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), PARAMS.registration, np.random.default_rng(0), max_instances=10)
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6
+    )
+    found = match_scene(
+        ppf,
+        scene.view_points_m.astype(np.float64),
+        scene.view_normals.astype(np.float64),
+        PARAMS.registration,
+        np.random.default_rng(0),
+        max_instances=10,
+    )
     summary, _ = scene_pose_metrics(
-        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), scene.T_cam_from_model, scene.visible_fraction,
-        ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4),
+        scene.T_cam_from_model,
+        scene.visible_fraction,
+        ppf.dense_points_m,
+        ppf.symmetries,
+        ppf.diameter_m,
     )
     assert summary["n_pickable"] >= 4
     assert summary["pose_recall"] >= 0.8 and summary["pose_precision"] >= 0.8, summary
@@ -123,12 +146,25 @@ def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
     from binpick.metrics.pose import scene_pose_metrics
     from binpick.registration.matching import match_scene
 
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6)
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6
+    )
     known, rest = scene.T_cam_from_model[:3], scene.T_cam_from_model[3:]
-    found = match_scene(ppf, scene.view_points_m.astype(np.float64), scene.view_normals.astype(np.float64), PARAMS.registration, np.random.default_rng(0), known=list(known))
+    found = match_scene(
+        ppf,
+        scene.view_points_m.astype(np.float64),
+        scene.view_normals.astype(np.float64),
+        PARAMS.registration,
+        np.random.default_rng(0),
+        known=list(known),
+    )
     summary, _ = scene_pose_metrics(
-        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4), rest, scene.visible_fraction[3:],
-        ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+        np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4),
+        rest,
+        scene.visible_fraction[3:],
+        ppf.dense_points_m,
+        ppf.symmetries,
+        ppf.diameter_m,
     )
     assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 2 / 3, summary
 
@@ -146,7 +182,9 @@ def test_scene_pairs_match_the_training_features():
     refs = np.sort(rng.choice(300, 40, replace=False))
     radius, step, bins = 0.06, 0.004, 30
     T = _align_to_x(pts, nrm)
-    starts, keys, alpha = _scene_pairs(pts, nrm, np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3]), refs, radius, step, bins)
+    starts, keys, alpha = _scene_pairs(
+        pts, nrm, np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3]), refs, radius, step, bins
+    )
     first = np.concatenate([np.full(starts[a + 1] - starts[a], r) for a, r in enumerate(refs)])
     d = np.linalg.norm(pts[refs][:, None] - pts[None], axis=2)
     expected_second = [np.flatnonzero((d[a] <= radius) & (np.arange(300) != r)) for a, r in enumerate(refs)]
@@ -162,7 +200,9 @@ def test_a_segment_a_found_pose_explains_is_a_fragment_and_one_holding_another_p
     second part's are not explained by the first part's pose alone."""
     from binpick.registration.matching import explained_by
 
-    scene = generate_scene(t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4)
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006), seed=21, n_objects=4
+    )
     xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
     a, b = np.argsort(-scene.visible_fraction)[:2]
     part_a = xyz[(labels == a) & np.isfinite(xyz[:, 2])].astype(np.float64)
@@ -171,9 +211,12 @@ def test_a_segment_a_found_pose_explains_is_a_fragment_and_one_holding_another_p
     turned = T_a @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(40)), np.zeros(3))
     reg = PARAMS.registration
     assert explained_by(ppf, part_a, reg, [T_a]) and explained_by(ppf, part_a, reg, [T_b, T_a])
-    assert not explained_by(ppf, part_a, reg, []) and not explained_by(ppf, part_a, reg, [turned]) and not explained_by(ppf, part_a, reg, [T_b])
+    assert (
+        not explained_by(ppf, part_a, reg, [])
+        and not explained_by(ppf, part_a, reg, [turned])
+        and not explained_by(ppf, part_a, reg, [T_b])
+    )
     assert not explained_by(ppf, np.concatenate([part_a, part_b]), reg, [T_a])
-
 
 
 # A long thin part like the gear shaft (151 x 32 mm): a 16 mm shaft with two 32 mm collars off
@@ -191,7 +234,9 @@ def shaft():
         piece.apply_transform(trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
         piece.apply_translation([(x0 + x1) / 2, 0, 0])
         pieces.append(piece)
-    return make_part_model("shaft", trimesh.util.concatenate(pieces), SHAFT_SYMMETRY, 20000, np.random.default_rng(0), "m")
+    return make_part_model(
+        "shaft", trimesh.util.concatenate(pieces), SHAFT_SYMMETRY, 20000, np.random.default_rng(0), "m"
+    )
 
 
 def test_a_long_thin_part_gets_a_finer_voting_grid_and_a_compact_one_keeps_its_own(t_joint, shaft):
@@ -216,8 +261,14 @@ def test_two_long_parts_side_by_side_in_one_segment_are_both_found(shaft):
     symmetries = symmetry_transforms(SHAFT_SYMMETRY)
     T_a = make_T(np.eye(3), np.array([0.0, -0.018, 0.016]))
     T_b = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.pi), np.array([0.01, 0.018, 0.016]))
-    scene = render_scene(shaft, np.stack([T_a, T_b]), PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006),
-                         np.random.default_rng(3))
+    scene = render_scene(
+        shaft,
+        np.stack([T_a, T_b]),
+        PARAMS.generate,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams(0.002, 0.006),
+        np.random.default_rng(3),
+    )
     xyz, labels = scene.xyz_m.reshape(-1, 3), scene.labels.reshape(-1)
     pts = xyz[(labels >= 0) & np.isfinite(xyz[:, 2])]
     pts = pts[voxel_downsample_indices(pts, 0.002)]
@@ -229,7 +280,9 @@ def test_two_long_parts_side_by_side_in_one_segment_are_both_found(shaft):
         seg = match_segment(model, pts, nrm, params, np.random.default_rng(0))
         found = [seg] + match_scene(model, pts, nrm, params, np.random.default_rng(1), known=[seg.T_cam_from_model])
         fits[n] = sorted(
-            i for i, T_gt in enumerate(scene.T_cam_from_model) for f in found
+            i
+            for i, T_gt in enumerate(scene.T_cam_from_model)
+            for f in found
             if pose_errors(f.T_cam_from_model, T_gt, shaft.points_m, symmetries, shaft.diameter_m)["add_mm"] < 5.0
         )
     assert fits[800] == [0, 1], fits
@@ -248,20 +301,34 @@ def test_a_shaft_fitted_onto_a_plain_cylinder_lacks_visible_support(shaft):
     from binpick.registration.verification import seen_through, visible_support
     from binpick.registration.visibility import depth_view
 
-    model = train_ppf(shaft.points_m, shaft.normals, shaft.diameter_m, symmetry_transforms(SHAFT_SYMMETRY), PARAMS.registration)
+    model = train_ppf(
+        shaft.points_m, shaft.normals, shaft.diameter_m, symmetry_transforms(SHAFT_SYMMETRY), PARAMS.registration
+    )
     T_shaft = make_T(np.eye(3), np.array([0.0, -0.03, 0.016]))
     T_cylinder = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), 0.3), np.array([0.0, 0.03, 0.008]))
     cylinder = trimesh.creation.cylinder(radius=0.008, height=0.15, sections=48)
     cylinder.apply_transform(T_cylinder @ trimesh.transformations.rotation_matrix(np.pi / 2, [0, 1, 0]))
-    scene = render_scene(shaft, T_shaft[None], PARAMS.generate, changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006),
-                         np.random.default_rng(3), distractors=[cylinder])
+    scene = render_scene(
+        shaft,
+        T_shaft[None],
+        PARAMS.generate,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams(0.002, 0.006),
+        np.random.default_rng(3),
+        distractors=[cylinder],
+    )
     xyz = scene.xyz_m.reshape(-1, 3)
     measured = xyz[np.isfinite(xyz[:, 2])]
     tree = KDTree(np.ascontiguousarray(measured[voxel_downsample_indices(measured, 0.002)], dtype=np.float64))
     inlier = Scales.of(model, PARAMS.registration).inlier_m
     view = depth_view(xyz, scene.labels.shape, 0.002)
     right = scene.T_cam_from_model[0]
-    on_cylinder = scene.T_cam_from_bin @ make_T(np.eye(3), np.array([0.0, 0.0, 0.008])) @ T_cylinder @ make_T(np.eye(3), np.array([0.0, 0.0, -0.008]))
+    on_cylinder = (
+        scene.T_cam_from_bin
+        @ make_T(np.eye(3), np.array([0.0, 0.0, 0.008]))
+        @ T_cylinder
+        @ make_T(np.eye(3), np.array([0.0, 0.0, -0.008]))
+    )
     support_right = visible_support(model, right, view, tree, inlier)
     support_wrong = visible_support(model, on_cylinder, view, tree, inlier)
     assert support_right > 0.9, support_right
@@ -290,7 +357,9 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
 
     rng = np.random.default_rng(seed)
     turn = rng.uniform(0.0, 2 * np.pi)
-    T_bin_from_spot = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), turn), np.array([*rng.uniform(-0.05, 0.05, 2), 0.0]))
+    T_bin_from_spot = make_T(
+        axis_angle_to_R(np.array([0.0, 0.0, 1.0]), turn), np.array([*rng.uniform(-0.05, 0.05, 2), 0.0])
+    )
     T_spot_from_model = make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))  # run along x on the floor, branch along +y
     stub = _cylinder_along("y", 0.012, -0.025, -0.004)  # half the branch's free length, on the -y side
     stub.apply_translation([0.0, 0.0, 0.012])  # lying on the floor, level with the run
@@ -298,8 +367,15 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     plate.apply_translation([0.0, 0.038, 0.045])  # hides the branch beyond 18 mm of the run's axis
     distractors = [m.apply_transform(T_bin_from_spot) for m in (stub, plate)]
     plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})
-    scene = render_scene(t_joint, (T_bin_from_spot @ T_spot_from_model)[None], plain, changed(PARAMS.camera, downscale=2),
-                         ViewParams.of_import(PARAMS.import_capture), rng, distractors=distractors)
+    scene = render_scene(
+        t_joint,
+        (T_bin_from_spot @ T_spot_from_model)[None],
+        plain,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams.of_import(PARAMS.import_capture),
+        rng,
+        distractors=distractors,
+    )
     H, W = scene.labels.shape
     cloud = clean(scene.xyz_m.reshape(-1, 3), None, (H, W), PARAMS.import_capture, seed=0)
     labels = scene.labels.reshape(-1)[cloud.pixel_index]
@@ -312,8 +388,17 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
     syms = symmetry_transforms(t_joint.symmetry)
 
     def rot_err(*seen) -> float:
-        est = match_segment(ppf, cloud.points_m[segment], cloud.normals[segment], PARAMS.registration, np.random.default_rng(seed), *seen)
-        return pose_errors(est.T_cam_from_model, scene.T_cam_from_model[0], t_joint.points_m, syms, t_joint.diameter_m)["rot_err_deg"]
+        est = match_segment(
+            ppf,
+            cloud.points_m[segment],
+            cloud.normals[segment],
+            PARAMS.registration,
+            np.random.default_rng(seed),
+            *seen,
+        )
+        return pose_errors(est.T_cam_from_model, scene.T_cam_from_model[0], t_joint.points_m, syms, t_joint.diameter_m)[
+            "rot_err_deg"
+        ]
 
     assert rot_err(view, cloud_tree) < 3.0
     assert rot_err() > 150.0  # the trap is real: the segment's points alone prefer the turned T

@@ -25,7 +25,13 @@ from settings import PARAMS, changed
 def model_folder(t_joint, tmp_path_factory):
     """The part's models written as the stages write them."""
     folder = tmp_path_factory.mktemp("models")
-    ppf = train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), PARAMS.registration)
+    ppf = train_ppf(
+        t_joint.points_m,
+        t_joint.normals,
+        t_joint.diameter_m,
+        symmetry_transforms(t_joint.symmetry),
+        PARAMS.registration,
+    )
     save_part_model(folder / "part.npz", t_joint)
     save_ppf_model(folder / "ppf.npz", ppf)
     return folder
@@ -39,16 +45,29 @@ def models(model_folder):
 
 def _capture(t_joint, seed: int, n_objects: int):
     """A rendered bin as a camera delivers it: organized xyz (H * W, 3), NaN = no return."""
-    plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})  # the path, not clutter, is tested here
-    scene = generate_scene(t_joint, plain, changed(PARAMS.camera, downscale=2), ViewParams.of_import(PARAMS.import_capture), seed, n_objects)
+    plain = PARAMS.generate.model_copy(
+        update={"clutter": PARAMS.generate.clutter.off()}
+    )  # the path, not clutter, is tested here
+    scene = generate_scene(
+        t_joint,
+        plain,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams.of_import(PARAMS.import_capture),
+        seed,
+        n_objects,
+    )
     H, W = scene.labels.shape
     return scene, scene.xyz_m.reshape(-1, 3), (H, W)
 
 
 def _pose_metrics(poses, scene, ppf):
     summary, _ = scene_pose_metrics(
-        np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4), scene.T_cam_from_model, scene.visible_fraction,
-        ppf.dense_points_m, ppf.symmetries, ppf.diameter_m,
+        np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4),
+        scene.T_cam_from_model,
+        scene.visible_fraction,
+        ppf.dense_points_m,
+        ppf.symmetries,
+        ppf.diameter_m,
     )
     return summary
 
@@ -70,7 +89,9 @@ def test_segments_recover_the_rendered_poses(t_joint, models):
 def test_the_whole_path_reuses_loaded_models_for_each_capture(t_joint, models, seed):
     """process() without a network matches the whole cleaned scene; the same PartModels serve
     every capture, and the same capture with the same seeds gives the same poses."""
-    whole = PartModels(models.part, models.ppf, None, models.import_params, changed(models.register_params, mode="whole_scene"))
+    whole = PartModels(
+        models.part, models.ppf, None, models.import_params, changed(models.register_params, mode="whole_scene")
+    )
     scene, xyz, shape = _capture(t_joint, seed=seed, n_objects=5)
     result = process(xyz, None, shape, whole, SceneSeeds.of(PARAMS.seed, f"capture-{seed}"))
     summary = _pose_metrics(result.poses, scene, whole.ppf)
@@ -131,14 +152,23 @@ def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_fo
     capture = tmp_path / "kept-request-20261204.ply"
     save_ply(capture, PointCloudData(xyz=xyz * 1000.0, rgb=None, shape=(H, W)))
     frame = load_capture(capture, ImportOptions("mm"))
-    served = process(frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of_capture(PARAMS.seed, frame.xyz_m, frame.rgb))
+    served = process(
+        frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of_capture(PARAMS.seed, frame.xyz_m, frame.rgb)
+    )
     assert len(served.poses) >= 3
 
     params = PARAMS.model_copy(update={"registration": models.register_params})
     import_capture.run(params, capture, ImportOptions("mm"), tmp_path / "cloud.npz")
     save_segments(tmp_path / "segments.npz", np.full(len(served.cloud.points_m), -1, np.int32))
-    register_stage.run(params, "any-name", tmp_path / "cloud.npz", tmp_path / "segments.npz", model_folder / "ppf.npz",
-                       model_folder / "part.npz", tmp_path / "poses.json")
+    register_stage.run(
+        params,
+        "any-name",
+        tmp_path / "cloud.npz",
+        tmp_path / "segments.npz",
+        model_folder / "ppf.npz",
+        model_folder / "part.npz",
+        tmp_path / "poses.json",
+    )
     _, batch = load_poses(tmp_path / "poses.json")
     assert len(batch) == len(served.poses)
     for a, b in zip(batch, served.poses, strict=True):

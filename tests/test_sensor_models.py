@@ -33,14 +33,27 @@ def box(lo, hi):
 
 def floor_and_block(height_m=0.05, half_m=0.03):
     """A floor facing the camera at FLOOR_M and a block of height_m standing on it, centred on the axis."""
-    return [box((-0.5, -0.5, FLOOR_M), (0.5, 0.5, FLOOR_M + 0.01)),
-            box((-half_m, -half_m, FLOOR_M - height_m), (half_m, half_m, FLOOR_M))]
+    return [
+        box((-0.5, -0.5, FLOOR_M), (0.5, 0.5, FLOOR_M + 0.01)),
+        box((-half_m, -half_m, FLOOR_M - height_m), (half_m, half_m, FLOOR_M)),
+    ]
 
 
 def plain_model(**update):
     """The Kinect-class preset with every effect off, then `update`."""
-    off = dict(shadows=False, depth_sigma_m=0.0, depth_sigma_per_m2=0.0, incidence_noise_gain=0.0, dropout_start_deg=90.0,
-               max_incidence_deg=90.0, dropout_fraction=0.0, mixed_pixel_share=0.0, multipath_m=0.0, disparity_step_px=0.0, depth_step_m=0.0)
+    off = dict(
+        shadows=False,
+        depth_sigma_m=0.0,
+        depth_sigma_per_m2=0.0,
+        incidence_noise_gain=0.0,
+        dropout_start_deg=90.0,
+        max_incidence_deg=90.0,
+        dropout_fraction=0.0,
+        mixed_pixel_share=0.0,
+        multipath_m=0.0,
+        disparity_step_px=0.0,
+        depth_step_m=0.0,
+    )
     return PARAMS.generate.sensor.models["kinect_v1"].model_copy(update={**off, **update})
 
 
@@ -75,7 +88,11 @@ def test_multipath_biases_a_concave_corner_and_nothing_else():
     # A floor and a wall rising from it at x = 0.05 (concave corner), seen from above; the block's
     # top edge is convex.
     wall = box((0.05, -0.5, FLOOR_M - 0.1), (0.06, 0.5, FLOOR_M))
-    meshes = [box((-0.5, -0.5, FLOOR_M), (0.5, 0.5, FLOOR_M + 0.01)), wall, box((-0.2, -0.03, FLOOR_M - 0.05), (-0.14, 0.03, FLOOR_M))]
+    meshes = [
+        box((-0.5, -0.5, FLOOR_M), (0.5, 0.5, FLOOR_M + 0.01)),
+        wall,
+        box((-0.2, -0.03, FLOOR_M - 0.05), (-0.14, 0.03, FLOOR_M)),
+    ]
     cam = PinholeCamera(400, 300, 300.0, 300.0, 199.5, 149.5)
     # Tilt the view so the camera sees the wall's face: the camera sits at x = -0.2 looking along +z.
     shift = np.array([0.2, 0.0, 0.0])
@@ -115,7 +132,9 @@ def test_mixed_pixels_lie_between_the_two_depths_at_edges_only():
     edge_dist = np.abs(np.maximum(x, y) * np.where(clean.labels == 0, 1.0, (FLOOR_M - 0.05) / FLOOR_M) - 0.03)
     assert edge_dist[moved].max() < 3 * FLOOR_M / INTR.fx
     # Along its own ray: x / z and y / z unchanged.
-    assert np.allclose(xyz[moved][:, :2] / xyz[moved][:, 2:], clean.xyz_m[moved][:, :2] / clean.xyz_m[moved][:, 2:], atol=1e-6)
+    assert np.allclose(
+        xyz[moved][:, :2] / xyz[moved][:, 2:], clean.xyz_m[moved][:, :2] / clean.xyz_m[moved][:, 2:], atol=1e-6
+    )
     # A pixel moved more than halfway takes the other side's label.
     assert ((labels != clean.labels) & moved).any()
 
@@ -146,8 +165,9 @@ def test_dropout_and_noise_follow_the_incidence_angle():
         n = np.array([np.sin(a), 0.0, -np.cos(a)], np.float32)
         normals = np.broadcast_to(n, xyz.shape).copy()
         centre = (slice(80, 120), slice(80, 120))  # rays within 3 degrees of the axis
-        out = apply_sensor_model(Render(xyz, normals, np.zeros((H, W), np.int32)), [], intr, model, MATTE,
-                                 np.random.default_rng(2))
+        out = apply_sensor_model(
+            Render(xyz, normals, np.zeros((H, W), np.int32)), [], intr, model, MATTE, np.random.default_rng(2)
+        )
         ok = np.isfinite(out.xyz_m[..., 2])
         shares.append(ok[centre].mean())
         stds.append(np.nanstd((out.xyz_m - xyz)[..., 2][centre]))
@@ -172,7 +192,9 @@ def test_a_shiny_part_loses_its_highlight_and_a_matte_one_does_not():
     brightest = np.unravel_index(np.argmax(cos_h), cos_h.shape)
     assert xyz[brightest][0] == pytest.approx(0.05, abs=0.5 / 200)
     model = plain_model(baseline_m=0.1)
-    shiny = PARAMS.generate.sensor.materials["shiny"].model_copy(update={"dropout_fraction": 0.0, "max_incidence_deg": 90.0})
+    shiny = PARAMS.generate.sensor.materials["shiny"].model_copy(
+        update={"dropout_fraction": 0.0, "max_incidence_deg": 90.0}
+    )
     out = apply_sensor_model(Render(xyz, normals, labels), [], intr, model, shiny, np.random.default_rng(0))
     lost = ~np.isfinite(out.xyz_m[..., 2])
     assert lost[brightest] and lost.sum() == (cos_h >= np.cos(np.radians(shiny.specular_lobe_deg))).sum()
@@ -192,7 +214,14 @@ def test_generation_draws_the_sensor_presets_and_their_cameras(t_joint):
     assert shapes == {(480, 640), (2048 // 5, 2448 // 5)}
     again = generate_scene(t_joint, gen, camera, view, 3, n_objects=4)
     assert np.array_equal(again.xyz_m, generate_scene(t_joint, gen, camera, view, 3, n_objects=4).xyz_m, equal_nan=True)
-    plain = generate_scene(t_joint, PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()}), camera, view, 3, n_objects=4)
+    plain = generate_scene(
+        t_joint,
+        PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()}),
+        camera,
+        view,
+        3,
+        n_objects=4,
+    )
     assert np.array_equal(plain.T_cam_from_model, again.T_cam_from_model)  # the sensor draws from its own stream
 
 

@@ -31,7 +31,6 @@ from flows.bench import free_port
 httpx = pytest.importorskip("httpx")
 
 
-
 @pytest.fixture(scope="module")
 def project(tmp_path_factory, t_joint):
     """A project with the built-in part's models built (no network) and a rendered capture."""
@@ -42,11 +41,26 @@ def project(tmp_path_factory, t_joint):
     folder = root / "data" / "models" / "t_joint"
     folder.mkdir(parents=True)
     save_part_model(folder / "part.npz", t_joint)
-    save_ppf_model(folder / "ppf.npz", train_ppf(t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), p.registration))
-    grasps = {k: expand_by_symmetry(g, symmetry_transforms(t_joint.symmetry, REVOLUTION_GRASP_STEPS)) for k, g in generate_grasps(t_joint, p.pick).items()}
+    save_ppf_model(
+        folder / "ppf.npz",
+        train_ppf(
+            t_joint.points_m, t_joint.normals, t_joint.diameter_m, symmetry_transforms(t_joint.symmetry), p.registration
+        ),
+    )
+    grasps = {
+        k: expand_by_symmetry(g, symmetry_transforms(t_joint.symmetry, REVOLUTION_GRASP_STEPS))
+        for k, g in generate_grasps(t_joint, p.pick).items()
+    }
     save_grasps(folder / "grasps.json", "t_joint", grasps, "generated")
     generate = p.generate.model_copy(update={"clutter": p.generate.clutter.off()})
-    scene = generate_scene(t_joint, generate, p.camera.model_copy(update={"downscale": 2}), ViewParams.of_import(p.import_capture), 5, n_objects=4)
+    scene = generate_scene(
+        t_joint,
+        generate,
+        p.camera.model_copy(update={"downscale": 2}),
+        ViewParams.of_import(p.import_capture),
+        5,
+        n_objects=4,
+    )
     H, W = scene.labels.shape
     capture = root / "data" / "captures" / "bin.zdf"
     capture.parent.mkdir(parents=True)
@@ -80,7 +94,14 @@ def server(project):
 
 def _check_poses(answer: dict, scene, t_joint) -> None:
     T = np.array([p["T_cam_from_model"] for p in answer["poses"]]).reshape(-1, 4, 4)
-    summary, _ = scene_pose_metrics(T, scene.T_cam_from_model, scene.visible_fraction, t_joint.points_m, symmetry_transforms(t_joint.symmetry), t_joint.diameter_m)
+    summary, _ = scene_pose_metrics(
+        T,
+        scene.T_cam_from_model,
+        scene.visible_fraction,
+        t_joint.points_m,
+        symmetry_transforms(t_joint.symmetry),
+        t_joint.diameter_m,
+    )
     assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 0.75, summary
 
 
@@ -88,8 +109,13 @@ def test_http_answers_picks_for_an_upload_and_a_named_file(server, project, t_jo
     service, url = server
     root, scene, capture = project
     assert httpx.get(f"{url}/health").json()["parts"] == ["t_joint"]
-    upload = httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "zdf"}, content=capture.read_bytes(),
-                        headers={"content-type": "application/octet-stream"}, timeout=120)
+    upload = httpx.post(
+        f"{url}/picks",
+        params={"part": "t_joint", "format": "zdf"},
+        content=capture.read_bytes(),
+        headers={"content-type": "application/octet-stream"},
+        timeout=120,
+    )
     assert upload.status_code == 200, upload.text
     answer = upload.json()
     assert answer["format"] == "binpick-picks" and answer["picks"], answer.get("unpicked")
@@ -99,10 +125,16 @@ def test_http_answers_picks_for_an_upload_and_a_named_file(server, project, t_jo
     # The first pick's grasp lies on the pose it names (the grasp applied to that pose).
     first = answer["picks"][0]
     assert np.allclose(first["camera"]["grasp"], first["base"]["grasp"])
-    named = httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture.relative_to(root))}, timeout=120).json()
+    named = httpx.post(
+        f"{url}/picks", json={"part": "t_joint", "path": str(capture.relative_to(root))}, timeout=120
+    ).json()
     # The same capture, the same answer.
-    assert [(p["pose_index"], p["grasp_id"]) for p in named["picks"]] == [(p["pose_index"], p["grasp_id"]) for p in answer["picks"]]
-    assert np.allclose([p["T_cam_from_model"] for p in named["poses"]], [p["T_cam_from_model"] for p in answer["poses"]], atol=1e-6)
+    assert [(p["pose_index"], p["grasp_id"]) for p in named["picks"]] == [
+        (p["pose_index"], p["grasp_id"]) for p in answer["picks"]
+    ]
+    assert np.allclose(
+        [p["T_cam_from_model"] for p in named["poses"]], [p["T_cam_from_model"] for p in answer["poses"]], atol=1e-6
+    )
 
 
 def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
@@ -110,13 +142,25 @@ def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
     root, _, capture = project
     cases = [
         (httpx.post(f"{url}/picks", json={"part": "gizmo", "path": "x.ply"}), 404, "unknown part 'gizmo'"),
-        (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "unit": "furlong"}), 400, "unit 'furlong'"),
+        (
+            httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "unit": "furlong"}),
+            400,
+            "unit 'furlong'",
+        ),
         (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "/etc/passwd"}), 400, "outside the project"),
         (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "data/none.ply"}), 400, "not found"),
         (httpx.post(f"{url}/picks", json={"part": "t_joint"}), 400, "names a capture"),
         (httpx.post(f"{url}/picks", params={"part": "t_joint"}, content=b"x" * 100), 400, "needs its format"),
-        (httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "ply"}, content=b"ply\nformat nonsense\n"), 400, "capture"),
-        (httpx.post(f"{url}/picks", content=b"{not json", headers={"content-type": "application/json"}), 400, "not JSON"),
+        (
+            httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "ply"}, content=b"ply\nformat nonsense\n"),
+            400,
+            "capture",
+        ),
+        (
+            httpx.post(f"{url}/picks", content=b"{not json", headers={"content-type": "application/json"}),
+            400,
+            "not JSON",
+        ),
     ]
     for response, status, words in cases:
         assert response.status_code == status, response.text
@@ -124,7 +168,9 @@ def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
     limits = service.settings
     service.settings = limits.model_copy(update={"max_request_mb": 0.001})
     try:
-        big = httpx.post(f"{url}/picks", params={"part": "t_joint", "format": "zdf"}, content=capture.read_bytes()[:10000])
+        big = httpx.post(
+            f"{url}/picks", params={"part": "t_joint", "format": "zdf"}, content=capture.read_bytes()[:10000]
+        )
         assert big.status_code == 413 and "max_request_mb" in big.json()["error"]
     finally:
         service.settings = limits
@@ -169,7 +215,9 @@ def test_requests_are_kept_within_the_limit_and_one_joins_the_pipeline(server, p
     service, url = server
     root, _, capture = project
     for _ in range(2):
-        assert httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code == 200
+        assert (
+            httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code == 200
+        )
     deadline = time.time() + 60
     while service._keeper._jobs.unfinished_tasks and time.time() < deadline:  # the keeper works after the answer
         time.sleep(0.1)
@@ -179,11 +227,19 @@ def test_requests_are_kept_within_the_limit_and_one_joins_the_pipeline(server, p
     newest = kept[0]
     for name in ("capture.zdf", "picks.json", "poses.json", "request.json", "scene.rrd"):
         assert (newest / name).is_file(), name
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "requests", "--add", "latest"], cwd=root, capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "requests", "--add", "latest"],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 0, proc.stderr
     entry = next(c for n, c in load_params(root / "params.yaml").captures.items() if n != "demo")
     assert entry.part == "t_joint" and (root / entry.file).read_bytes() == capture.read_bytes()
-    listing = subprocess.run([sys.executable, "-m", "flows.cli", "requests"], cwd=root, capture_output=True, text=True, timeout=120)
+    listing = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "requests"], cwd=root, capture_output=True, text=True, timeout=120
+    )
     assert listing.returncode == 0 and newest.name in listing.stdout
 
 
@@ -196,11 +252,34 @@ def test_the_command_refuses_a_port_in_use_and_an_open_bind_without_token(projec
         held.bind(("127.0.0.1", 0))
         held.listen()
         port = held.getsockname()[1]
-        proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--http-port", str(port)], cwd=root, capture_output=True, text=True, timeout=120)
+        proc = subprocess.run(
+            [sys.executable, "-m", "flows.cli", "service", "--http-port", str(port)],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
     assert proc.returncode == 2 and "cannot listen" in proc.stderr and "Traceback" not in proc.stderr
     env = {k: v for k, v in __import__("os").environ.items() if k != "BINPICK_TOKEN"}
-    proc = subprocess.run([sys.executable, "-m", "flows.cli", "service", "--host", "0.0.0.0", "--http-port", str(free_port()), "--tcp-port", "0"],
-                          cwd=root, capture_output=True, text=True, timeout=120, env=env)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "service",
+            "--host",
+            "0.0.0.0",
+            "--http-port",
+            str(free_port()),
+            "--tcp-port",
+            "0",
+        ],
+        cwd=root,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
     assert proc.returncode == 2 and "needs a token" in proc.stderr
 
 
@@ -232,8 +311,11 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     assert httpx.get(f"{url}/health").json()["parts"] == ["t_joint"]
 
     answers: list[int] = []
-    during = threading.Thread(target=lambda: answers.append(
-        httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code))
+    during = threading.Thread(
+        target=lambda: answers.append(
+            httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).status_code
+        )
+    )
     during.start()
     time.sleep(0.2)
     reloaded = httpx.post(f"{url}/reload", timeout=120)
@@ -252,7 +334,9 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     assert health["parts"] == ["t_joint"] and "not accepted" in health["not_served"]["t_joint_b"]
     assert httpx.post(f"{url}/picks", json={"part": "t_joint_b", "path": str(capture)}, timeout=120).status_code == 404
     # Accepted, but for another file than the one now there: retrained since, not served.
-    metrics.write_text(json.dumps({"accepted": 1.0, "checkpoint_sha256": hashlib.sha256(b"an older network").hexdigest()}))
+    metrics.write_text(
+        json.dumps({"accepted": 1.0, "checkpoint_sha256": hashlib.sha256(b"an older network").hexdigest()})
+    )
     health = httpx.post(f"{url}/reload", timeout=120).json()
     assert health["parts"] == ["t_joint"] and "not been evaluated since" in health["not_served"]["t_joint_b"]
     network.unlink()

@@ -25,7 +25,11 @@ class BinBox:
         """The bin given in params (import_capture's region of interest with its frame), else None."""
         if params.T_cam_from_roi is None or params.roi_min_m is None or params.roi_max_m is None:
             return None
-        return cls(np.asarray(params.T_cam_from_roi, dtype=np.float64), np.asarray(params.roi_min_m, float), np.asarray(params.roi_max_m, float))
+        return cls(
+            np.asarray(params.T_cam_from_roi, dtype=np.float64),
+            np.asarray(params.roi_min_m, float),
+            np.asarray(params.roi_max_m, float),
+        )
 
     def as_import_settings(self) -> dict[str, object]:
         """The import_capture keys that crop to this box."""
@@ -43,7 +47,7 @@ class BinBox:
         for fixed in range(3):
             others = [k for k in range(3) if k != fixed]
             A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
-            for value in ((lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed])):  # no lid
+            for value in (lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed]):  # no lid
                 f = np.empty((A.size, 3))
                 f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
                 faces.append(f)

@@ -59,7 +59,10 @@ def check_well_posed(T_base_from_flange: np.ndarray) -> None:
     """Refuse pose sets that cannot determine a hand-eye transform (BinpickError, one line)."""
     n = len(T_base_from_flange)
     if n < MIN_POSES:
-        raise BinpickError(f"hand-eye calibration needs at least {MIN_POSES} robot poses, got {n}: add poses with the flange turned about different axes")
+        raise BinpickError(
+            f"hand-eye calibration needs at least {MIN_POSES} robot poses, got {n}: add poses with the flange turned "
+            "about different axes"
+        )
     axes = []
     for i in range(n):
         for j in range(i + 1, n):
@@ -67,12 +70,17 @@ def check_well_posed(T_base_from_flange: np.ndarray) -> None:
             if _rotation_angle_deg(R) >= MIN_ROTATION_DEG:
                 axes.append(_axis(R))
     if not axes:
-        raise BinpickError(f"ill-posed hand-eye set: the flange turns by less than {MIN_ROTATION_DEG:g} degrees between any two of the "
-                           f"{n} poses: turn the flange between captures")
+        raise BinpickError(
+            f"ill-posed hand-eye set: the flange turns by less than {MIN_ROTATION_DEG:g} degrees between any two of "
+            "the "
+            f"{n} poses: turn the flange between captures"
+        )
     spread = max(float(np.degrees(np.arccos(np.clip(abs(a @ b), 0.0, 1.0)))) for a in axes for b in axes)
     if spread < MIN_AXIS_SPREAD_DEG:
-        raise BinpickError(f"ill-posed hand-eye set: the flange turns about one axis only (axes within {spread:.1f} degrees): "
-                           "add poses turned about a second axis")
+        raise BinpickError(
+            f"ill-posed hand-eye set: the flange turns about one axis only (axes within {spread:.1f} degrees): "
+            "add poses turned about a second axis"
+        )
 
 
 def _mean_T(Ts: np.ndarray) -> np.ndarray:
@@ -97,7 +105,10 @@ def solve_hand_eye(T_base_from_flange: np.ndarray, T_cam_from_target: np.ndarray
     # the base-to-gripper poses go in and the camera-to-base transform comes out.
     moving = T_bf if setup == "eye_in_hand" else np.array([invert_T(T) for T in T_bf])
     R, t = cv2.calibrateHandEye(
-        [m[:3, :3] for m in moving], [m[:3, 3] for m in moving], [c[:3, :3] for c in T_ct], [c[:3, 3] for c in T_ct],
+        [m[:3, :3] for m in moving],
+        [m[:3, 3] for m in moving],
+        [c[:3, :3] for c in T_ct],
+        [c[:3, 3] for c in T_ct],
         method=cv2.CALIB_HAND_EYE_PARK,
     )
     X = np.eye(4)
@@ -110,7 +121,16 @@ def solve_hand_eye(T_base_from_flange: np.ndarray, T_cam_from_target: np.ndarray
     board = _mean_T(boards)
     dist_mm = 1000.0 * np.linalg.norm(boards[:, :3, 3] - board[:3, 3], axis=1)
     ang = np.array([_rotation_angle_deg(board[:3, :3].T @ b[:3, :3]) for b in boards])
-    return HandEyeResult(setup, X, board, float(np.median(dist_mm)), float(dist_mm.max()), float(np.median(ang)), float(ang.max()), len(T_bf))
+    return HandEyeResult(
+        setup,
+        X,
+        board,
+        float(np.median(dist_mm)),
+        float(dist_mm.max()),
+        float(np.median(ang)),
+        float(ang.max()),
+        len(T_bf),
+    )
 
 
 def board_points(pattern: tuple[int, int], square_m: float) -> np.ndarray:
@@ -120,18 +140,23 @@ def board_points(pattern: tuple[int, int], square_m: float) -> np.ndarray:
     return np.column_stack([grid * square_m, np.zeros(len(grid))]).astype(np.float64)
 
 
-def board_pose(image: np.ndarray, pattern: tuple[int, int], square_m: float, K: np.ndarray,
-               xyz_m: np.ndarray | None = None) -> np.ndarray | None:
+def board_pose(
+    image: np.ndarray, pattern: tuple[int, int], square_m: float, K: np.ndarray, xyz_m: np.ndarray | None = None
+) -> np.ndarray | None:
     """T_cam_from_target of a checkerboard in a colour (H, W, 3) or grey (H, W) image, None
     when the board is not found. With the organized cloud xyz_m (H, W, 3), the corners' measured
     3-D points give the pose (a rigid fit, no intrinsics error); else solvePnP with K."""
     import cv2
 
     grey = image if image.ndim == 2 else cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
-    found, corners = cv2.findChessboardCorners(grey, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    found, corners = cv2.findChessboardCorners(
+        grey, pattern, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
+    )
     if not found:
         return None
-    corners = cv2.cornerSubPix(grey, corners, (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)).reshape(-1, 2)
+    corners = cv2.cornerSubPix(
+        grey, corners, (5, 5), (-1, -1), (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+    ).reshape(-1, 2)
     model = board_points(pattern, square_m)
     if xyz_m is not None:
         u = np.clip(np.round(corners[:, 0]).astype(int), 0, xyz_m.shape[1] - 1)
@@ -146,4 +171,3 @@ def board_pose(image: np.ndarray, pattern: tuple[int, int], square_m: float, K: 
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = cv2.Rodrigues(rvec)[0], tvec.reshape(3)
     return T
-

@@ -82,7 +82,10 @@ def quantise(values: np.ndarray, step: float) -> np.ndarray:
 
 
 def render(
-    meshes_cam: list[tuple[np.ndarray, np.ndarray]], mesh_labels: list[int], intr: PinholeCamera, background: Render | None = None
+    meshes_cam: list[tuple[np.ndarray, np.ndarray]],
+    mesh_labels: list[int],
+    intr: PinholeCamera,
+    background: Render | None = None,
 ) -> Render:
     """Ray-cast meshes (vertices (v, 3) in the camera frame, metres; faces (f, 3)) into an organized frame.
 
@@ -118,8 +121,17 @@ def render(
         # last bits between CPUs; a 0.1 micrometre grid (far below any sensor's noise) makes them
         # the same except where a hit lies within rounding of a grid line.
         t_hit = quantise(hit["t_hit"].numpy(), HIT_GRID_M)
-        _composite(sel, t_hit, hit["geometry_ids"].numpy(), hit["primitive_normals"].numpy(), rays[:, 3:], label_of,
-                   xyz, normals, labels)
+        _composite(
+            sel,
+            t_hit,
+            hit["geometry_ids"].numpy(),
+            hit["primitive_normals"].numpy(),
+            rays[:, 3:],
+            label_of,
+            xyz,
+            normals,
+            labels,
+        )
     return Render(xyz_m=xyz.reshape(H, W, 3), normals=normals.reshape(H, W, 3), labels=labels.reshape(H, W))
 
 
@@ -146,7 +158,9 @@ def _composite(sel, t, geom, prim_normals, dirs, label_of, xyz, normals, labels)
 
 @functools.lru_cache(maxsize=4)
 def _background(intr: PinholeCamera, meshes: tuple[tuple[bytes, bytes], ...]) -> Render:
-    arrays = [(np.frombuffer(v, np.float64).reshape(-1, 3), np.frombuffer(f, np.int64).reshape(-1, 3)) for v, f in meshes]
+    arrays = [
+        (np.frombuffer(v, np.float64).reshape(-1, 3), np.frombuffer(f, np.int64).reshape(-1, 3)) for v, f in meshes
+    ]
     r = render(arrays, [-1] * len(arrays), intr)
     for a in (r.xyz_m, r.normals, r.labels):
         a.flags.writeable = False
@@ -157,7 +171,8 @@ def render_background(meshes_cam: list[tuple[np.ndarray, np.ndarray]], intr: Pin
     """The render of static, unlabelled geometry (bin, floor), cached by content: every scene of a
     data set shares it, so each scene casts only the rays that can reach its objects."""
     meshes = tuple(
-        (np.ascontiguousarray(v, np.float64).tobytes(), np.ascontiguousarray(f, np.int64).tobytes()) for v, f in meshes_cam
+        (np.ascontiguousarray(v, np.float64).tobytes(), np.ascontiguousarray(f, np.int64).tobytes())
+        for v, f in meshes_cam
     )
     return _background(intr, meshes)
 
@@ -173,8 +188,16 @@ def apply_sensor_noise(render_: Render, noise: NoiseParams, rng: np.random.Gener
     dropped = rng.random(shape) < noise.dropout_fraction if noise.dropout_fraction > 0 else np.zeros(shape, bool)
     draw = rng.standard_normal(shape, dtype=np.float32)
     xyz, normals, labels = render_.xyz_m.copy(), render_.normals.copy(), render_.labels.astype(np.int32)
-    _noise(xyz.reshape(-1, 3), normals.reshape(-1, 3), labels.reshape(-1), draw.reshape(-1), dropped.reshape(-1),
-           np.cos(np.radians(noise.max_incidence_deg)), noise.depth_sigma_m, noise.depth_sigma_per_m2)
+    _noise(
+        xyz.reshape(-1, 3),
+        normals.reshape(-1, 3),
+        labels.reshape(-1),
+        draw.reshape(-1),
+        dropped.reshape(-1),
+        np.cos(np.radians(noise.max_incidence_deg)),
+        noise.depth_sigma_m,
+        noise.depth_sigma_per_m2,
+    )
     return Render(xyz_m=xyz, normals=normals, labels=labels)
 
 
@@ -213,7 +236,8 @@ def visible_fractions(
         v0, v1, u0, u1 = box
         s = max(1, int(np.sqrt((v1 - v0) * (u1 - u0) / VISIBILITY_SAMPLES)))
         rays = np.ascontiguousarray(rays_all[v0:v1:s, u0:u1:s])
-        alone = np.isfinite(raycasting_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()).sum()  # type: ignore[call-overload]
+        hit = raycasting_scene([(vertices, faces)]).cast_rays(o3d.core.Tensor(rays))  # type: ignore[call-overload]
+        alone = np.isfinite(hit["t_hit"].numpy()).sum()
         if alone:
             out[i] = min(1.0, np.count_nonzero(labels[v0:v1:s, u0:u1:s] == i) / alone)
     return out

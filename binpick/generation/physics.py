@@ -3,7 +3,8 @@ rigid-body simulation (pybullet), for piles that look like a real bin (objects l
 other, sliding under overhangs, lying in stable poses).
 
 The part collides through a convex decomposition of its mesh (V-HACD), computed once per mesh
-and kept in the system's temporary folder for every process and run. The simulation runs with lengths scaled up (SCALE), because Bullet's contact
+and kept in the system's temporary folder for every process and run. The simulation runs with
+lengths scaled up (SCALE), because Bullet's contact
 margins and tolerances are tuned for objects of about a metre; parts of a few centimetres would
 otherwise float millimetres apart or sink into each other.
 """
@@ -31,6 +32,7 @@ TIME_STEP_S = 1.0 / 240.0
 REST_SPEED_M_S = 0.002  # settled when every object moves slower than this
 VHACD_VERSION = 1  # in the cached decomposition's file name: bump when its settings change
 
+
 @dataclass(frozen=True)
 class SettleSettings:
     max_time_s: float = 2.0
@@ -42,7 +44,9 @@ def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
     """Path of an OBJ holding the V-HACD convex decomposition of the mesh (scaled by SCALE)."""
     import pybullet as pb
 
-    key = hashlib.sha1(np.ascontiguousarray(vertices_m, np.float64).tobytes() + np.ascontiguousarray(faces, np.int64).tobytes()).hexdigest()
+    key = hashlib.sha1(
+        np.ascontiguousarray(vertices_m, np.float64).tobytes() + np.ascontiguousarray(faces, np.int64).tobytes()
+    ).hexdigest()
     # One file per mesh in the system's temporary folder, shared by worker processes and runs.
     out = Path(tempfile.gettempdir()) / f"binpick-vhacd-{VHACD_VERSION}-{key[:16]}.obj"
     if out.is_file() and out.stat().st_size > 0:
@@ -55,7 +59,14 @@ def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
         client = pb.connect(pb.DIRECT)
         try:
             with _quiet_stdout():  # V-HACD prints its progress from C
-                pb.vhacd(str(src), str(parts), str(Path(folder) / "vhacd.log"), resolution=200000, maxNumVerticesPerCH=64, physicsClientId=client)
+                pb.vhacd(
+                    str(src),
+                    str(parts),
+                    str(Path(folder) / "vhacd.log"),
+                    resolution=200000,
+                    maxNumVerticesPerCH=64,
+                    physicsClientId=client,
+                )
         finally:
             pb.disconnect(client)
         if not parts.is_file() or parts.stat().st_size == 0:
@@ -109,9 +120,21 @@ def settle(
         for i, T in enumerate(T_bin_from_body):
             position = (T[:3, 3] + np.array([0.0, 0.0, settings.drop_gap_m * (i + 1)])) * SCALE
             body = pb.createMultiBody(
-                1.0, shape, basePosition=position.tolist(), baseOrientation=_quaternion_xyzw(T[:3, :3]).tolist(), physicsClientId=client
+                1.0,
+                shape,
+                basePosition=position.tolist(),
+                baseOrientation=_quaternion_xyzw(T[:3, :3]).tolist(),
+                physicsClientId=client,
             )
-            pb.changeDynamics(body, -1, lateralFriction=settings.friction, restitution=0.0, linearDamping=0.1, angularDamping=0.1, physicsClientId=client)
+            pb.changeDynamics(
+                body,
+                -1,
+                lateralFriction=settings.friction,
+                restitution=0.0,
+                linearDamping=0.1,
+                angularDamping=0.1,
+                physicsClientId=client,
+            )
             bodies.append(body)
         steps = int(settings.max_time_s / TIME_STEP_S)
         for step in range(steps):

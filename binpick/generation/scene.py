@@ -46,14 +46,19 @@ def render_scene(
     # (numpy and BLAS dispatch by instruction set); what is rendered should not.
     T_cam_model = np.round(T_cam_bin @ T_bin_from_model, 12)
     objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in T_cam_model]
-    clutter = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in [*bin_meshes(generate.bin), *(distractors or [])]]
+    clutter = [
+        (transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces))
+        for m in [*bin_meshes(generate.bin), *(distractors or [])]
+    ]
     intr = camera_of(camera) if sensor is None else intrinsics_of(sensor, camera.width_px, camera.downscale)
     clean = render(objects, list(range(len(objects))), intr, render_background(clutter, intr))
     visible = visible_fractions(objects, clean.labels, intr)
     if sensor is None:
         noisy = apply_sensor_noise(clean, generate.noise, rng)
     else:
-        noisy = apply_sensor_model(clean, objects + clutter, intr, sensor, generate.sensor.materials[generate.sensor.surface], rng)
+        noisy = apply_sensor_model(
+            clean, objects + clutter, intr, sensor, generate.sensor.materials[generate.sensor.surface], rng
+        )
     vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
         xyz_m=noisy.xyz_m,
@@ -84,7 +89,9 @@ def generate_scene(
         lo, hi = sensor.working_distance_m
         camera = camera.model_copy(update={"distance_m": float(np.clip(camera.distance_m, lo, hi))})
     if generate.clutter.active:
-        generate, camera, T_bin_camera, distractors = draw_clutter(generate, camera, part.diameter_m, clutter_generator(seed))
+        generate, camera, T_bin_camera, distractors = draw_clutter(
+            generate, camera, part.diameter_m, clutter_generator(seed)
+        )
     placement = generate.placement
     if n_objects is None:
         n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
@@ -140,12 +147,20 @@ def draw_clutter(
     and the distractor meshes (bin frame, metres) standing on the bin floor or on the table."""
     c = generate.clutter
     b = generate.bin
-    bin_params = b.model_copy(update={
-        "inner_x_m": b.inner_x_m * _scaled(c.bin_scale, rng), "inner_y_m": b.inner_y_m * _scaled(c.bin_scale, rng),
-        "wall_height_m": b.wall_height_m * _scaled(c.wall_height_scale, rng),
-    })
+    bin_params = b.model_copy(
+        update={
+            "inner_x_m": b.inner_x_m * _scaled(c.bin_scale, rng),
+            "inner_y_m": b.inner_y_m * _scaled(c.bin_scale, rng),
+            "wall_height_m": b.wall_height_m * _scaled(c.wall_height_scale, rng),
+        }
+    )
     k = _scaled(c.noise_scale, rng)
-    noise = generate.noise.model_copy(update={"depth_sigma_m": generate.noise.depth_sigma_m * k, "depth_sigma_per_m2": generate.noise.depth_sigma_per_m2 * k})
+    noise = generate.noise.model_copy(
+        update={
+            "depth_sigma_m": generate.noise.depth_sigma_m * k,
+            "depth_sigma_per_m2": generate.noise.depth_sigma_per_m2 * k,
+        }
+    )
     distance = camera.distance_m * _scaled(c.camera_distance_scale, rng)
     camera = camera.model_copy(update={"distance_m": distance})
     tilt = np.radians(float(rng.uniform(0.0, c.camera_tilt_deg_max))) if c.camera_tilt_deg_max > 0 else 0.0
@@ -182,7 +197,9 @@ def draw_clutter(
     return generate.model_copy(update={"bin": bin_params, "noise": noise}), camera, T_bin_camera, meshes
 
 
-def settle_in_bin(part: PartModel, T_bin_from_model: np.ndarray, generate: GenerateParams, rng: np.random.Generator) -> np.ndarray:
+def settle_in_bin(
+    part: PartModel, T_bin_from_model: np.ndarray, generate: GenerateParams, rng: np.random.Generator
+) -> np.ndarray:
     """The physics mode: drop-placed objects settled by simulation; objects that left the bin or
     reach deeper than placement.max_penetration_m into another are removed (logged).
 
@@ -191,14 +208,27 @@ def settle_in_bin(part: PartModel, T_bin_from_model: np.ndarray, generate: Gener
     placement = generate.placement
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(generate.bin)]
     half = (generate.bin.inner_x_m / 2.0, generate.bin.inner_y_m / 2.0)
-    settled, inside = settle(part.mesh_vertices_m, part.mesh_faces, T_bin_from_model, boxes, SettleSettings(max_time_s=placement.settle_max_s), half)
+    settled, inside = settle(
+        part.mesh_vertices_m,
+        part.mesh_faces,
+        T_bin_from_model,
+        boxes,
+        SettleSettings(max_time_s=placement.settle_max_s),
+        half,
+    )
     settled = settled[inside]
     sample = part.points_m[rng.choice(len(part.points_m), min(PENETRATION_SAMPLE, len(part.points_m)), replace=False)]
     keep = drop_overlapping(
         lambda poses: penetration_depths_m(part.mesh_vertices_m, part.mesh_faces, sample, poses, part.diameter_m),
-        settled, placement.max_penetration_m,
+        settled,
+        placement.max_penetration_m,
     )
     if len(keep) < len(T_bin_from_model):
-        log.info("physics: kept %d of %d objects (%d left the bin, %d overlapped)", len(keep), len(T_bin_from_model),
-                 int((~inside).sum()), int(inside.sum()) - len(keep))
+        log.info(
+            "physics: kept %d of %d objects (%d left the bin, %d overlapped)",
+            len(keep),
+            len(T_bin_from_model),
+            int((~inside).sum()),
+            int(inside.sum()) - len(keep),
+        )
     return settled[keep]

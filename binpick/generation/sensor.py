@@ -43,20 +43,30 @@ def intrinsics_of(model: SensorModelParams, reference_width_px: int, reference_d
     5 MP Zivid frame at about the training resolution."""
     s = max(1, int(round(reference_downscale * model.width_px / reference_width_px)))
     return PinholeCamera(
-        width=model.width_px // s, height=model.height_px // s, fx=model.fx_px / s, fy=model.fy_px / s,
-        cx=(model.width_px / 2.0) / s - 0.5, cy=(model.height_px / 2.0) / s - 0.5,
+        width=model.width_px // s,
+        height=model.height_px // s,
+        fx=model.fx_px / s,
+        fy=model.fy_px / s,
+        cx=(model.width_px / 2.0) / s - 0.5,
+        cy=(model.height_px / 2.0) / s - 0.5,
     )
 
 
 def scaled_model(model: SensorModelParams, factor: float) -> SensorModelParams:
     """The model with the size of its noise, mixing and multipath effects times `factor`."""
-    return model.model_copy(update={
-        "depth_sigma_m": model.depth_sigma_m * factor, "depth_sigma_per_m2": model.depth_sigma_per_m2 * factor,
-        "mixed_pixel_share": min(1.0, model.mixed_pixel_share * factor), "multipath_m": model.multipath_m * factor,
-    })
+    return model.model_copy(
+        update={
+            "depth_sigma_m": model.depth_sigma_m * factor,
+            "depth_sigma_per_m2": model.depth_sigma_per_m2 * factor,
+            "mixed_pixel_share": min(1.0, model.mixed_pixel_share * factor),
+            "multipath_m": model.multipath_m * factor,
+        }
+    )
 
 
-def projector_shadow(xyz_m: np.ndarray, meshes_cam: list[tuple[np.ndarray, np.ndarray]], projector_m: np.ndarray) -> np.ndarray:
+def projector_shadow(
+    xyz_m: np.ndarray, meshes_cam: list[tuple[np.ndarray, np.ndarray]], projector_m: np.ndarray
+) -> np.ndarray:
     """(H, W) bool: points the projector's light cannot reach (its ray to them hits a mesh first).
 
     xyz_m : (H, W, 3) float32, camera frame, metres, NaN = no return
@@ -72,7 +82,9 @@ def projector_shadow(xyz_m: np.ndarray, meshes_cam: list[tuple[np.ndarray, np.nd
         return shadow.reshape(xyz_m.shape[:2])
     to_point = flat[valid] - projector_m
     distance = np.linalg.norm(to_point, axis=1)
-    rays = np.concatenate([np.broadcast_to(projector_m, to_point.shape), to_point / distance[:, None]], axis=1).astype(np.float32)
+    rays = np.concatenate([np.broadcast_to(projector_m, to_point.shape), to_point / distance[:, None]], axis=1).astype(
+        np.float32
+    )
     t_hit = raycasting_scene(meshes_cam).cast_rays(o3d.core.Tensor(np.ascontiguousarray(rays)))["t_hit"].numpy()  # type: ignore[call-overload]
     shadow[valid] = t_hit < distance - SHADOW_TOLERANCE_M
     return shadow.reshape(xyz_m.shape[:2])
@@ -96,7 +108,9 @@ def specular_cos(xyz_m: np.ndarray, normals: np.ndarray, projector_m: np.ndarray
     return np.einsum("...i,...i->...", half, normals)
 
 
-def mix_edge_pixels(xyz_m: np.ndarray, labels: np.ndarray, jump_m: float, share: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def mix_edge_pixels(
+    xyz_m: np.ndarray, labels: np.ndarray, jump_m: float, share: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Edge pixels (a 4-neighbour's depth differs by more than jump_m) moved along their ray to a
     depth between theirs and that neighbour's (the one farthest in depth), with probability
     `share`; a pixel moved more than halfway takes the neighbour's label. Returns copies of
@@ -143,7 +157,14 @@ def concavity(xyz_m: np.ndarray, normals: np.ndarray, radius_m: float, fx_px: fl
     xyz_m, normals : (H, W, 3), camera frame, NaN = no return; fx_px the frame's focal length.
     """
     out = np.zeros(xyz_m.shape[:2], np.float32)
-    _concavity(xyz_m.astype(np.float64), normals.astype(np.float64), radius_m * fx_px, CONCAVITY_DIRECTIONS, CONCAVITY_MAX_PX, out)
+    _concavity(
+        xyz_m.astype(np.float64),
+        normals.astype(np.float64),
+        radius_m * fx_px,
+        CONCAVITY_DIRECTIONS,
+        CONCAVITY_MAX_PX,
+        out,
+    )
     return out
 
 
@@ -162,9 +183,20 @@ def _concavity(xyz, normals, radius_px_m, n_dir, max_px, out):  # pragma: no cov
                 for step in (1, 2, 3):
                     rr = r * step / 3.0
                     nv, nu = v + int(round(rr * np.sin(a))), u + int(round(rr * np.cos(a)))
-                    if nv < 0 or nv >= H or nu < 0 or nu >= W or (nv == v and nu == u) or not np.isfinite(xyz[nv, nu, 2]):
+                    if (
+                        nv < 0
+                        or nv >= H
+                        or nu < 0
+                        or nu >= W
+                        or (nv == v and nu == u)
+                        or not np.isfinite(xyz[nv, nu, 2])
+                    ):
                         continue
-                    d0, d1, d2 = xyz[nv, nu, 0] - xyz[v, u, 0], xyz[nv, nu, 1] - xyz[v, u, 1], xyz[nv, nu, 2] - xyz[v, u, 2]
+                    d0, d1, d2 = (
+                        xyz[nv, nu, 0] - xyz[v, u, 0],
+                        xyz[nv, nu, 1] - xyz[v, u, 1],
+                        xyz[nv, nu, 2] - xyz[v, u, 2],
+                    )
                     n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
                     if n == 0.0:
                         continue
@@ -210,11 +242,15 @@ def apply_sensor_model(
 
     with np.errstate(invalid="ignore"):
         angle = np.degrees(np.arccos(np.clip(incidence_cos(xyz, normals), -1.0, 1.0)))
-        max_incidence = np.where(is_part, min(model.max_incidence_deg, part_material.max_incidence_deg), model.max_incidence_deg)
+        max_incidence = np.where(
+            is_part, min(model.max_incidence_deg, part_material.max_incidence_deg), model.max_incidence_deg
+        )
         start = np.minimum(model.dropout_start_deg, max_incidence)
         ramp = np.clip((angle - start) / np.maximum(max_incidence - start, 1e-6), 0.0, 1.0)
         ramp = np.where(angle > max_incidence, 1.0, ramp)
-        p_drop = 1.0 - (1.0 - ramp) * (1.0 - model.dropout_fraction) * (1.0 - np.where(is_part, part_material.dropout_fraction, 0.0))
+        p_drop = 1.0 - (1.0 - ramp) * (1.0 - model.dropout_fraction) * (
+            1.0 - np.where(is_part, part_material.dropout_fraction, 0.0)
+        )
         draw_drop = rng.random((H, W))
         gone |= ~(draw_drop >= p_drop)  # NaN (no return) counts as gone
         if part_material.specular_lobe_deg > 0:
@@ -226,7 +262,10 @@ def apply_sensor_model(
 
     if model.multipath_m > 0:
         # Longer range (the light took a detour): the point moves away along its ray.
-        bias = np.minimum(1.0, concavity(xyz, normals, model.multipath_radius_m, intr.fx) / CORNER_CONCAVITY) * model.multipath_m
+        bias = (
+            np.minimum(1.0, concavity(xyz, normals, model.multipath_radius_m, intr.fx) / CORNER_CONCAVITY)
+            * model.multipath_m
+        )
         ranges = np.linalg.norm(xyz, axis=-1)
         with np.errstate(invalid="ignore"):
             xyz *= ((ranges + bias) / ranges)[..., None].astype(np.float32)
@@ -237,7 +276,11 @@ def apply_sensor_model(
     with np.errstate(invalid="ignore"):
         a = np.radians(np.clip(angle, 0.0, 89.0))
         incidence_term = 1.0 + model.incidence_noise_gain * a**2 / (np.pi / 2 - a) ** 2
-        sigma = (model.depth_sigma_m + model.depth_sigma_per_m2 * ranges**2) * np.where(is_part, part_material.noise_scale, 1.0) * incidence_term
+        sigma = (
+            (model.depth_sigma_m + model.depth_sigma_per_m2 * ranges**2)
+            * np.where(is_part, part_material.noise_scale, 1.0)
+            * incidence_term
+        )
         draw = rng.standard_normal((H, W), dtype=np.float32)
         xyz *= (1.0 + draw * sigma / ranges)[..., None].astype(np.float32)
         if model.disparity_step_px > 0:

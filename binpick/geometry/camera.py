@@ -27,7 +27,14 @@ class PinholeCamera:
     def from_K(cls, K: np.ndarray, width: int, height: int) -> PinholeCamera:
         """From a (3, 3) intrinsic matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
         K = np.asarray(K, dtype=float)
-        return cls(width=int(width), height=int(height), fx=float(K[0, 0]), fy=float(K[1, 1]), cx=float(K[0, 2]), cy=float(K[1, 2]))
+        return cls(
+            width=int(width),
+            height=int(height),
+            fx=float(K[0, 0]),
+            fy=float(K[1, 1]),
+            cx=float(K[0, 2]),
+            cy=float(K[1, 2]),
+        )
 
     @property
     def K(self) -> np.ndarray:
@@ -42,8 +49,12 @@ class PinholeCamera:
         """The same camera with factor x factor pixels binned into one (pixel centres move with
         the binning: the new pixel (0, 0) is the centre of the old block)."""
         return PinholeCamera(
-            width=self.width // factor, height=self.height // factor, fx=self.fx / factor, fy=self.fy / factor,
-            cx=(self.cx + 0.5) / factor - 0.5, cy=(self.cy + 0.5) / factor - 0.5,
+            width=self.width // factor,
+            height=self.height // factor,
+            fx=self.fx / factor,
+            fy=self.fy / factor,
+            cx=(self.cx + 0.5) / factor - 0.5,
+            cy=(self.cy + 0.5) / factor - 0.5,
         )
 
     def fits(self, shape: tuple[int, int]) -> str | None:
@@ -53,7 +64,10 @@ class PinholeCamera:
         if not (self.fx > 0 and self.fy > 0):
             return f"focal lengths must be positive (fx {self.fx}, fy {self.fy})"
         if not (0.0 <= self.cx <= W and 0.0 <= self.cy <= H):
-            return f"principal point ({self.cx:g}, {self.cy:g}) px lies outside the {W} x {H} image: intrinsics of another resolution?"
+            return (
+                f"principal point ({self.cx:g}, {self.cy:g}) px lies outside the {W} x {H} image: "
+                "intrinsics of another resolution?"
+            )
         return None
 
     def back_project(self, depth_m: np.ndarray) -> np.ndarray:

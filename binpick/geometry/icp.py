@@ -26,8 +26,14 @@ MIN_PAIRS = 6
 
 
 def point_to_plane_icp(
-    source_points: np.ndarray, target_points: np.ndarray, target_normals: np.ndarray, T_target_from_source: np.ndarray,
-    max_distance_m: float, max_iterations: int, tolerance: float, free_turn: tuple[np.ndarray, np.ndarray] | None = None,
+    source_points: np.ndarray,
+    target_points: np.ndarray,
+    target_normals: np.ndarray,
+    T_target_from_source: np.ndarray,
+    max_distance_m: float,
+    max_iterations: int,
+    tolerance: float,
+    free_turn: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """(4, 4) T_target_from_source refined from the given start so that the source points lie on
     the planes of their nearest target points.
@@ -49,7 +55,11 @@ def point_to_plane_icp(
     if len(source) == 0 or len(target) == 0:
         return T
     tree = KDTree(target)
-    basis = None if free_turn is None else _without_turn(tuple(np.ravel(free_turn[0]).tolist()), tuple(np.ravel(free_turn[1]).tolist()))
+    basis = (
+        None
+        if free_turn is None
+        else _without_turn(tuple(np.ravel(free_turn[0]).tolist()), tuple(np.ravel(free_turn[1]).tolist()))
+    )
 
     def paired(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
         """The step's normal equations at these source positions, the paired share and the pairs'
@@ -65,7 +75,11 @@ def point_to_plane_icp(
         if n_pairs < MIN_PAIRS:
             break
         try:
-            x = np.linalg.solve(JtJ, Jtr) if basis is None else basis @ np.linalg.solve(basis.T @ JtJ @ basis, basis.T @ Jtr)
+            x = (
+                np.linalg.solve(JtJ, Jtr)
+                if basis is None
+                else basis @ np.linalg.solve(basis.T @ JtJ @ basis, basis.T @ Jtr)
+            )
         except np.linalg.LinAlgError:  # the pairs do not fix the pose (one plane): keep it
             break
         angle = float(np.linalg.norm(x[:3]))
@@ -76,7 +90,10 @@ def point_to_plane_icp(
         JtJ, Jtr, n_pairs, fitness, rmse = paired(moved)
         # Converged: nothing changed since the last step; or caught in a two-step cycle (the
         # pairs of one state pull to the other and back): nothing changed since the step before.
-        if any(abs(fitness - f) < tolerance and abs(rmse - r) < tolerance for f, r in zip(history[::2], history[1::2], strict=True)):
+        if any(
+            abs(fitness - f) < tolerance and abs(rmse - r) < tolerance
+            for f, r in zip(history[::2], history[1::2], strict=True)
+        ):
             break
     return T
 

@@ -86,7 +86,9 @@ def _first_in_cell(flat, n_cells):  # pragma: no cover - numba
     return out[:m]
 
 
-def estimate_normals(points: np.ndarray, radius_m: float, viewpoint: np.ndarray | None = None, max_nn: int = 30) -> np.ndarray:
+def estimate_normals(
+    points: np.ndarray, radius_m: float, viewpoint: np.ndarray | None = None, max_nn: int = 30
+) -> np.ndarray:
     """(n, 3) float32 unit normals from local PCA, oriented toward `viewpoint` (default: origin,
     the camera centre in the camera frame)."""
     points = _check_points(points)
@@ -124,8 +126,13 @@ RANSAC_BATCH = 64
 
 
 def fit_plane_ransac(
-    points: np.ndarray, threshold_m: float, iterations: int, seed: int, confidence: float = 0.9999,
-    across: np.ndarray | None = None, max_cos: float = 1.0,
+    points: np.ndarray,
+    threshold_m: float,
+    iterations: int,
+    seed: int,
+    confidence: float = 0.9999,
+    across: np.ndarray | None = None,
+    max_cos: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray]:
     """RANSAC plane on a random subset of at most RANSAC_MAX_POINTS points, stopping once
     `confidence` is reached (at most `iterations` hypotheses), refined by least squares on its
@@ -142,7 +149,11 @@ def fit_plane_ransac(
     if len(points) < 3:
         raise ValueError("a plane needs at least 3 points")
     rng = np.random.default_rng(seed)
-    subset = points if len(points) <= RANSAC_MAX_POINTS else points[rng.choice(len(points), RANSAC_MAX_POINTS, replace=False)]
+    subset = (
+        points
+        if len(points) <= RANSAC_MAX_POINTS
+        else points[rng.choice(len(points), RANSAC_MAX_POINTS, replace=False)]
+    )
     plane = _ransac_plane(subset, threshold_m, iterations, confidence, rng, across, max_cos)
     inl = np.asarray(points[np.abs(points @ plane[:3] + plane[3]) <= threshold_m], dtype=np.float64)
     if len(inl) >= 3:
@@ -155,8 +166,13 @@ def fit_plane_ransac(
 
 
 def _ransac_plane(
-    points: np.ndarray, threshold_m: float, iterations: int, confidence: float, rng: np.random.Generator,
-    across: np.ndarray | None = None, max_cos: float = 1.0,
+    points: np.ndarray,
+    threshold_m: float,
+    iterations: int,
+    confidence: float,
+    rng: np.random.Generator,
+    across: np.ndarray | None = None,
+    max_cos: float = 1.0,
 ) -> np.ndarray:
     """The hypothesis (4,) with the most inliers among points (n, 3) (ties: the smaller inlier
     error, then the earlier drawn), drawn RANSAC_BATCH at a time until `iterations` are drawn or

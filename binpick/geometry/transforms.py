@@ -68,7 +68,9 @@ def random_rotation(rng: np.random.Generator) -> np.ndarray:
     """A (3, 3) rotation drawn uniformly from SO(3): a unit quaternion from a 4-D normal (the
     draws this project's scenes were generated with; scipy's Rotation.random draws differently)."""
     q = rng.normal(size=4)
-    return Rotation.from_quat(q[[1, 2, 3, 0]] / np.linalg.norm(q)).as_matrix()  # (w, x, y, z) drawn, scipy takes (x, y, z, w)
+    return Rotation.from_quat(
+        q[[1, 2, 3, 0]] / np.linalg.norm(q)
+    ).as_matrix()  # (w, x, y, z) drawn, scipy takes (x, y, z, w)
 
 
 def rotation_angle_deg(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:

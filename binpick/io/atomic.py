@@ -19,7 +19,7 @@ def sweep_stale(parent: Path, prefix: str) -> None:
     if not parent.is_dir():
         return
     for stale in parent.glob(f"{prefix}*.tmp*"):
-        pid = stale.name[len(prefix):].split(".", 1)[0]
+        pid = stale.name[len(prefix) :].split(".", 1)[0]
         if pid.isdigit() and not pid_alive(int(pid)):
             if stale.is_dir() and not stale.is_symlink():
                 shutil.rmtree(stale, ignore_errors=True)
@@ -83,7 +83,9 @@ def write_text(path: str | Path, text: str) -> None:
 
 
 @overload
-def atomic_paths(out: str | Path, other: str | Path | None, /) -> contextlib.AbstractContextManager[tuple[Path, Path | None]]: ...
+def atomic_paths(
+    out: str | Path, other: str | Path | None, /
+) -> contextlib.AbstractContextManager[tuple[Path, Path | None]]: ...
 @overload
 def atomic_paths(
     out: str | Path, other: str | Path | None, third: str | Path | None, /

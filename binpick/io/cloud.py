@@ -47,7 +47,13 @@ def save_cloud(path: str | Path, cloud: CleanCloud) -> None:
 
 
 def load_cloud(path: str | Path) -> CleanCloud:
-    arrays = load_fields(path, CleanCloud, "cleaned cloud", "cleaned cloud not found (run the import stage first)", {"capture_digest": np.asarray("")})
+    arrays = load_fields(
+        path,
+        CleanCloud,
+        "cleaned cloud",
+        "cleaned cloud not found (run the import stage first)",
+        {"capture_digest": np.asarray("")},
+    )
     return CleanCloud(**{**arrays, "capture_digest": str(arrays["capture_digest"])})  # type: ignore[arg-type]  # the rest are arrays
 
 

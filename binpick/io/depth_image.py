@@ -25,7 +25,9 @@ def load_intrinsics(path: str | Path, shape: tuple[int, int]) -> PinholeCamera:
             K = np.asarray(doc["cam_K"], dtype=float).reshape(3, 3)
             camera = PinholeCamera.from_K(K, shape[1], shape[0])
         else:
-            camera = PinholeCamera(shape[1], shape[0], float(doc["fx"]), float(doc["fy"]), float(doc["cx"]), float(doc["cy"]))
+            camera = PinholeCamera(
+                shape[1], shape[0], float(doc["fx"]), float(doc["fy"]), float(doc["cx"]), float(doc["cy"])
+            )
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(path, f"needs fx, fy, cx, cy (or cam_K) in pixels ({type(exc).__name__}: {exc})") from None
     problem = camera.fits(shape)
@@ -51,7 +53,9 @@ def load_depth_png(path: str | Path) -> np.ndarray:
     depth = np.asarray(img)
     if depth.dtype == np.uint8:
         # 8 bits cannot hold depth (256 levels): this is a grey or colour picture, or a preview.
-        raise InputError(path, f"an 8-bit image ({img.mode}); depth images are 16-bit PNGs of depth values (0 = missing)")
+        raise InputError(
+            path, f"an 8-bit image ({img.mode}); depth images are 16-bit PNGs of depth values (0 = missing)"
+        )
     if depth.ndim != 2 or depth.dtype not in (np.uint16, np.int32):
         raise InputError(path, f"expected a single-channel 16-bit depth image, got {depth.dtype} {depth.shape}")
     return depth

@@ -62,14 +62,28 @@ def _entry(kind: str, grasp_id: str, T: np.ndarray, width: float) -> dict:
     r = lambda v: [round(float(x), 9) for x in v]  # noqa: E731
     if kind == "suction":
         return {"id": grasp_id, "point_m": r(T[:3, 3]), "approach": r(T[:3, 2])}
-    return {"id": grasp_id, "centre_m": r(T[:3, 3]), "approach": r(T[:3, 2]), "closing": r(T[:3, 0]), "width_m": round(float(width), 9)}
+    return {
+        "id": grasp_id,
+        "centre_m": r(T[:3, 3]),
+        "approach": r(T[:3, 2]),
+        "closing": r(T[:3, 0]),
+        "width_m": round(float(width), 9),
+    }
 
 
 def save_grasps(path: str | Path, part: str, sets: dict[str, GraspSet], source: str) -> None:
     """source: where the grasps came from ('generated' or the grasp file's path)."""
     doc = {
-        "format": FORMAT, "version": VERSION, "part": part, "unit": "m", "frame": "model", "source": source,
-        **{kind: [_entry(kind, i, T, w) for i, T, w in zip(s.ids, s.T_model_from_tool, s.width_m, strict=True)] for kind, s in sets.items()},
+        "format": FORMAT,
+        "version": VERSION,
+        "part": part,
+        "unit": "m",
+        "frame": "model",
+        "source": source,
+        **{
+            kind: [_entry(kind, i, T, w) for i, T, w in zip(s.ids, s.T_model_from_tool, s.width_m, strict=True)]
+            for kind, s in sets.items()
+        },
     }
     write_text(path, json.dumps(doc, indent=1) + "\n")
 
@@ -96,9 +110,11 @@ def load_grasps(path: str | Path) -> dict[str, GraspSet]:
     except (ValueError, UnicodeDecodeError) as exc:
         raise InputError(path, f"not a JSON grasp file ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format", FORMAT) != FORMAT:
-        raise InputError(path, f"not a binpick grasp file (expected \"format\": \"{FORMAT}\")")
+        raise InputError(path, f'not a binpick grasp file (expected "format": "{FORMAT}")')
     if doc.get("unit", "m") != "m":
-        raise InputError(path, f"grasps must be in metres in the part's model frame (\"unit\": \"m\"), not {doc.get('unit')!r}")
+        raise InputError(
+            path, f'grasps must be in metres in the part\'s model frame ("unit": "m"), not {doc.get("unit")!r}'
+        )
     if not any(k in doc for k in KINDS):
         raise InputError(path, f"has no grasps (lists named {' or '.join(KINDS)})")
     out: dict[str, GraspSet] = {}
@@ -114,7 +130,10 @@ def load_grasps(path: str | Path) -> dict[str, GraspSet]:
             try:
                 grasp_id = str(e.get("id", f"{kind[0]}{k}"))
                 if kind == "suction":
-                    T = tool_frame(_vector(path, f"{where}.point_m", e["point_m"], False), _vector(path, f"{where}.approach", e["approach"], True))
+                    T = tool_frame(
+                        _vector(path, f"{where}.point_m", e["point_m"], False),
+                        _vector(path, f"{where}.approach", e["approach"], True),
+                    )
                     width = 0.0
                 else:
                     approach = _vector(path, f"{where}.approach", e["approach"], True)

@@ -33,7 +33,9 @@ class LabelledScene:
 MAX_LABEL = 1_000_000
 
 
-def load_labelled(path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z label"], unit: str = "m") -> LabelledScene:
+def load_labelled(
+    path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z label"], unit: str = "m"
+) -> LabelledScene:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "labelled scene not found")
@@ -46,17 +48,24 @@ def load_labelled(path: str | Path, columns: tuple[str, ...] = LAYOUTS["x y z la
     if not np.all(np.isfinite(labels)) or not np.all(labels == np.round(labels)):
         raise InputError(path, "labels must be integers")
     if len(labels) and (labels.max() > MAX_LABEL or labels.min() < -MAX_LABEL):
-        raise InputError(path, f"labels must be small integers (instance ids, -1 = none); found {labels.min():.0f} to {labels.max():.0f}")
+        raise InputError(
+            path,
+            f"labels must be small integers (instance ids, -1 = none); found {labels.min():.0f} to {labels.max():.0f}",
+        )
     labels = labels.astype(np.int64)
     labels[labels < 0] = -1
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1) * METRES_PER_UNIT[unit]
     bad = ~np.all(np.isfinite(points), axis=1)
     if bad.any():
-        raise InputError(path, f"{int(bad.sum())} points have non-finite coordinates (first at row {int(np.argmax(bad)) + 1})")
+        raise InputError(
+            path, f"{int(bad.sum())} points have non-finite coordinates (first at row {int(np.argmax(bad)) + 1})"
+        )
     return LabelledScene(points, labels, cols.get("score"))
 
 
-def transfer_labels(source_points: np.ndarray, source_labels: np.ndarray, target_points: np.ndarray, max_distance_m: float) -> np.ndarray:
+def transfer_labels(
+    source_points: np.ndarray, source_labels: np.ndarray, target_points: np.ndarray, max_distance_m: float
+) -> np.ndarray:
     """Labels of target points from their nearest source point; -1 farther than max_distance_m."""
     from scipy.spatial import cKDTree
 

@@ -44,7 +44,9 @@ def save_labelled_capture(path: str | Path, capture: LabelledCapture) -> None:
 
 
 def load_labelled_capture(path: str | Path) -> LabelledCapture:
-    return LabelledCapture(**load_fields(path, LabelledCapture, "labelled capture", "labelled capture not found (run the label stage)"))
+    return LabelledCapture(
+        **load_fields(path, LabelledCapture, "labelled capture", "labelled capture not found (run the label stage)")
+    )
 
 
 def list_labelled_captures(folder: str | Path) -> list[Path]:

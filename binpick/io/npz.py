@@ -25,7 +25,9 @@ def save_fields(path: str | Path, obj: Any, compressed: bool = True) -> None:
             np.savez(tmp, **arrays)  # type: ignore[arg-type]
 
 
-def load_fields(path: str | Path, cls: type[T], what: str, missing: str, defaults: dict[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+def load_fields(
+    path: str | Path, cls: type[T], what: str, missing: str, defaults: dict[str, np.ndarray] | None = None
+) -> dict[str, np.ndarray]:
     """The arrays of the fields of `cls` from `path` (`defaults` for fields that files written
     before them lack); InputError naming the file when it is missing (`missing` says how to make
     it) or is not a `what`."""

@@ -13,7 +13,16 @@ import numpy as np
 from binpick.errors import InputError
 from binpick.io.ply import PointCloudData
 
-_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4", ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4"}
+_TYPES = {
+    ("F", 4): "f4",
+    ("F", 8): "f8",
+    ("U", 1): "u1",
+    ("U", 2): "u2",
+    ("U", 4): "u4",
+    ("I", 1): "i1",
+    ("I", 2): "i2",
+    ("I", 4): "i4",
+}
 
 
 def _header(raw: bytes, path: Path) -> tuple[dict[str, list[str]], int]:
@@ -79,11 +88,22 @@ def load_pcd(path: str | Path) -> PointCloudData:
     except (KeyError, ValueError, IndexError) as exc:
         raise InputError(path, f"malformed PCD header ({exc})") from None
     if not len(fields) == len(sizes) == len(types) == len(counts):
-        raise InputError(path, f"malformed PCD header: {len(fields)} FIELDS, {len(sizes)} SIZE, {len(types)} TYPE, {len(counts)} COUNT")
+        raise InputError(
+            path,
+            f"malformed PCD header: {len(fields)} FIELDS, {len(sizes)} SIZE, {len(types)} TYPE, {len(counts)} COUNT",
+        )
     for f, s, t in zip(fields, sizes, types, strict=True):
         if (t, s) not in _TYPES:
-            raise InputError(path, f"field {f!r} has TYPE {t} with SIZE {s}, which PCD does not define (F: 4 or 8; U, I: 1, 2 or 4)")
-    dtype = np.dtype([(f"{f}{j}" if c > 1 else f, "<" + _TYPES[(t, s)]) for f, s, t, c in zip(fields, sizes, types, counts, strict=False) for j in range(c)])
+            raise InputError(
+                path, f"field {f!r} has TYPE {t} with SIZE {s}, which PCD does not define (F: 4 or 8; U, I: 1, 2 or 4)"
+            )
+    dtype = np.dtype(
+        [
+            (f"{f}{j}" if c > 1 else f, "<" + _TYPES[(t, s)])
+            for f, s, t, c in zip(fields, sizes, types, counts, strict=False)
+            for j in range(c)
+        ]
+    )
     body = raw[start:]
     try:
         if kind == "ascii":
@@ -144,7 +164,8 @@ def save_pcd(path: str | Path, cloud: PointCloudData) -> None:
     header = (
         f"# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS {names}\n"
         f"SIZE {' '.join('4' for _ in fields)}\nTYPE {' '.join('U' if t == 'u4' else 'F' for _, t in fields)}\n"
-        f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {W}\nHEIGHT {H}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(xyz)}\nDATA binary\n"
+        f"COUNT {' '.join('1' for _ in fields)}\nWIDTH {W}\nHEIGHT {H}\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS "
+        f"{len(xyz)}\nDATA binary\n"
     )
     with atomic_path(path) as tmp:
         tmp.write_bytes(header.encode("ascii") + data.tobytes())

@@ -29,14 +29,29 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
         return {"camera": {k: _T(v) for k, v in cam.items()}, "base": {k: _T(T_base @ v) for k, v in cam.items()}}
 
     return {
-        "format": FORMAT, "version": VERSION, "capture": capture, "part": part, "gripper": gripper, "unit": "m",
-        "tool_frame": "origin at the tool centre point, z the approach, x the jaws' closing axis (binpick/picking/gripper.py)",
+        "format": FORMAT,
+        "version": VERSION,
+        "capture": capture,
+        "part": part,
+        "gripper": gripper,
+        "unit": "m",
+        "tool_frame": "origin at the tool centre point, z the approach, x the jaws' closing axis "
+        "(binpick/picking/gripper.py)",
         "calibrated": T_base_from_cam is not None,
         "T_base_from_cam": _T(T_base),
         "up_cam": [round(float(x), 9) for x in plan.up_cam],
         "picks": [
-            {"rank": k, "pose_index": p.pose_index, "grasp_id": p.grasp_id, "score": round(p.score, 6), "clearance_m": round(p.clearance_m, 6),
-             "height_m": round(p.height_m, 6), "trusted": p.trusted, **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}), **poses(p)}
+            {
+                "rank": k,
+                "pose_index": p.pose_index,
+                "grasp_id": p.grasp_id,
+                "score": round(p.score, 6),
+                "clearance_m": round(p.clearance_m, 6),
+                "height_m": round(p.height_m, 6),
+                "trusted": p.trusted,
+                **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}),
+                **poses(p),
+            }
             for k, p in enumerate(plan.picks)
         ],
         "unpicked": [{"pose_index": i, "reason": reason} for i, reason in plan.unpicked],
@@ -44,7 +59,9 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
     }
 
 
-def save_picks(path: str | Path, capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None) -> None:
+def save_picks(
+    path: str | Path, capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None
+) -> None:
     write_picks_document(path, picks_document(capture, part, gripper, plan, T_base_from_cam))
 
 
@@ -63,5 +80,5 @@ def load_picks(path: str | Path) -> dict:
     except ValueError as exc:
         raise InputError(path, f"not a JSON pick list ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("picks"), list):
-        raise InputError(path, f"not a binpick pick list (expected \"format\": \"{FORMAT}\")")
+        raise InputError(path, f'not a binpick pick list (expected "format": "{FORMAT}")')
     return doc

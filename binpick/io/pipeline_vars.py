@@ -56,8 +56,12 @@ class StageCapture:
 
     def as_vars(self) -> dict[str, str]:
         return {
-            "file": self.file, "part": self.part, "truth": self.truth, "intrinsics": self.intrinsics,
-            "truth_dep": self.truth or self.file, "intrinsics_dep": self.intrinsics or self.file,
+            "file": self.file,
+            "part": self.part,
+            "truth": self.truth,
+            "intrinsics": self.intrinsics,
+            "truth_dep": self.truth or self.file,
+            "intrinsics_dep": self.intrinsics or self.file,
         }
 
 
@@ -114,7 +118,9 @@ def load_set_aside(root: Path) -> dict[str, dict[str, SetAside]]:
             for name, entry in (doc.get(kind) or {}).items():
                 out[kind][str(name)] = SetAside(str(entry["fingerprint"]), str(entry["reason"]), str(entry["when"]))
     except (yaml.YAMLError, AttributeError, KeyError, TypeError) as exc:
-        raise InputError(path, f"not a set-aside list ({type(exc).__name__}: {exc}); delete it to retry everything") from None
+        raise InputError(
+            path, f"not a set-aside list ({type(exc).__name__}: {exc}); delete it to retry everything"
+        ) from None
     return out
 
 

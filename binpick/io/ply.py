@@ -77,7 +77,9 @@ def load_ply(path: str | Path) -> PointCloudData:
         ply = PlyData.read(str(path))
         vertex = ply["vertex"].data
     except (PlyParseError, KeyError, ValueError, EOFError, OSError) as exc:
-        raise InputError(path, f"not a readable PLY point cloud ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        raise InputError(
+            path, f"not a readable PLY point cloud ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})"
+        ) from None
     names = vertex.dtype.names or ()
     if not {"x", "y", "z"} <= set(names):
         raise InputError(path, "PLY vertices have no x, y, z properties")

@@ -54,7 +54,10 @@ def _pose(p: dict) -> PartPose:
     stored = dict(p.get("extra") or {})
     typed = {k: stored.pop(k) for k in _TYPED if k in stored}
     return PartPose(
-        np.asarray(p["T_cam_from_model"], dtype=np.float64).reshape(4, 4), float(p["score"]), int(p.get("segment", -1)), stored or None,
+        np.asarray(p["T_cam_from_model"], dtype=np.float64).reshape(4, 4),
+        float(p["score"]),
+        int(p.get("segment", -1)),
+        stored or None,
         seen_through=float(typed["seen_through"]) if "seen_through" in typed else None,
         visible_support=float(typed["visible_support"]) if "visible_support" in typed else None,
         turned_by_near_symmetry=bool(typed.get("turned_by_near_symmetry", False)),

@@ -73,8 +73,15 @@ def save_ppf_model(path: str | Path, model: PPFModel) -> None:
 def load_ppf_model(path: str | Path) -> PPFModel:
     # Models written before near symmetries were found have none, and those written before the
     # voting grid was stored used the params' (the ppf stage rebuilds both).
-    values: dict[str, Any] = dict(load_fields(path, PPFModel, "PPF model", "PPF model not found (run the ppf stage first)",
-                                              {"near_symmetries": np.zeros((0, 4, 4)), "sample_step_m": np.array(np.nan)}))
+    values: dict[str, Any] = dict(
+        load_fields(
+            path,
+            PPFModel,
+            "PPF model",
+            "PPF model not found (run the ppf stage first)",
+            {"near_symmetries": np.zeros((0, 4, 4)), "sample_step_m": np.array(np.nan)},
+        )
+    )
     for name in ("diameter_m", "distance_step_m", "sample_step_m"):
         values[name] = float(values[name])
     values["angle_bins"] = int(values["angle_bins"])

@@ -34,7 +34,9 @@ def load_verification(path: str | Path) -> Verification:
         raise InputError(path, "verification thresholds not found (run the verify stage first)")
     try:
         doc = json.loads(path.read_text())
-        chosen = Verification(float(doc["max_seen_through"]), float(doc["min_visible_support"]), str(doc["checkpoint_sha256"]))
+        chosen = Verification(
+            float(doc["max_seen_through"]), float(doc["min_visible_support"]), str(doc["checkpoint_sha256"])
+        )
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(path, f"not a verification file ({type(exc).__name__}: {exc})") from None
     if not (0.0 <= chosen.max_seen_through <= 1.0 and 0.0 <= (chosen.min_visible_support or 0.0) <= 1.0):

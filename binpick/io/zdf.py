@@ -73,7 +73,9 @@ def load_zdf(path: str | Path) -> PointCloudData:
     return _read_sdk2(path)
 
 
-def save_zdf_v1(path: str | Path, xyz_mm: np.ndarray, rgba: np.ndarray | None = None, contrast: np.ndarray | None = None) -> None:
+def save_zdf_v1(
+    path: str | Path, xyz_mm: np.ndarray, rgba: np.ndarray | None = None, contrast: np.ndarray | None = None
+) -> None:
     """Write an SDK 1.x-layout frame (for tests and for converting captures): xyz_mm (H, W, 3)."""
     import h5py
 

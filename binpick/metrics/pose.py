@@ -30,7 +30,9 @@ def translation_error_m(T_est: np.ndarray, T_gt: np.ndarray, centre_m: np.ndarra
 
 def add(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray) -> float:
     """Average distance of corresponding model points (metres)."""
-    return float(np.linalg.norm(transform_points(T_est, model_points) - transform_points(T_gt, model_points), axis=1).mean())
+    return float(
+        np.linalg.norm(transform_points(T_est, model_points) - transform_points(T_gt, model_points), axis=1).mean()
+    )
 
 
 def add_s(T_est: np.ndarray, T_gt: np.ndarray, model_points: np.ndarray) -> float:
@@ -98,7 +100,10 @@ def scene_pose_metrics(
         cost = np.linalg.norm(c_est[:, None] - c_gt[None], axis=2)
         for e, g in zip(*linear_sum_assignment(cost), strict=False):
             if cost[e, g] < 0.5 * diameter_m:
-                per_est[e] = {**pose_errors(T_est[e], T_gt[g], model_points, symmetries, diameter_m), "gt_index": float(g)}
+                per_est[e] = {
+                    **pose_errors(T_est[e], T_gt[g], model_points, symmetries, diameter_m),
+                    "gt_index": float(g),
+                }
     matched = [m for m in per_est if m]
     found_ok = {int(m["gt_index"]) for m in matched if m["add_ok"]}
     n_pickable = int(pickable.sum())

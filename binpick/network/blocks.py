@@ -23,7 +23,9 @@ def crop(points: np.ndarray, n_points: int, rng: np.random.Generator) -> np.ndar
     n = len(points)
     if n > n_points:
         return block_around(cKDTree(points), n, points[rng.integers(n)], n_points)
-    return np.concatenate([np.arange(n), rng.choice(n, size=n_points - n, replace=True)]) if n < n_points else np.arange(n)
+    return (
+        np.concatenate([np.arange(n), rng.choice(n, size=n_points - n, replace=True)]) if n < n_points else np.arange(n)
+    )
 
 
 def cover(points: np.ndarray, n_points: int, rng: np.random.Generator) -> list[tuple[int, np.ndarray]]:

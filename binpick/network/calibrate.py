@@ -45,7 +45,9 @@ def calibrate_clustering(
     normals (N, 3), labels (N,)), ties to the higher sum; returns its centre_threshold,
     embedding_threshold, min_instance_points, precision and recall. Ground-truth instances with
     fewer than min_points points are not scored, and no smaller instance is kept."""
-    predicted: list[list[Block]] = [predict_blocks(model, p, n, features, length_scale_m, n_points, rng) for p, n, _ in views]
+    predicted: list[list[Block]] = [
+        predict_blocks(model, p, n, features, length_scale_m, n_points, rng) for p, n, _ in views
+    ]
     sizes = [np.bincount(labels[labels >= 0]) for _, _, labels in views]
     sizes_scored = np.concatenate([s[s >= min_points] for s in sizes]) if sizes else np.zeros(0)
     median_size = float(np.median(sizes_scored)) if len(sizes_scored) else 0.0
@@ -57,12 +59,22 @@ def calibrate_clustering(
                 cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size)
                 counts = SegmentationCounts()
                 for (points, _, labels), blocks in zip(views, predicted, strict=False):
-                    counts = counts.add(scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points))
+                    counts = counts.add(
+                        scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points)
+                    )
                 s = counts.summary()
                 rank = (min(s["precision"], s["recall"]), s["precision"] + s["recall"])
                 if best is None or rank > best[0]:
-                    best = (rank, {"centre_threshold": centre, "embedding_threshold": rel * eps2, "min_instance_points": min_size,
-                                   "precision": s["precision"], "recall": s["recall"]})
+                    best = (
+                        rank,
+                        {
+                            "centre_threshold": centre,
+                            "embedding_threshold": rel * eps2,
+                            "min_instance_points": min_size,
+                            "precision": s["precision"],
+                            "recall": s["recall"],
+                        },
+                    )
     assert best is not None
     return best[1]
 
@@ -78,20 +90,37 @@ def calibrate_network(
     """calibrate_clustering for a trained network with its inference settings; the suppression
     radius, block size and scored instance size from segment."""
     return calibrate_clustering(
-        model, views.scenes(), settings.features, settings.d_max_m, segment.n_points,
-        cluster_params(segment, settings.part_diameter_m).nms_radius_m, segment.min_points,
-        settings.train.eps2, iou_threshold, rng,
+        model,
+        views.scenes(),
+        settings.features,
+        settings.d_max_m,
+        segment.n_points,
+        cluster_params(segment, settings.part_diameter_m).nms_radius_m,
+        segment.min_points,
+        settings.train.eps2,
+        iou_threshold,
+        rng,
     )
 
 
 def recalibrate(
-    source: str | Path, out: str | Path, views: Views, segment: SegmentParams, iou_threshold: float, rng: np.random.Generator
+    source: str | Path,
+    out: str | Path,
+    views: Views,
+    segment: SegmentParams,
+    iou_threshold: float,
+    rng: np.random.Generator,
 ) -> dict[str, float]:
     """Choose the clustering of the checkpoint at source on the views and write the checkpoint,
     holding it, to out (the train stage after training, `binpick calibrate` for a network trained
     elsewhere). Returns the chosen values with their validation precision and recall."""
     model, settings = load_network(source, default_device())
     chosen = calibrate_network(model, settings, views, segment, iou_threshold, rng)
-    write_with_clustering(source, out, CalibratedClustering(
-        chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"])))
+    write_with_clustering(
+        source,
+        out,
+        CalibratedClustering(
+            chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"])
+        ),
+    )
     return chosen

@@ -34,8 +34,11 @@ class CalibratedClustering:
     min_instance_points: int
 
     def to_dict(self) -> dict[str, float]:
-        return {"centre_threshold": self.centre_threshold, "embedding_threshold": self.embedding_threshold,
-                "min_instance_points": self.min_instance_points}
+        return {
+            "centre_threshold": self.centre_threshold,
+            "embedding_threshold": self.embedding_threshold,
+            "min_instance_points": self.min_instance_points,
+        }
 
 
 @dataclass(frozen=True)
@@ -60,8 +63,13 @@ class InferenceSettings:
 
     def to_extra(self) -> dict[str, Any]:
         """The stored form. Key order is part of the file's bytes: keep it."""
-        extra: dict[str, Any] = {"part": self.part, "part_diameter_m": self.part_diameter_m, "features": self.features,
-                                 "train_params": self.train.model_dump(), "d_max_m": self.d_max_m}
+        extra: dict[str, Any] = {
+            "part": self.part,
+            "part_diameter_m": self.part_diameter_m,
+            "features": self.features,
+            "train_params": self.train.model_dump(),
+            "d_max_m": self.d_max_m,
+        }
         if self.clustering is not None:
             extra["clustering"] = self.clustering.to_dict()
         if self.max_seen_through is not None:
@@ -78,11 +86,19 @@ class InferenceSettings:
                 features=str(extra["features"]),
                 d_max_m=float(extra["d_max_m"]),
                 train=TrainParams.model_validate(extra["train_params"]),
-                clustering=None if clustering is None else CalibratedClustering(
-                    float(clustering["centre_threshold"]), float(clustering["embedding_threshold"]), int(clustering["min_instance_points"])),
+                clustering=None
+                if clustering is None
+                else CalibratedClustering(
+                    float(clustering["centre_threshold"]),
+                    float(clustering["embedding_threshold"]),
+                    int(clustering["min_instance_points"]),
+                ),
                 max_seen_through=float(extra["verification"]["max_seen_through"]) if "verification" in extra else None,
-                min_visible_support=(float(extra["verification"]["min_visible_support"])
-                                     if "min_visible_support" in extra.get("verification", {}) else None),
+                min_visible_support=(
+                    float(extra["verification"]["min_visible_support"])
+                    if "min_visible_support" in extra.get("verification", {})
+                    else None
+                ),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise InputError(path, f"holds no complete inference settings ({type(exc).__name__}: {exc})") from None
@@ -134,7 +150,11 @@ def content_sha256(state: dict[str, Any]) -> str:
 
     tensors("model", state["model"])
     tensors("optimiser", state.get("optimiser"))
-    h.update(json.dumps({k: state.get(k) for k in ("version", "config", "epoch", "metrics", "extra")}, sort_keys=True, default=str).encode())
+    h.update(
+        json.dumps(
+            {k: state.get(k) for k in ("version", "config", "epoch", "metrics", "extra")}, sort_keys=True, default=str
+        ).encode()
+    )
     return h.hexdigest()
 
 
@@ -153,14 +173,27 @@ def _verification(max_seen_through: float, min_visible_support: float | None) ->
     return out
 
 
-def write_finetuned(trained: str | Path, out: str | Path, base_state: dict[str, Any], base_sha256: str, learnt: list[str], judged: list[str]) -> None:
+def write_finetuned(
+    trained: str | Path,
+    out: str | Path,
+    base_state: dict[str, Any],
+    base_sha256: str,
+    learnt: list[str],
+    judged: list[str],
+) -> None:
     """Write the fine-tuned checkpoint at trained to out with the calibrated clustering and
     verification thresholds of the network it was fine-tuned from (base_state: fine-tuning does
     not move them far; the next full training recalibrates), the SHA-256 of the trained network
     it descends from, and the captures it learnt from and was judged by."""
     state = read_checkpoint(trained)
     carried = {k: base_state["extra"][k] for k in ("clustering", "verification") if k in base_state["extra"]}
-    state["extra"] = {**state["extra"], **carried, "finetuned_from": base_sha256, "real_scenes": learnt, "real_heldout": judged}
+    state["extra"] = {
+        **state["extra"],
+        **carried,
+        "finetuned_from": base_sha256,
+        "real_scenes": learnt,
+        "real_heldout": judged,
+    }
     state.pop("sha256", None)
     write_state(out, state)
 
@@ -193,13 +226,20 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
     if not isinstance(state, dict) or "version" not in state:
         raise InputError(path, "not a binpick FPCC checkpoint")
     if state["version"] != CHECKPOINT_VERSION:
-        raise InputError(path, f"a checkpoint of format version {state['version']}, this binpick reads {CHECKPOINT_VERSION}: train the part again")
+        raise InputError(
+            path,
+            f"a checkpoint of format version {state['version']}, this binpick reads {CHECKPOINT_VERSION}: train the "
+            "part again",
+        )
     try:
         intact = state.get("sha256") == content_sha256(state)
     except Exception:  # noqa: BLE001 - a damaged structure is a damaged file
         intact = False
     if not intact:
-        raise InputError(path, "damaged: its weights do not match the checksum stored with them (copy it again, or train the part again)")
+        raise InputError(
+            path,
+            "damaged: its weights do not match the checksum stored with them (copy it again, or train the part again)",
+        )
     return state
 
 

@@ -30,8 +30,13 @@ def segment_and_count(
     return labels, scene_counts(labels, scene.view_labels, iou_threshold, segment.min_points)
 
 
-def capture_counts(segmenter: Segmenter, capture: LabelledCapture, segment: SegmentParams, iou_threshold: float,
-                   rng: np.random.Generator) -> SegmentationCounts:
+def capture_counts(
+    segmenter: Segmenter,
+    capture: LabelledCapture,
+    segment: SegmentParams,
+    iou_threshold: float,
+    rng: np.random.Generator,
+) -> SegmentationCounts:
     """Segment a labelled capture's points and match the instances against its labels on the
     labelled points alone: ignored points count for neither side, so a segment on a part nobody
     posed is neither right nor wrong."""

@@ -61,7 +61,11 @@ def cluster(points: np.ndarray, embedding: np.ndarray, centre: np.ndarray, param
         return np.full(N, -1, np.int32)
     # Squared embedding distances (N, C) by the product form: no (N, C, D) difference array.
     ce = embedding[centres]
-    d_sq = np.einsum("ij,ij->i", embedding, embedding)[:, None] - 2.0 * (embedding @ ce.T) + np.einsum("ij,ij->i", ce, ce)[None, :]
+    d_sq = (
+        np.einsum("ij,ij->i", embedding, embedding)[:, None]
+        - 2.0 * (embedding @ ce.T)
+        + np.einsum("ij,ij->i", ce, ce)[None, :]
+    )
     labels = d_sq.argmin(axis=1).astype(np.int32)
     labels[d_sq.min(axis=1) > r_emb_sq] = -1
     sizes = np.bincount(labels[labels >= 0], minlength=len(centres))
@@ -105,7 +109,13 @@ Block = tuple[int, np.ndarray, np.ndarray, np.ndarray]  # seed point, point indi
 
 
 def predict_blocks(
-    model: FPCC, points: np.ndarray, normals: np.ndarray, features: str, length_scale_m: float, n_points: int, rng: np.random.Generator
+    model: FPCC,
+    points: np.ndarray,
+    normals: np.ndarray,
+    features: str,
+    length_scale_m: float,
+    n_points: int,
+    rng: np.random.Generator,
 ) -> list[Block]:
     """The network's outputs on a cover of the scene: scenes larger than n_points are covered by
     blocks of n_points neighbours (see blocks.cover)."""
@@ -174,20 +184,29 @@ DEFAULT_CENTRE_THRESHOLD = 0.3
 DEFAULT_EMBEDDING_THRESHOLD = 1.5
 
 
-def cluster_params(segment: SegmentParams, diameter_m: float, calibrated: CalibratedClustering | None = None) -> ClusterParams:
+def cluster_params(
+    segment: SegmentParams, diameter_m: float, calibrated: CalibratedClustering | None = None
+) -> ClusterParams:
     """Clustering settings: the segment params where set, else the values calibrated on the
     validation scenes at training (the checkpoint's), else the defaults (smallest instance:
     segment.min_points); the suppression radius defaults to a share of the part's diameter."""
 
     def pick(value: float | None, calibrated_value: float | None, default: float) -> float:
-        return float(value) if value is not None else float(calibrated_value if calibrated_value is not None else default)
+        return (
+            float(value) if value is not None else float(calibrated_value if calibrated_value is not None else default)
+        )
 
     c = calibrated
     return ClusterParams(
         centre_threshold=pick(segment.centre_threshold, c.centre_threshold if c else None, DEFAULT_CENTRE_THRESHOLD),
         nms_radius_m=segment.nms_radius_m if segment.nms_radius_m is not None else NMS_RADIUS_PER_DIAMETER * diameter_m,
-        embedding_threshold=pick(segment.embedding_threshold, c.embedding_threshold if c else None, DEFAULT_EMBEDDING_THRESHOLD),
-        min_points=max(segment.min_points, int(pick(segment.min_instance_points, c.min_instance_points if c else None, segment.min_points))),
+        embedding_threshold=pick(
+            segment.embedding_threshold, c.embedding_threshold if c else None, DEFAULT_EMBEDDING_THRESHOLD
+        ),
+        min_points=max(
+            segment.min_points,
+            int(pick(segment.min_instance_points, c.min_instance_points if c else None, segment.min_points)),
+        ),
     )
 
 
@@ -202,7 +221,9 @@ class Segmenter:
     clustering: ClusterParams
 
     def predict_blocks(self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator) -> list[Block]:
-        return predict_blocks(self.network, points, normals, self.settings.features, self.settings.d_max_m, self.n_points, rng)
+        return predict_blocks(
+            self.network, points, normals, self.settings.features, self.settings.d_max_m, self.n_points, rng
+        )
 
     def segment(self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Labels (M,) int32 of the M scene points (camera frame, metres, on the voxel grid the
@@ -211,7 +232,9 @@ class Segmenter:
 
 
 def make_segmenter(network: FPCC, settings: InferenceSettings, segment: SegmentParams) -> Segmenter:
-    return Segmenter(network, settings, segment.n_points, cluster_params(segment, settings.part_diameter_m, settings.clustering))
+    return Segmenter(
+        network, settings, segment.n_points, cluster_params(segment, settings.part_diameter_m, settings.clustering)
+    )
 
 
 def load_segmenter(path: str | Path, segment: SegmentParams, device: str | torch.device | None = None) -> Segmenter:

@@ -61,7 +61,9 @@ def fpcc_loss(
             emb_terms.append(embedding[b].sum() * 0.0)
             continue
         ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
-        anchors = index[torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))].to(index.device)]
+        anchors = index[
+            torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))].to(index.device)
+        ]
         valid = (torch.cdist(points[b, anchors], points[b]) <= 2.0 * d_max_m) & known[None, :]  # (m, N)
         attention = (target[anchors, None] + target[None, :]).clamp(max=1.0)  # (m, N)
         same = labels[b, anchors, None] == labels[b][None, :]

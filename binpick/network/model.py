@@ -90,9 +90,7 @@ class EdgeConv(nn.Module):
 
     def __init__(self, c_in: int, c_out: int):
         super().__init__()
-        self.mlp = nn.Sequential(
-            nn.Conv2d(2 * c_in, c_out, 1, bias=False), nn.BatchNorm2d(c_out), nn.LeakyReLU(0.2)
-        )
+        self.mlp = nn.Sequential(nn.Conv2d(2 * c_in, c_out, 1, bias=False), nn.BatchNorm2d(c_out), nn.LeakyReLU(0.2))
 
     def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         conv, bn, act = self.mlp

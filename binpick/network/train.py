@@ -50,7 +50,9 @@ class Views:
     def of_captures(cls, captures: list) -> Views:
         """The views of labelled captures (binpick.io.labelled_capture): their cleaned points,
         as the network sees a capture, with their labels (ignored points: negative)."""
-        return cls([c.points_m for c in captures], [c.normals for c in captures], [c.labels.astype(np.int64) for c in captures])
+        return cls(
+            [c.points_m for c in captures], [c.normals for c in captures], [c.labels.astype(np.int64) for c in captures]
+        )
 
     def __add__(self, other: Views) -> Views:
         return Views(self.points + other.points, self.normals + other.normals, self.labels + other.labels)
@@ -72,7 +74,10 @@ def load_views(folder: Path) -> Views:
     # A scene where no part is seen (none could be placed, or none is in view) has nothing to learn from.
     seen = [s for s in scenes if len(s.view_points_m)]
     if not seen:
-        raise InputError(folder, "no scene shows the part (does it fit the bin, generate.bin, and the camera's view, camera.distance_m?)")
+        raise InputError(
+            folder,
+            "no scene shows the part (does it fit the bin, generate.bin, and the camera's view, camera.distance_m?)",
+        )
     if len(seen) < len(scenes):
         log.warning("%s: %d of %d scenes show no part and are left out", folder, len(scenes) - len(seen), len(scenes))
     scenes = seen
@@ -83,7 +88,9 @@ def load_views(folder: Path) -> Views:
     )
 
 
-def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _batch(
+    views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generator, augment: bool, device: torch.device
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """A crop of n_points from each view, rotated about the camera axis at random (augment), as tensors."""
     P, Nn, L = [], [], []
     for s in idx:
@@ -104,8 +111,17 @@ def _batch(views: Views, idx: np.ndarray, n_points: int, rng: np.random.Generato
 def _loss(model: FPCC, points, normals, labels, params: TrainParams, d_max_m: float, gen: torch.Generator):
     emb, ctr = model(input_features(points, normals, params.features, d_max_m), points)
     return fpcc_loss(
-        emb, ctr, points, labels, d_max_m, params.eps1, params.eps2, params.centre_loss_weight,
-        params.centre_score_form, params.loss_anchors, gen,
+        emb,
+        ctr,
+        points,
+        labels,
+        d_max_m,
+        params.eps1,
+        params.eps2,
+        params.centre_loss_weight,
+        params.centre_score_form,
+        params.loss_anchors,
+        gen,
     )
 
 
@@ -136,7 +152,10 @@ def train_fpcc(
     torch.manual_seed(seed)
     if init_state is None:
         config = FPCCConfig(
-            backbone=params.backbone, k_neighbours=params.k_neighbours, width=params.width, embedding_dim=params.embedding_dim
+            backbone=params.backbone,
+            k_neighbours=params.k_neighbours,
+            width=params.width,
+            embedding_dim=params.embedding_dim,
         )
     else:
         config = FPCCConfig(**init_state["config"])
@@ -144,9 +163,15 @@ def train_fpcc(
     if init_state is not None:
         model.load_state_dict(init_state["model"])
     optimiser = torch.optim.Adam(model.parameters(), lr=params.learning_rate, weight_decay=params.weight_decay)
-    settings = InferenceSettings(part=part, part_diameter_m=part_diameter_m, features=params.features, d_max_m=d_max_m, train=params)
-    extra = {**settings.to_extra(), "seed": seed, "data_fingerprint": train.fingerprint() + val.fingerprint(),
-             **({"finetuned_from": init_state.get("sha256", "")} if init_state is not None else {})}
+    settings = InferenceSettings(
+        part=part, part_diameter_m=part_diameter_m, features=params.features, d_max_m=d_max_m, train=params
+    )
+    extra = {
+        **settings.to_extra(),
+        "seed": seed,
+        "data_fingerprint": train.fingerprint() + val.fingerprint(),
+        **({"finetuned_from": init_state.get("sha256", "")} if init_state is not None else {}),
+    }
 
     start_epoch, best_val, best_epoch = 0, math.inf, -1
     last = checkpoint_dir / LAST
@@ -159,7 +184,10 @@ def train_fpcc(
             log.warning("%s; starting this training from scratch", exc)
             last.unlink()
     if state is not None:
-        same_run = all(state["extra"].get(k) == extra.get(k) for k in ("train_params", "seed", "data_fingerprint", "d_max_m", "finetuned_from"))
+        same_run = all(
+            state["extra"].get(k) == extra.get(k)
+            for k in ("train_params", "seed", "data_fingerprint", "d_max_m", "finetuned_from")
+        )
         if state["config"] == config.to_dict() and same_run:
             model.load_state_dict(state["model"])
             optimiser.load_state_dict(state["optimiser"])
@@ -172,7 +200,14 @@ def train_fpcc(
     steps = max(1, len(train) // params.batch_size)
     metrics: dict[str, float] = {}
     epochs_run = start_epoch
-    bar = tqdm(range(start_epoch, params.epochs), desc="train", unit="epoch", disable=not progress, initial=start_epoch, total=params.epochs)
+    bar = tqdm(
+        range(start_epoch, params.epochs),
+        desc="train",
+        unit="epoch",
+        disable=not progress,
+        initial=start_epoch,
+        total=params.epochs,
+    )
     for epoch in bar:
         # Every epoch draws from its own seed, so a resumed run sees the same batches.
         rng = np.random.default_rng([seed, epoch])
@@ -181,7 +216,14 @@ def train_fpcc(
         order = rng.permutation(len(train))
         sums: dict[str, float] = {}
         for step in range(steps):
-            batch = _batch(train, order[step * params.batch_size : (step + 1) * params.batch_size], params.n_points, rng, True, device)
+            batch = _batch(
+                train,
+                order[step * params.batch_size : (step + 1) * params.batch_size],
+                params.n_points,
+                rng,
+                True,
+                device,
+            )
             loss, parts = _loss(model, *batch, params, d_max_m, gen)
             optimiser.zero_grad()
             loss.backward()
@@ -195,7 +237,13 @@ def train_fpcc(
             val_rng = np.random.default_rng([seed, 10**9])  # the same validation draw every epoch
             for start in range(0, len(val), params.batch_size):
                 idx = np.arange(start, min(start + params.batch_size, len(val)))
-                _, parts = _loss(model, *_batch(val, idx, params.n_points, val_rng, False, device), params, d_max_m, torch.Generator().manual_seed(seed))
+                _, parts = _loss(
+                    model,
+                    *_batch(val, idx, params.n_points, val_rng, False, device),
+                    params,
+                    d_max_m,
+                    torch.Generator().manual_seed(seed),
+                )
                 for k, v in parts.items():
                     val_sums[k] = val_sums.get(k, 0.0) + v * len(idx) / len(val)
 
@@ -225,14 +273,35 @@ def train_fpcc(
     return model, {**best_state["metrics"], "epochs_run": float(epochs_run)}
 
 
-def finetune_fpcc(init_state: dict, train: Views, val: Views, params: TrainParams, epochs: int, learning_rate: float, seed: int,
-                  checkpoint_dir: str | Path, device: torch.device | None = None, progress: bool = True) -> Path:
+def finetune_fpcc(
+    init_state: dict,
+    train: Views,
+    val: Views,
+    params: TrainParams,
+    epochs: int,
+    learning_rate: float,
+    seed: int,
+    checkpoint_dir: str | Path,
+    device: torch.device | None = None,
+    progress: bool = True,
+) -> Path:
     """Fine-tune the network of a checkpoint's entries (read_checkpoint) for `epochs` at
     `learning_rate` on train (synthetic views plus labelled captures, whose ignored points add
     nothing to the loss), keeping the lowest validation loss on val. Returns the path of that
     best checkpoint in checkpoint_dir (its clustering not yet calibrated: write_finetuned)."""
     extra = init_state["extra"]
     tuned = params.model_copy(update={"epochs": epochs, "learning_rate": learning_rate, "patience_epochs": epochs})
-    train_fpcc(train, val, tuned, float(extra["d_max_m"]), seed, checkpoint_dir, str(extra["part"]), float(extra["part_diameter_m"]),
-               device=device, progress=progress, init_state=init_state)
+    train_fpcc(
+        train,
+        val,
+        tuned,
+        float(extra["d_max_m"]),
+        seed,
+        checkpoint_dir,
+        str(extra["part"]),
+        float(extra["part_diameter_m"]),
+        device=device,
+        progress=progress,
+        init_state=init_state,
+    )
     return Path(checkpoint_dir) / BEST

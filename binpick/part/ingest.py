@@ -54,14 +54,25 @@ def ingest_part(params: Params, part: str, mesh_path: Path) -> tuple[PartModel, 
     unit: str = spec.unit
     if unit == "auto":
         unit = fits[0] if fits else guess_unit(float(np.max(mesh.extents)))
-        log.warning("%s: unit not declared; guessed %r (the part is then %s across)", mesh_path, unit, describe_size(d_file, unit))
+        log.warning(
+            "%s: unit not declared; guessed %r (the part is then %s across)",
+            mesh_path,
+            unit,
+            describe_size(d_file, unit),
+        )
     scale = METRES_PER_UNIT[unit]
     problem = scale_problem(d_file * scale, area_file * scale**2, imaging)
     if problem:
         likely = [u for u in fits if u != unit]
-        hint = (f"; in {likely[0]!r} it would be {describe_size(d_file, likely[0])}: declare `unit: {likely[0]}` (parts.{part}.unit)"
-                if likely else f"; declare the right unit (parts.{part}.unit), or give the part its own camera and bin settings")
-        raise InputError(mesh_path, f"read as {unit!r} the part is {describe_size(d_file, unit)} across, {problem}{hint}")
+        hint = (
+            f"; in {likely[0]!r} it would be {describe_size(d_file, likely[0])}: declare `unit: {likely[0]}` "
+            f"(parts.{part}.unit)"
+            if likely
+            else f"; declare the right unit (parts.{part}.unit), or give the part its own camera and bin settings"
+        )
+        raise InputError(
+            mesh_path, f"read as {unit!r} the part is {describe_size(d_file, unit)} across, {problem}{hint}"
+        )
     extent = float(np.max(mesh.extents)) * scale
     if not params.ingest.min_extent_m <= extent <= params.ingest.max_extent_m:
         raise InputError(
@@ -74,8 +85,11 @@ def ingest_part(params: Params, part: str, mesh_path: Path) -> tuple[PartModel, 
     mesh = simplify_mesh(mesh, params.ingest.max_faces)
     found = bodies(mesh, d_m)
     if found.n_groups > 1:
-        raise InputError(mesh_path, f"holds {found.n_groups} separate bodies up to {found.largest_gap_m * 1000:.0f} mm apart: "
-                                    "an assembly, not one part (export one part per file)")
+        raise InputError(
+            mesh_path,
+            f"holds {found.n_groups} separate bodies up to {found.largest_gap_m * 1000:.0f} mm apart: "
+            "an assembly, not one part (export one part per file)",
+        )
     if found.n_pieces > 1:
         log.warning("%s: %d touching or nested shells taken as one part", mesh_path, found.n_pieces)
     if warning := size_warning(d_m, imaging):
@@ -97,6 +111,13 @@ def ingest_part(params: Params, part: str, mesh_path: Path) -> tuple[PartModel, 
         "extent_z_mm": 1000.0 * float(np.ptp(model.mesh_vertices_m[:, 2])),
         "ingest_s": time.perf_counter() - t0,
     }
-    log.info("%s: %s (diameter %.1f mm, unit %s, %d of %d faces)", part, mesh_path, metrics["diameter_mm"], unit,
-             len(model.mesh_faces), n_faces_in)
+    log.info(
+        "%s: %s (diameter %.1f mm, unit %s, %d of %d faces)",
+        part,
+        mesh_path,
+        metrics["diameter_mm"],
+        unit,
+        len(model.mesh_faces),
+        n_faces_in,
+    )
     return model, metrics

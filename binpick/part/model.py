@@ -183,7 +183,9 @@ def simplify_mesh(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     # fold faces over); another pass helps only while it still makes progress.
     for _ in range(3):
         before = len(faces)
-        vertices, faces = fast_simplification.simplify(vertices, np.asarray(faces, dtype=np.int32), target_count=max_faces)
+        vertices, faces = fast_simplification.simplify(
+            vertices, np.asarray(faces, dtype=np.int32), target_count=max_faces
+        )
         if len(faces) <= max_faces or len(faces) > 0.8 * before:
             break
     simplified = trimesh.Trimesh(vertices=vertices, faces=faces, process=True)

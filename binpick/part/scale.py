@@ -60,26 +60,36 @@ def scale_problem(diameter_m: float, area_m2: float, imaging: Imaging) -> str | 
     """Why a part of this size cannot be trained with these settings, or None when it can."""
     points = expected_instance_points(area_m2, imaging)
     if points < imaging.min_points:
-        return (f"about {points:.0f} points per instance at this size (segment.min_points is {imaging.min_points}): "
-                f"too small for the camera and bin it is imaged with")
+        return (
+            f"about {points:.0f} points per instance at this size (segment.min_points is {imaging.min_points}): "
+            f"too small for the camera and bin it is imaged with"
+        )
     limit = MAX_PART_OVER_BIN * min(imaging.bin_diagonal_m, imaging.view_m)
     if diameter_m > limit:
-        return (f"larger than the bin ({imaging.bin_diagonal_m * 1000:.0f} mm across) and the camera's view "
-                f"({imaging.view_m * 1000:.0f} mm) it is imaged with")
+        return (
+            f"larger than the bin ({imaging.bin_diagonal_m * 1000:.0f} mm across) and the camera's view "
+            f"({imaging.view_m * 1000:.0f} mm) it is imaged with"
+        )
     return None
 
 
 def size_warning(diameter_m: float, imaging: Imaging) -> str | None:
     if diameter_m > imaging.bin_diagonal_m:
-        return (f"the part ({diameter_m * 1000:.0f} mm) is longer than the bin's diagonal ({imaging.bin_diagonal_m * 1000:.0f} mm): "
-                "give it a larger bin (generate.bin) in its params entry")
+        return (
+            f"the part ({diameter_m * 1000:.0f} mm) is longer than the bin's diagonal "
+            f"({imaging.bin_diagonal_m * 1000:.0f} mm): "
+            "give it a larger bin (generate.bin) in its params entry"
+        )
     return None
 
 
 def fitting_units(diameter_file: float, area_file2: float, imaging: Imaging) -> list[str]:
     """The units, of UNIT_CANDIDATES, in which a mesh of this size (file units) passes scale_problem."""
-    return [u for u in UNIT_CANDIDATES
-            if scale_problem(diameter_file * METRES_PER_UNIT[u], area_file2 * METRES_PER_UNIT[u] ** 2, imaging) is None]
+    return [
+        u
+        for u in UNIT_CANDIDATES
+        if scale_problem(diameter_file * METRES_PER_UNIT[u], area_file2 * METRES_PER_UNIT[u] ** 2, imaging) is None
+    ]
 
 
 def describe_size(diameter_file: float, unit: str) -> str:
@@ -134,7 +144,10 @@ def bodies(mesh: trimesh.Trimesh, diameter: float) -> Bodies:
     # Gap between each group's box and the nearest other group's box.
     gaps = []
     for i in range(len(g_lo)):
-        others = [float(np.linalg.norm(np.maximum(0.0, np.maximum(g_lo[j] - g_hi[i], g_lo[i] - g_hi[j]))))
-                  for j in range(len(g_lo)) if j != i]
+        others = [
+            float(np.linalg.norm(np.maximum(0.0, np.maximum(g_lo[j] - g_hi[i], g_lo[i] - g_hi[j]))))
+            for j in range(len(g_lo))
+            if j != i
+        ]
         gaps.append(min(others))
     return Bodies(n, len(roots), float(max(gaps)))

@@ -99,7 +99,11 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
     revolution = part.symmetry.kind == "revolution"
     smooth = _revolution_normals(part, nrm) if revolution else nrm
     # The turns about the axis, identity left out (the rotations come before any flips).
-    turns = symmetry_transforms(part.symmetry, REVOLUTION_CHECK_TURNS)[1:REVOLUTION_CHECK_TURNS] if revolution else np.zeros((0, 4, 4))
+    turns = (
+        symmetry_transforms(part.symmetry, REVOLUTION_CHECK_TURNS)[1:REVOLUTION_CHECK_TURNS]
+        if revolution
+        else np.zeros((0, 4, 4))
+    )
 
     def patch(c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         """The patch under a cup at c (3,) with outward axis n (3,): its points relative to c and
@@ -274,7 +278,9 @@ def expand_by_symmetry(grasps: GraspSet, symmetries: np.ndarray) -> GraspSet:
         for k, S in enumerate(symmetries[1:], start=1):
             image = S @ T
             stack = np.array(Ts)
-            same = (np.linalg.norm(stack[:, :3, 3] - image[:3, 3], axis=1) < SAME_POSITION_M) & (stack[:, :3, 2] @ image[:3, 2] > cos_same)
+            same = (np.linalg.norm(stack[:, :3, 3] - image[:3, 3], axis=1) < SAME_POSITION_M) & (
+                stack[:, :3, 2] @ image[:3, 2] > cos_same
+            )
             if grasps.kind == "jaw":  # a jaw grasp and its image with the fingers swapped are one grasp
                 same &= np.abs(stack[:, :3, 0] @ image[:3, 0]) > cos_same
             if same.any():

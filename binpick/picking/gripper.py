@@ -50,7 +50,10 @@ Primitive = Box | Cylinder
 
 def suction_primitives(s: SuctionParams) -> list[Primitive]:
     """The cup (lip at z = 0) and the tool behind it."""
-    return [Cylinder(s.cup_radius_m, -s.cup_length_m, 0.0), Cylinder(s.tool_radius_m, -s.cup_length_m - s.tool_length_m, -s.cup_length_m)]
+    return [
+        Cylinder(s.cup_radius_m, -s.cup_length_m, 0.0),
+        Cylinder(s.tool_radius_m, -s.cup_length_m - s.tool_length_m, -s.cup_length_m),
+    ]
 
 
 def jaw_opening_m(j: JawParams, width_m: float) -> float:
@@ -150,7 +153,10 @@ def surface_samples(primitives: list[Primitive], spacing_m: float) -> np.ndarray
     out = []
     for prim in primitives:
         if isinstance(prim, Box):
-            axes = [np.linspace(lo, hi, max(2, int(np.ceil((hi - lo) / spacing_m)) + 1)) for lo, hi in zip(prim.lo, prim.hi, strict=True)]
+            axes = [
+                np.linspace(lo, hi, max(2, int(np.ceil((hi - lo) / spacing_m)) + 1))
+                for lo, hi in zip(prim.lo, prim.hi, strict=True)
+            ]
             g = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
             on_face = np.any(np.isclose(g, prim.lo) | np.isclose(g, prim.hi), axis=1)
             out.append(g[on_face])

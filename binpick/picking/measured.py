@@ -87,7 +87,9 @@ def local_noise_m(points_m: np.ndarray, image_tree: KDTree | None, at_m: np.ndar
     _, idx = image_tree.query(image_coordinates(probe), k=NOISE_NEIGHBOURS)
     nbrs = points_m[idx]  # (s, k, 3)
     inverse_depth = 1.0 / nbrs[..., 2]  # (s, k)
-    design = np.concatenate([np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1)  # (s, k, 3)
+    design = np.concatenate(
+        [np.ones_like(inverse_depth)[..., None], nbrs[..., :2] / nbrs[..., 2:3]], axis=-1
+    )  # (s, k, 3)
     normal = np.einsum("ski,skj->sij", design, design)
     # Neighbours all on one image line (a one-pixel-wide strip) fit no plane.
     keep = np.abs(np.linalg.det(normal)) >= 1e-18
@@ -143,8 +145,14 @@ def captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: floa
 
 
 def contact_seen(
-    T_cam_from_tool: np.ndarray, kind: str, width_m: float, captured: np.ndarray, tree: cKDTree | None, params: PickParams,
-    noise_m: float = 0.0, spacing_m: float = 0.0,
+    T_cam_from_tool: np.ndarray,
+    kind: str,
+    width_m: float,
+    captured: np.ndarray,
+    tree: cKDTree | None,
+    params: PickParams,
+    noise_m: float = 0.0,
+    spacing_m: float = 0.0,
 ) -> bool:
     """Whether the captured points show the surface the grasp's contact needs (see the module's
     docstring); noise_m: the capture's noise about the pose (local_noise_m), which widens the
@@ -156,7 +164,9 @@ def contact_seen(
     if kind == "suction":
         reach = max(params.suction.cup_radius_m, SEEN_SPACINGS * spacing_m)
     else:
-        reach = float(np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2))
+        reach = float(
+            np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2)
+        )
     near = captured_near(tree, len(captured), c, reach)
     if len(near) < SEEN_MIN_POINTS:
         return False
@@ -179,5 +189,9 @@ def contact_seen(
         normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
         tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(local)))))
         return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
-    between = (np.abs(local[:, 0]) < width_m / 2) & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2) & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
+    between = (
+        (np.abs(local[:, 0]) < width_m / 2)
+        & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2)
+        & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
+    )
     return int(between.sum()) >= SEEN_MIN_POINTS

@@ -119,8 +119,13 @@ class PickPlan:
     n_candidates: int
 
     def counts(self) -> dict[str, float]:
-        return {"n_parts": float(len(self.picks) + len(self.unpicked)), "n_picks": float(len(self.picks)),
-                "n_unpicked": float(len(self.unpicked)), "n_grasps_tried": float(self.n_candidates), "n_grasps_rejected": float(len(self.rejected))}
+        return {
+            "n_parts": float(len(self.picks) + len(self.unpicked)),
+            "n_picks": float(len(self.picks)),
+            "n_unpicked": float(len(self.unpicked)),
+            "n_grasps_tried": float(self.n_candidates),
+            "n_grasps_rejected": float(len(self.rejected)),
+        }
 
 
 def thin(points: np.ndarray, grid_m: float) -> np.ndarray:
@@ -152,7 +157,11 @@ def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tup
         if -up @ origin < 0:  # toward the camera
             up = -up
         box_plane = np.append(up, -up @ origin)
-        if found is not None and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG)) and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M:
+        if (
+            found is not None
+            and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG))
+            and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M
+        ):
             return found[:3], found
         return up, box_plane
     if found is not None:
@@ -194,7 +203,9 @@ def plan_picks(
     grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
 
     part_points = np.asarray(part_points_m, dtype=np.float64).reshape(-1, 3)
-    own_of = OwnPoints(part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m)
+    own_of = OwnPoints(
+        part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m
+    )
     # Every k-th point of the (evenly spread) sample, k the points per PART_OBSTACLE_GRID_M square
     # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
     model_sample = part_points[:: max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
@@ -202,7 +213,11 @@ def plan_picks(
     captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
     # Obstacle points with their source: -1 captured, -2 the given bin, k >= 0 detected part k.
     chunks = [captured] + ([bin_box.surface_points(grid * 2)] if bin_box is not None else []) + posed
-    sources = [np.full(len(captured), -1)] + ([np.full(len(chunks[1]), -2)] if bin_box is not None else []) + [np.full(len(p), k) for k, p in enumerate(posed)]
+    sources = (
+        [np.full(len(captured), -1)]
+        + ([np.full(len(chunks[1]), -2)] if bin_box is not None else [])
+        + [np.full(len(p), k) for k, p in enumerate(posed)]
+    )
     obstacles = np.concatenate(chunks) if chunks else np.zeros((0, 3))
     source = np.concatenate(sources) if sources else np.zeros(0, int)
     # Midpoint splits, nodes not shrunk to their points: 14-16 ms to build over the 100,000
@@ -210,7 +225,9 @@ def plan_picks(
     tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False) if len(obstacles) else None
     captured_tree = KDTree(image_coordinates(captured)) if len(captured) >= NOISE_NEIGHBOURS else None
     spacing_m = point_spacing_m(captured)
-    reach = float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + own_of.reach_m if len(model_sample) else 0.0
+    reach = (
+        float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + own_of.reach_m if len(model_sample) else 0.0
+    )
 
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
     heights = centres @ up + (plane[3] if plane is not None else 0.0)
@@ -219,7 +236,11 @@ def plan_picks(
     unpicked: list[tuple[int, str]] = []
     rejected: list[Rejected] = []
     n_tried = 0
-    shares = np.full(n_parts, np.nan) if seen_through is None else np.asarray(seen_through, dtype=np.float64).reshape(n_parts)
+    shares = (
+        np.full(n_parts, np.nan)
+        if seen_through is None
+        else np.asarray(seen_through, dtype=np.float64).reshape(n_parts)
+    )
     for i in range(n_parts):
         T = T_cam_from_model[i]
         # The target's own captured points: near its posed model surface (obstacle rows
@@ -242,11 +263,16 @@ def plan_picks(
         causes: Counter[str] = Counter()
         n_out = int((~(in_cone | fallback)).sum())
         found: Pick | None = None
-        tiers = [np.flatnonzero(in_cone)[: params.max_candidates_per_part], np.flatnonzero(fallback)[: params.max_candidates_per_part]]
+        tiers = [
+            np.flatnonzero(in_cone)[: params.max_candidates_per_part],
+            np.flatnonzero(fallback)[: params.max_candidates_per_part],
+        ]
         for g in np.concatenate(tiers).astype(np.int64):
             n_tried += 1
             T_tool = tools[g]
-            if not contact_seen(T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m):
+            if not contact_seen(
+                T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m
+            ):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
@@ -258,9 +284,17 @@ def plan_picks(
                 continue
             approach = T_tool[:3, 2]
             found = Pick(
-                i, grasps.ids[g], int(g), float(grasps.width_m[g]),
-                _moved(T_tool, -params.pregrasp_distance_m * approach), T_tool, _moved(T_tool, -params.retreat_distance_m * approach),
-                float(scores[i]), clearance, float(heights[i]), not shares[i] > params.max_seen_through,
+                i,
+                grasps.ids[g],
+                int(g),
+                float(grasps.width_m[g]),
+                _moved(T_tool, -params.pregrasp_distance_m * approach),
+                T_tool,
+                _moved(T_tool, -params.retreat_distance_m * approach),
+                float(scores[i]),
+                clearance,
+                float(heights[i]),
+                not shares[i] > params.max_seen_through,
             )
             break
         if found is not None:
@@ -269,10 +303,18 @@ def plan_picks(
         if len(grasps) == 0:
             unpicked.append((i, f"the part has no {grasps.kind} grasps"))
         elif not causes:
-            unpicked.append((i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone"))
+            unpicked.append(
+                (i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone")
+            )
         else:
             hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
-            unpicked.append((i, f"every grasp in reach collides: with {hits}" + (f"; {n_out} outside the approach cone" if n_out else "")))
+            unpicked.append(
+                (
+                    i,
+                    f"every grasp in reach collides: with {hits}"
+                    + (f"; {n_out} outside the approach cone" if n_out else ""),
+                )
+            )
     picks.sort(key=lambda p: _rank_key(p, params))
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
@@ -291,7 +333,11 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
     keys = []
     for k in params.order:
         if k == "height":
-            keys.append(-np.floor(pick.height_m / params.height_tolerance_m) if params.height_tolerance_m > 0 else -pick.height_m)
+            keys.append(
+                -np.floor(pick.height_m / params.height_tolerance_m)
+                if params.height_tolerance_m > 0
+                else -pick.height_m
+            )
         elif k == "score":
             keys.append(-pick.score)
         else:
@@ -299,7 +345,9 @@ def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
     return (0 if pick.trusted else 1, *keys, pick.pose_index)
 
 
-def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m) -> tuple[set[str], float]:
+def _collisions(
+    body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m
+) -> tuple[set[str], float]:
     """What the swept gripper comes within clearance_m of, and its clearance (capped; only
     computed when nothing is hit: a refused grasp's clearance is never used)."""
     hit: set[str] = set()
@@ -330,7 +378,9 @@ def _collisions(body, T_cam_from_tool, tree, obstacles, source, target, own, pla
     return hit, float(clearance)
 
 
-def _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, margin_m) -> tuple[np.ndarray, np.ndarray]:
+def _obstacle_distances(
+    body, T_cam_from_tool, tree, obstacles, source, target, own, margin_m
+) -> tuple[np.ndarray, np.ndarray]:
     """Signed distances (k,) to the placed body of the obstacle points that may lie within
     margin_m of it (all of those, and some farther), with their sources (k,); the target's own
     points and its own model excluded."""

@@ -11,7 +11,10 @@ from binpick.params import RegisterParams
 
 
 def cluster_poses(
-    candidates: list[tuple[np.ndarray, float]], model: PPFModel, params: RegisterParams, max_candidates: int | None = None
+    candidates: list[tuple[np.ndarray, float]],
+    model: PPFModel,
+    params: RegisterParams,
+    max_candidates: int | None = None,
 ) -> list[tuple[np.ndarray, float]]:
     """Greedy SE(3) clustering: a pose joins the first (strongest) cluster whose best pose, or a
     symmetric twin of it, is within the rotation AND the translation threshold. Returns
@@ -23,8 +26,11 @@ def cluster_poses(
     poses = np.ascontiguousarray(np.stack([candidates[k][0] for k in order]), dtype=np.float64)
     weights = np.array([candidates[k][1] for k in order], dtype=np.float64)
     reps, votes = _greedy_clusters(
-        poses, weights, np.ascontiguousarray(model.symmetries, dtype=np.float64),
-        np.cos(np.radians(params.cluster_rotation_deg)), params.cluster_translation_rel * model.diameter_m,
+        poses,
+        weights,
+        np.ascontiguousarray(model.symmetries, dtype=np.float64),
+        np.cos(np.radians(params.cluster_rotation_deg)),
+        params.cluster_translation_rel * model.diameter_m,
     )
     ranked = sorted(range(len(reps)), key=lambda c: -votes[c])
     return [(poses[reps[c]], float(votes[c])) for c in ranked]
@@ -92,7 +98,8 @@ def same_pose(model: PPFModel, T_a: np.ndarray, T_b: np.ndarray, rotation_deg: f
 
 
 def repeats_any(model: PPFModel, T: np.ndarray, poses: np.ndarray, rotation_deg: float, translation_m: float) -> bool:
-    """Whether pose T (4, 4) agrees with any of the poses (n, 4, 4) within the thresholds, up to the part's symmetries."""
+    """Whether pose T (4, 4) agrees with any of the poses (n, 4, 4) within the thresholds, up to
+    the part's symmetries."""
     if len(poses) == 0:
         return False
     return bool(_close(T[None] @ model.symmetries, poses, rotation_deg, translation_m).any())

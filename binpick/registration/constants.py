@@ -48,7 +48,8 @@ ICP_RELATIVE_CHANGE = 1e-4
 NEAR_SYMMETRY_STEP_DEG = 30
 # A turn is a near symmetry when it brings this share of the surface to within the score's inlier
 # distance of the surface: the coffee cup of the IC-BIN frame turned about its axis keeps 0.94-0.97
-# (the relief of its lid is the rest: it has no handle); no turn of the T-joint, gear shaft, ring screw or three-way pipe other
+# (the relief of its lid is the rest: it has no handle); no turn of the T-joint, gear shaft, ring screw or three-way
+# pipe other
 # than their declared symmetries keeps more than 0.61.
 NEAR_SYMMETRY_MIN_OVERLAP = 0.85
 # A turn that brings this share of the surface to within 1.5 inlier distances of it is a symmetry
@@ -106,6 +107,7 @@ class Scales:
             reach_m=0.5 * diameter_m + 2.0 * step,
             cluster_translation_m=params.cluster_translation_rel * diameter_m,
         )
+
 
 # Verification against what the camera saw (visibility.py): a posed model point counts as seen
 # through when it lies this far (share of the part diameter, at least the floor below) in front

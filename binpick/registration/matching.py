@@ -42,8 +42,13 @@ from binpick.registration.voting import vote
 
 
 def match_segment(
-    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
-    view: DepthView | None = None, cloud_tree: KDTree | None = None,
+    model: PPFModel,
+    scene_points: np.ndarray,
+    scene_normals: np.ndarray,
+    params: RegisterParams,
+    rng: np.random.Generator,
+    view: DepthView | None = None,
+    cloud_tree: KDTree | None = None,
 ) -> PartPose | None:
     """The best pose of the part on one segment (camera frame points and normals), or None.
 
@@ -111,15 +116,22 @@ def explained_by(
     return bool(taken.mean() >= SEGMENT_EXPLAINED_SHARE) and int((~taken).sum()) < MIN_FREE_SHARE * len(model.points_m)
 
 
-def _take(taken: np.ndarray, model: PPFModel, T: np.ndarray, grid_points: np.ndarray, tree: cKDTree, scales: Scales) -> None:
+def _take(
+    taken: np.ndarray, model: PPFModel, T: np.ndarray, grid_points: np.ndarray, tree: cKDTree, scales: Scales
+) -> None:
     """Mark in taken (n,) bool the voting-grid points (n, 3), in `tree`, that the pose T explains
     (within 1.5 inlier distances of its surface: the grid is coarser than the refine grid)."""
     taken[explained_points(model, np.asarray(T), grid_points, tree, 1.5 * scales.inlier_m, scales.reach_m)] = True
 
 
 def match_scene(
-    model: PPFModel, scene_points: np.ndarray, scene_normals: np.ndarray, params: RegisterParams, rng: np.random.Generator,
-    max_instances: int = 30, known: Sequence[np.ndarray] = (),
+    model: PPFModel,
+    scene_points: np.ndarray,
+    scene_normals: np.ndarray,
+    params: RegisterParams,
+    rng: np.random.Generator,
+    max_instances: int = 30,
+    known: Sequence[np.ndarray] = (),
 ) -> list[PartPose]:
     """Every instance of the part in a whole scene, without segments: votes from reference
     points all over the scene, the strongest pose clusters refined and scored, poses scoring
@@ -221,7 +233,9 @@ def suppress_duplicates(
     trans_thr = scales.cluster_translation_m
     for k in order:
         T = estimates[k].T_cam_from_model
-        if not any(same_pose(model, estimates[j].T_cam_from_model, T, params.cluster_rotation_deg, trans_thr) for j in kept):
+        if not any(
+            same_pose(model, estimates[j].T_cam_from_model, T, params.cluster_rotation_deg, trans_thr) for j in kept
+        ):
             kept.append(k)
     if scene_points is None or len(kept) < 2:
         return kept

@@ -92,7 +92,11 @@ def voting_step(dense_points_m: np.ndarray, step_m: float, min_points: int) -> f
 
 
 def train_ppf(
-    dense_points_m: np.ndarray, dense_normals: np.ndarray, diameter_m: float, symmetries: np.ndarray, params: RegisterParams
+    dense_points_m: np.ndarray,
+    dense_normals: np.ndarray,
+    diameter_m: float,
+    symmetries: np.ndarray,
+    params: RegisterParams,
 ) -> PPFModel:
     """Build the PPF table of a part from its dense surface sample (model frame, metres)."""
     if dense_points_m.ndim != 2 or dense_points_m.shape[1] != 3 or dense_normals.shape != dense_points_m.shape:
@@ -167,7 +171,9 @@ def near_symmetries(dense_points_m: np.ndarray, symmetries: np.ndarray, inlier_m
     return np.array(found).reshape(-1, 4, 4)
 
 
-def _self_aligned(T: np.ndarray, probe: np.ndarray, points: np.ndarray, tree: KDTree, max_distance_m: float, iterations: int = 15) -> np.ndarray:
+def _self_aligned(
+    T: np.ndarray, probe: np.ndarray, points: np.ndarray, tree: KDTree, max_distance_m: float, iterations: int = 15
+) -> np.ndarray:
     """T (4, 4) refined so that the probe points it moves land on the surface points (point to
     point ICP, pairs closer than max_distance_m)."""
     for _ in range(iterations):

@@ -20,7 +20,12 @@ from binpick.registration.visibility import DepthView
 
 
 def resolve(
-    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, ball_tree: cKDTree, view: DepthView, scales: Scales,
+    model: PPFModel,
+    T_cam_from_model: np.ndarray,
+    scene_points: np.ndarray,
+    ball_tree: cKDTree,
+    view: DepthView,
+    scales: Scales,
     icp_iterations: int,
 ) -> tuple[np.ndarray, bool]:
     """The pose among T_cam_from_model and its turns by the model's near symmetries (each refined
@@ -76,7 +81,9 @@ def _noise_m(distances_m: np.ndarray) -> float:
     return float(1.4826 * np.median(d)) if len(d) else 0.0
 
 
-def _surface_distances(model: PPFModel, T_cam_from_model: np.ndarray, points: np.ndarray, within_m: float) -> np.ndarray:
+def _surface_distances(
+    model: PPFModel, T_cam_from_model: np.ndarray, points: np.ndarray, within_m: float
+) -> np.ndarray:
     """(n,) distance of each scene point (n, 3) to the posed surface: along the normal of its
     nearest dense model point (the dense sample's spacing, about a millimetre, would otherwise
     be most of it), inf where that point lies farther than within_m."""

@@ -24,8 +24,13 @@ from binpick.registration.visibility import DepthView, seen_through_share, visib
 
 
 def score_pose(
-    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, inlier_m: float, scene_tree: KDTree | None = None,
-    whole_scene: bool = False, stride: int = SCORE_STRIDE,
+    model: PPFModel,
+    T_cam_from_model: np.ndarray,
+    scene_points: np.ndarray,
+    inlier_m: float,
+    scene_tree: KDTree | None = None,
+    whole_scene: bool = False,
+    stride: int = SCORE_STRIDE,
 ) -> float:
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
     point within inlier_m, and the share of scene points within inlier_m of the model. On a
@@ -41,7 +46,9 @@ def score_pose(
     if whole_scene:
         return float(np.mean(np.isfinite(d_model)))
     # Scene points against the model's own tree, in the model frame: built once per model.
-    d_scene, _ = model.dense_tree.query(transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m)
+    d_scene, _ = model.dense_tree.query(
+        transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m
+    )
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
 
 
@@ -54,7 +61,12 @@ def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView,
 
 
 def visible_support(
-    model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView, scene_tree: KDTree, inlier_m: float, stride: int = SCORE_STRIDE
+    model: PPFModel,
+    T_cam_from_model: np.ndarray,
+    view: DepthView,
+    scene_tree: KDTree,
+    inlier_m: float,
+    stride: int = SCORE_STRIDE,
 ) -> float:
     """Share of the pose's camera-facing surface the camera should have seen (visibility.py)
     with a scene point of scene_tree (a pykdtree of the cleaned cloud) within inlier_m. Hidden
@@ -81,7 +93,12 @@ def _facing(model: PPFModel, T_cam_from_model: np.ndarray, stride: int = 1) -> n
 
 
 def refine_icp(
-    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int, stride: int = 1
+    model: PPFModel,
+    T_cam_from_model: np.ndarray,
+    scene_points: np.ndarray,
+    max_distance_m: float,
+    iterations: int,
+    stride: int = 1,
 ) -> np.ndarray:
     """Point-to-plane ICP of the scene points onto the model surface (exact CAD normals).
 
@@ -96,15 +113,25 @@ def refine_icp(
     if facing.sum() < 6:
         return T_cam_from_model
     T_model_from_cam = point_to_plane_icp(
-        scene_points, model.dense_points_m[::stride][facing], model.dense_normals[::stride][facing], invert_T(T_cam_from_model),
-        max_distance_m, iterations, ICP_RELATIVE_CHANGE, model.revolution_axis,
+        scene_points,
+        model.dense_points_m[::stride][facing],
+        model.dense_normals[::stride][facing],
+        invert_T(T_cam_from_model),
+        max_distance_m,
+        iterations,
+        ICP_RELATIVE_CHANGE,
+        model.revolution_axis,
     )
     return invert_T(T_model_from_cam)
 
 
-def explained_points(model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float) -> np.ndarray:
+def explained_points(
+    model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float
+) -> np.ndarray:
     """Indices of the scene points (n, 3), in `tree`, within inlier_m of the model surface at pose T."""
-    near = np.asarray(tree.query_ball_point(T[:3, :3] @ model.dense_points_m.mean(axis=0) + T[:3, 3], reach_m), dtype=np.int64)
+    near = np.asarray(
+        tree.query_ball_point(T[:3, :3] @ model.dense_points_m.mean(axis=0) + T[:3, 3], reach_m), dtype=np.int64
+    )
     if len(near) == 0:
         return near
     d, _ = model.dense_tree.query(transform_points(invert_T(T), points[near]), distance_upper_bound=inlier_m)

@@ -96,7 +96,9 @@ def _zbuffer(points: np.ndarray, K: np.ndarray, shape: tuple[int, int]) -> np.nd
     return depth.reshape(h, w)
 
 
-def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: float, finite: np.ndarray | None = None) -> DepthView:
+def depth_view(
+    xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: float, finite: np.ndarray | None = None
+) -> DepthView:
     """The z-buffer of everything a capture measured (before any cleaning).
 
     Organized frames (H * W, 3): the sensor's own pixel grid at 1/CELL_PX, intrinsics fitted to
@@ -123,7 +125,9 @@ def depth_view(xyz_m: np.ndarray, frame_shape: tuple[int, int] | None, voxel_m: 
         z[:H, :W] = np.where(valid, xyz[:, 2], np.inf).reshape(H, W)
         # Elementwise minima of the CELL_PX**2 strided views: the same values as a min over the
         # blocks' axes, at a tenth of the time.
-        return DepthView(np.minimum.reduce([z[i::CELL_PX, j::CELL_PX] for i in range(CELL_PX) for j in range(CELL_PX)]), cell)
+        return DepthView(
+            np.minimum.reduce([z[i::CELL_PX, j::CELL_PX] for i in range(CELL_PX) for j in range(CELL_PX)]), cell
+        )
     pts = xyz[valid].astype(np.float64)
     f = float(np.median(pts[:, 2])) / max(voxel_m, 1e-4)
     x, y = pts[:, 0] / pts[:, 2], pts[:, 1] / pts[:, 2]
@@ -165,7 +169,9 @@ def seen_through_share(points_cam: np.ndarray, view: DepthView, margin_m: float)
     return float(np.mean(points_cam[known, 2] < measured[known] - margin_m))
 
 
-def visible_support_share(points_cam: np.ndarray, supported: np.ndarray, view: DepthView, hidden_margin_m: float) -> float:
+def visible_support_share(
+    points_cam: np.ndarray, supported: np.ndarray, view: DepthView, hidden_margin_m: float
+) -> float:
     """Share of the posed, camera-facing model points (k, 3; camera frame) the camera should have
     seen that it did: among the points with a measurement along their ray that does not lie in
     front of them by more than hidden_margin_m (those are hidden: neutral), the share with a

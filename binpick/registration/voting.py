@@ -26,16 +26,30 @@ def vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) ->
     T_s = _align_to_x(pts, nrm)
     with _KERNELS:
         group_start, keys, alpha_s = _scene_pairs(
-            pts, nrm / np.linalg.norm(nrm, axis=1, keepdims=True), np.ascontiguousarray(T_s[:, :3, :3]),
-            np.ascontiguousarray(T_s[:, :3, 3]), refs.astype(np.int64), model.diameter_m, model.distance_step_m, model.angle_bins,
+            pts,
+            nrm / np.linalg.norm(nrm, axis=1, keepdims=True),
+            np.ascontiguousarray(T_s[:, :3, :3]),
+            np.ascontiguousarray(T_s[:, :3, 3]),
+            refs.astype(np.int64),
+            model.diameter_m,
+            model.distance_step_m,
+            model.angle_bins,
         )
         if len(keys) == 0:
             return []
         A = model.angle_bins
         peak_flat, peak_votes = _accumulate_peaks(
             # The table as stored (int64 / int32 / float32): a converted copy would cost more than the voting.
-            group_start, keys, alpha_s, np.asarray(model.key_starts, np.int64),
-            np.asarray(model.ref_index, np.int32), np.asarray(model.alpha, np.float32), len(refs), len(model.points_m), A, PEAKS_PER_REFERENCE,
+            group_start,
+            keys,
+            alpha_s,
+            np.asarray(model.key_starts, np.int64),
+            np.asarray(model.ref_index, np.int32),
+            np.asarray(model.alpha, np.float32),
+            len(refs),
+            len(model.points_m),
+            A,
+            PEAKS_PER_REFERENCE,
             4 * numba.get_num_threads(),
         )
     valid = peak_votes > 0
@@ -51,7 +65,9 @@ def vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) ->
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _scene_pairs(pts, unit_normals, R_align, t_align, refs, radius, distance_step, n_angles):  # pragma: no cover - compiled
+def _scene_pairs(
+    pts, unit_normals, R_align, t_align, refs, radius, distance_step, n_angles
+):  # pragma: no cover - compiled
     """Every pair (reference refs[a], other point within radius), grouped by reference: the group
     bounds (n_refs + 1,), the quantised feature key of each pair and the angle alpha that turns
     the aligned partner into the half-plane y > 0, z = 0 (the same quantities as _features,
@@ -83,21 +99,37 @@ def _scene_pairs(pts, unit_normals, R_align, t_align, refs, radius, distance_ste
             ux, uy, uz = dx * inv, dy * inv, dz * inv
             c1 = unit_normals[i, 0] * ux + unit_normals[i, 1] * uy + unit_normals[i, 2] * uz
             c2 = unit_normals[j, 0] * ux + unit_normals[j, 1] * uy + unit_normals[j, 2] * uz
-            c3 = unit_normals[i, 0] * unit_normals[j, 0] + unit_normals[i, 1] * unit_normals[j, 1] + unit_normals[i, 2] * unit_normals[j, 2]
+            c3 = (
+                unit_normals[i, 0] * unit_normals[j, 0]
+                + unit_normals[i, 1] * unit_normals[j, 1]
+                + unit_normals[i, 2] * unit_normals[j, 2]
+            )
             key = np.int64(np.floor(dist / distance_step))
             for cosine in (c1, c2, c3):
                 q = np.int64(np.arccos(min(max(cosine, -1.0), 1.0)) / np.pi * n_angles)
                 key = key * n_angles + min(q, n_angles - 1)
             keys[k] = key
-            py = R_align[i, 1, 0] * pts[j, 0] + R_align[i, 1, 1] * pts[j, 1] + R_align[i, 1, 2] * pts[j, 2] + t_align[i, 1]
-            pz = R_align[i, 2, 0] * pts[j, 0] + R_align[i, 2, 1] * pts[j, 1] + R_align[i, 2, 2] * pts[j, 2] + t_align[i, 2]
+            py = (
+                R_align[i, 1, 0] * pts[j, 0]
+                + R_align[i, 1, 1] * pts[j, 1]
+                + R_align[i, 1, 2] * pts[j, 2]
+                + t_align[i, 1]
+            )
+            pz = (
+                R_align[i, 2, 0] * pts[j, 0]
+                + R_align[i, 2, 1] * pts[j, 1]
+                + R_align[i, 2, 2] * pts[j, 2]
+                + t_align[i, 2]
+            )
             alpha[k] = np.arctan2(-pz, py)
             k += 1
     return starts, keys, alpha
 
 
 @njit(cache=True, nogil=True, parallel=True)
-def _accumulate_peaks(group_start, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks, n_chunks):  # pragma: no cover - compiled
+def _accumulate_peaks(
+    group_start, keys, alpha_s, key_starts, ref_index, alpha_m, n_refs, n_model, n_angles, n_peaks, n_chunks
+):  # pragma: no cover - compiled
     """The voting loop: every scene pair votes for (model reference point, alpha bin) of each
     model pair with its key; per scene reference, the n_peaks strongest accumulator cells.
 

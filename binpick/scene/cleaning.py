@@ -76,7 +76,7 @@ def _long_and_low(on_plane: np.ndarray, floor: np.ndarray, plane: np.ndarray, ga
     breaks = np.flatnonzero(np.diff(u) > gap_m)
     starts, ends = np.r_[0, breaks + 1], np.r_[breaks + 1, len(u)]
     k = int(np.argmax(u[ends - 1] - u[starts]))
-    run = order[starts[k]:ends[k]]
+    run = order[starts[k] : ends[k]]
     height = on_plane[run] @ floor[:3] + floor[3]
     rise = float(np.percentile(height, 95) - np.percentile(height, 5))
     return float(u[ends[k] - 1] - u[starts[k]]) >= WALL_MIN_LENGTH_TO_HEIGHT * rise
@@ -110,7 +110,11 @@ def inside_walls(points: np.ndarray, floor: np.ndarray, walls: list[np.ndarray],
 
 
 def clean_capture(
-    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, params: ImportCaptureParams, seed: int
+    xyz_m: np.ndarray,
+    rgb: np.ndarray | None,
+    frame_shape: tuple[int, int] | None,
+    params: ImportCaptureParams,
+    seed: int,
 ) -> CleanCloud:
     """Clean a capture.
 
@@ -127,10 +131,20 @@ def clean_capture(
     # the rest of the cleaning sees thousands of points. Numpy took six passes and four copies.
     view = ViewParams.of_import(params)
     roi = params.roi_min_m is not None and params.roi_max_m is not None
-    T_roi_from_cam = invert_T(np.asarray(params.T_cam_from_roi, dtype=np.float64)) if params.T_cam_from_roi is not None else np.eye(4)
+    T_roi_from_cam = (
+        invert_T(np.asarray(params.T_cam_from_roi, dtype=np.float64))
+        if params.T_cam_from_roi is not None
+        else np.eye(4)
+    )
     screen = _screen(
-        xyz, params.min_range_m**2, params.max_range_m**2, roi, np.ascontiguousarray(T_roi_from_cam[:3, :3]), T_roi_from_cam[:3, 3].copy(),
-        np.asarray(params.roi_min_m if roi else (0.0, 0.0, 0.0), np.float64), np.asarray(params.roi_max_m if roi else (0.0, 0.0, 0.0), np.float64),
+        xyz,
+        params.min_range_m**2,
+        params.max_range_m**2,
+        roi,
+        np.ascontiguousarray(T_roi_from_cam[:3, :3]),
+        T_roi_from_cam[:3, 3].copy(),
+        np.asarray(params.roi_min_m if roi else (0.0, 0.0, 0.0), np.float64),
+        np.asarray(params.roi_max_m if roi else (0.0, 0.0, 0.0), np.float64),
         1.0 / view.voxel_size_m,
     )
     valid, keep, lo, hi, key_lo, key_hi, n_valid_px, n_keep = screen
@@ -145,7 +159,10 @@ def clean_capture(
     # What the camera saw, before anything is removed: registration checks poses against it.
     seen = depth_view(xyz_m, frame_shape, params.voxel_size_m, valid)
     if n_keep < MIN_POINTS:
-        raise BinpickError(f"only {n_keep} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of interest")
+        raise BinpickError(
+            f"only {n_keep} points lie within range {params.min_range_m}-{params.max_range_m} m and the region of "
+            "interest"
+        )
     # The voxel grid comes first: planes are fitted at the density the segmentation works at,
     # shares are shares of that, and RANSAC runs on thousands instead of millions of points.
     # It is view_grid's grid (the first point of each voxel) over the kept points.
@@ -159,11 +176,16 @@ def clean_capture(
     if n_valid < MIN_POINTS:
         # Identical or nearly identical points (a stuck sensor, an export of one point) collapse
         # into a few voxels: nothing to fit a plane to or segment.
-        raise BinpickError(f"only {n_valid} distinct points at the {params.voxel_size_m * 1000:g} mm voxel grid: the capture holds no surface")
+        raise BinpickError(
+            f"only {n_valid} distinct points at the {params.voxel_size_m * 1000:g} mm voxel grid: the capture holds "
+            "no surface"
+        )
 
     floor = np.full(4, np.nan)
     removed_floor = 0
-    plane, inliers = fit_plane_ransac(pts, params.plane_threshold_m, params.plane_ransac_iterations, seed, params.plane_ransac_confidence)
+    plane, inliers = fit_plane_ransac(
+        pts, params.plane_threshold_m, params.plane_ransac_iterations, seed, params.plane_ransac_confidence
+    )
     if plane[3] < 0:  # orient the normal toward the camera at the origin
         plane = -plane
     behind = np.mean(pts @ plane[:3] + plane[3] < -params.plane_threshold_m)
@@ -174,11 +196,16 @@ def clean_capture(
         above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
         removed_floor = int((~above).sum())
         pts, idx = pts[above], idx[above]
-        log.info("floor plane %s removed %.1f%% of the points", np.round(plane, 4).tolist(), 100.0 * removed_floor / n_valid)
+        log.info(
+            "floor plane %s removed %.1f%% of the points", np.round(plane, 4).tolist(), 100.0 * removed_floor / n_valid
+        )
     else:
         log.warning(
-            "no support plane found (best plane holds %.1f%% of the points, %.1f%% lie behind it, %.3f m from the camera); nothing removed",
-            100 * inliers.mean(), 100 * behind, plane[3],
+            "no support plane found (best plane holds %.1f%% of the points, %.1f%% lie behind it, %.3f m from the "
+            "camera); nothing removed",
+            100 * inliers.mean(),
+            100 * behind,
+            plane[3],
         )
 
     walls: list[np.ndarray] = []
@@ -191,14 +218,21 @@ def clean_capture(
         # outnumber the walls and took every try, and a slab of them holds a strip of each wall.
         search = np.zeros(len(pts), bool)
         if len(pts) >= MIN_POINTS:
-            sample = np.sort(np.random.default_rng(seed).choice(len(pts), size=min(len(pts), WALL_SEARCH_SAMPLE), replace=False))
+            sample = np.sort(
+                np.random.default_rng(seed).choice(len(pts), size=min(len(pts), WALL_SEARCH_SAMPLE), replace=False)
+            )
             search[sample] = np.abs(sample_normals(pts, sample) @ floor[:3]) < WALL_SEARCH_MAX_COS
         for w in range(2 * params.max_walls):
             if len(walls) >= params.max_walls or search.sum() < MIN_POINTS:
                 break
             plane, _ = fit_plane_ransac(
-                pts[search], params.plane_threshold_m, params.plane_ransac_iterations, seed + 1 + w, params.plane_ransac_confidence,
-                across=floor[:3], max_cos=WALL_MAX_COS_TO_FLOOR,
+                pts[search],
+                params.plane_threshold_m,
+                params.plane_ransac_iterations,
+                seed + 1 + w,
+                params.plane_ransac_confidence,
+                across=floor[:3],
+                max_cos=WALL_MAX_COS_TO_FLOOR,
             )
             # The plane's points among all that are left: the wall's edges, whose normals lean,
             # belong to it too.
@@ -255,7 +289,9 @@ SCREEN_CHUNKS = 16
 
 
 @njit(cache=True, parallel=True)
-def _screen(xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam, roi_min, roi_max, inv_voxel):  # pragma: no cover - numba
+def _screen(
+    xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam, roi_min, roi_max, inv_voxel
+):  # pragma: no cover - numba
     """One pass over a capture's points (n, 3), camera frame, metres: valid (n,) bool (all three
     coordinates finite); keep (n,) bool (valid, range squared within [range2_min, range2_max]
     and, with use_roi, inside the box [roi_min, roi_max] of the ROI frame); the extent of the
@@ -287,7 +323,12 @@ def _screen(xyz, range2_min, range2_max, use_roi, R_roi_from_cam, t_roi_from_cam
             if use_roi:
                 inside = True
                 for a in range(3):
-                    v = R_roi_from_cam[a, 0] * np.float64(p[0]) + R_roi_from_cam[a, 1] * np.float64(p[1]) + R_roi_from_cam[a, 2] * np.float64(p[2]) + t_roi_from_cam[a]
+                    v = (
+                        R_roi_from_cam[a, 0] * np.float64(p[0])
+                        + R_roi_from_cam[a, 1] * np.float64(p[1])
+                        + R_roi_from_cam[a, 2] * np.float64(p[2])
+                        + t_roi_from_cam[a]
+                    )
                     if v < roi_min[a] or v > roi_max[a]:
                         inside = False
                 if not inside:

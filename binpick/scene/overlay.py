@@ -91,7 +91,9 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
         raise InputError(capture_path, "not an organized capture (one point per pixel): there is no image to draw on")
     H, W = capture.shape
     xyz = capture.xyz_m.reshape(-1, 3)
-    K = (load_intrinsics(options.intrinsics, (H, W)) if options.intrinsics is not None else fit_intrinsics(xyz, (H, W))).K
+    K = (
+        load_intrinsics(options.intrinsics, (H, W)) if options.intrinsics is not None else fit_intrinsics(xyz, (H, W))
+    ).K
     if image_path is not None:
         try:
             image = np.asarray(Image.open(Path(image_path)).convert("RGB"))

@@ -14,7 +14,14 @@ from binpick.picking.plan import PickPlan, plan_picks
 from binpick.registration.visibility import DepthView
 
 
-def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: GraspSet, params: PickParams, import_params: ImportCaptureParams) -> PickPlan:
+def pick(
+    cloud: CleanCloud,
+    poses: list[PartPose],
+    part: PartModel,
+    grasps: GraspSet,
+    params: PickParams,
+    import_params: ImportCaptureParams,
+) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
     when params give it, and the other parts at their poses."""
@@ -24,4 +31,16 @@ def pick(cloud: CleanCloud, poses: list[PartPose], part: PartModel, grasps: Gras
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
     shares = np.array([np.nan if p.seen_through is None else p.seen_through for p in poses], dtype=np.float64)
-    return plan_picks(T, scores, grasps, part.points_m, part.normals, part.centre_m, captured, cloud.floor_plane, params, BinBox.of_import(import_params), shares)
+    return plan_picks(
+        T,
+        scores,
+        grasps,
+        part.points_m,
+        part.normals,
+        part.centre_m,
+        captured,
+        cloud.floor_plane,
+        params,
+        BinBox.of_import(import_params),
+        shares,
+    )

@@ -44,7 +44,12 @@ class PartModels:
 
     @classmethod
     def load(
-        cls, params: Params, part_model: str | Path, ppf_model: str | Path, checkpoint: str | Path | None, grasps: str | Path | None = None,
+        cls,
+        params: Params,
+        part_model: str | Path,
+        ppf_model: str | Path,
+        checkpoint: str | Path | None,
+        grasps: str | Path | None = None,
         verification: str | Path | None = None,
     ) -> PartModels:
         """params: resolved for the part (load_params(path, part)); checkpoint None: no network;
@@ -93,7 +98,11 @@ class SceneResult:
 
 
 def process(
-    xyz_m: np.ndarray, rgb: np.ndarray | None, frame_shape: tuple[int, int] | None, models: PartModels, seeds: SceneSeeds
+    xyz_m: np.ndarray,
+    rgb: np.ndarray | None,
+    frame_shape: tuple[int, int] | None,
+    models: PartModels,
+    seeds: SceneSeeds,
 ) -> SceneResult:
     """clean, segment (unless the models have no segmenter), register and (when the models carry
     grasps) pick one capture."""
@@ -110,5 +119,10 @@ def process(
     t4 = time.perf_counter()
     if labels is None:
         labels = np.full(len(cloud.points_m), -1, np.int32)
-    timings = {"clean_s": t1 - t0, "segment_s": t2 - t1, "register_s": t3 - t2, **({"pick_s": t4 - t3} if plan is not None else {})}
+    timings = {
+        "clean_s": t1 - t0,
+        "segment_s": t2 - t1,
+        "register_s": t3 - t2,
+        **({"pick_s": t4 - t3} if plan is not None else {}),
+    }
     return SceneResult(cloud, labels, registration, timings, plan)

@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 # are matched, and so the poses, must not depend on the machine.
 SEGMENT_WAVE = 2
 
+
 @dataclass(frozen=True)
 class Registration:
     """poses: best first within each source (segments, then whole scene); n_segments: segments;
@@ -63,7 +64,11 @@ def with_verification(params: RegisterParams, chosen: Verification | None) -> Re
 
 
 def register(
-    cloud: CleanCloud, labels: np.ndarray | None, ppf: PPFModel, params: RegisterParams, seed: np.random.SeedSequence | int
+    cloud: CleanCloud,
+    labels: np.ndarray | None,
+    ppf: PPFModel,
+    params: RegisterParams,
+    seed: np.random.SeedSequence | int,
 ) -> Registration:
     """Poses of the part in the cloud, as params.mode says: `segments` fits the part onto every
     segment, keeps poses scoring at least min_score and drops repeats (the same pose, or support
@@ -98,15 +103,23 @@ def register(
             t = time.perf_counter()
             mask = labels == seg
             est = match_segment(
-                ppf, cloud.points_m[mask], cloud.normals[mask], params, np.random.default_rng(segment_seeds[seg]), view, cloud_tree,
+                ppf,
+                cloud.points_m[mask],
+                cloud.normals[mask],
+                params,
+                np.random.default_rng(segment_seeds[seg]),
+                view,
+                cloud_tree,
             )
             return est, 1000.0 * (time.perf_counter() - t)
 
         with ThreadPoolExecutor(max_workers=SEGMENT_WAVE, thread_name_prefix="binpick-match") as pool:
             for start in range(0, len(order), SEGMENT_WAVE):
                 wave = []
-                for seg in order[start:start + SEGMENT_WAVE]:
-                    if found and explained_by(ppf, cloud.points_m[labels == seg], params, [f.T_cam_from_model for f in found]):
+                for seg in order[start : start + SEGMENT_WAVE]:
+                    if found and explained_by(
+                        ppf, cloud.points_m[labels == seg], params, [f.T_cam_from_model for f in found]
+                    ):
                         n_explained += 1
                     else:
                         wave.append(seg)
@@ -119,7 +132,15 @@ def register(
         n_duplicates = len(found) - len(kept) + n_explained
     if mode in ("whole_scene", "segments_then_scene"):
         t = time.perf_counter()
-        more = match_scene(ppf, cloud.points_m, cloud.normals, params, rng, params.max_instances, known=[p.T_cam_from_model for p in poses])
+        more = match_scene(
+            ppf,
+            cloud.points_m,
+            cloud.normals,
+            params,
+            rng,
+            params.max_instances,
+            known=[p.T_cam_from_model for p in poses],
+        )
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
         log.info("whole-scene matching added %d poses", len(more))
@@ -147,13 +168,31 @@ def register(
             continue
         kept_poses.append(replace(pose, seen_through=share, visible_support=support))
     if len(kept_poses) < len(poses):
-        log.info("dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface in view measured",
-                 len(poses) - len(kept_poses), len(poses), len(poses) - len(kept_poses) - n_unsupported, n_unsupported)
-    return Registration(kept_poses, n_segments, n_duplicates, per_instance_ms, len(poses) - len(kept_poses) - n_unsupported, n_unsupported)
+        log.info(
+            "dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface "
+            "in view measured",
+            len(poses) - len(kept_poses),
+            len(poses),
+            len(poses) - len(kept_poses) - n_unsupported,
+            n_unsupported,
+        )
+    return Registration(
+        kept_poses,
+        n_segments,
+        n_duplicates,
+        per_instance_ms,
+        len(poses) - len(kept_poses) - n_unsupported,
+        n_unsupported,
+    )
 
 
 def _resolve_near_symmetries(
-    cloud: CleanCloud, labels: np.ndarray | None, poses: list[PartPose], ppf: PPFModel, params: RegisterParams, view: DepthView
+    cloud: CleanCloud,
+    labels: np.ndarray | None,
+    poses: list[PartPose],
+    ppf: PPFModel,
+    params: RegisterParams,
+    view: DepthView,
 ) -> list[PartPose]:
     """Each pose, or its turn by one of the part's near symmetries that what the camera saw
     supports better (registration/near_symmetry.py). A turned pose is scored again as its source

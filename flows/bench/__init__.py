@@ -63,4 +63,8 @@ def timed(fn: Callable[[], object], repeats: int) -> tuple[list[float], object]:
 
 def summary(seconds: list[float], prefix: str, scale: float = 1.0) -> dict[str, float]:
     a = np.asarray(seconds) * scale
-    return {f"{prefix}_median": float(np.median(a)), f"{prefix}_p90": float(np.percentile(a, 90)), f"{prefix}_min": float(a.min())}
+    return {
+        f"{prefix}_median": float(np.median(a)),
+        f"{prefix}_p90": float(np.percentile(a, 90)),
+        f"{prefix}_min": float(a.min()),
+    }

@@ -37,8 +37,13 @@ def view_for(part: PartModel) -> ViewParams:
 def bin_for(part: PartModel, bin_params: BinParams) -> BinParams:
     """A bin sized to the part: the configured bin, or larger for parts that would not fit."""
     d = part.diameter_m
-    return bin_params.model_copy(update={"inner_x_m": max(bin_params.inner_x_m, 4.5 * d), "inner_y_m": max(bin_params.inner_y_m, 3.0 * d),
-                                          "wall_height_m": max(bin_params.wall_height_m, d)})
+    return bin_params.model_copy(
+        update={
+            "inner_x_m": max(bin_params.inner_x_m, 4.5 * d),
+            "inner_y_m": max(bin_params.inner_y_m, 3.0 * d),
+            "wall_height_m": max(bin_params.wall_height_m, d),
+        }
+    )
 
 
 def rejection_baseline(part: PartModel, n: int, bin_params: BinParams, rng: np.random.Generator) -> np.ndarray:
@@ -73,22 +78,41 @@ def max_penetration_mm(part: PartModel, poses: np.ndarray, rng: np.random.Genera
 
 
 def bench_generate(
-    settings: Params, parts: list[str] | None = None, scenes: int = 3, baseline_scenes: int = 2, seed: int = 0, counts: tuple[int, ...] = COUNTS
+    settings: Params,
+    parts: list[str] | None = None,
+    scenes: int = 3,
+    baseline_scenes: int = 2,
+    seed: int = 0,
+    counts: tuple[int, ...] = COUNTS,
 ) -> dict[str, object]:
     import torch
 
     torch.set_num_threads(1)
     models = bench_parts(parts)
-    out: dict[str, object] = {"setup": {"parts": [p.name for p in models], "counts": list(counts), "scenes": scenes,
-                                        "baseline_scenes": baseline_scenes, "baseline_retries": BASELINE_RETRIES,
-                                        "resolution": "1920x1200",
-                                        "rendering": "ray casting, sensor noise, visibility, network view (voxel max(2 mm, diameter / 50))", "machine": machine()}}
-    ours: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
+    out: dict[str, object] = {
+        "setup": {
+            "parts": [p.name for p in models],
+            "counts": list(counts),
+            "scenes": scenes,
+            "baseline_scenes": baseline_scenes,
+            "baseline_retries": BASELINE_RETRIES,
+            "resolution": "1920x1200",
+            "rendering": "ray casting, sensor noise, visibility, network view (voxel max(2 mm, diameter / 50))",
+            "machine": machine(),
+        }
+    }
+    ours: dict[str, dict[str, list[float]]] = {
+        str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts
+    }
     base: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": []} for n in counts}
-    physics: dict[str, dict[str, list[float]]] = {str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts}
+    physics: dict[str, dict[str, list[float]]] = {
+        str(n): {"s": [], "placed": [], "pen": [], "render_s": []} for n in counts
+    }
     for part in models:
         bin_params = bin_for(part, settings.generate.bin)
-        camera = settings.camera.model_copy(update={"downscale": 1, "distance_m": max(settings.camera.distance_m, 1.6 * bin_params.inner_x_m)})
+        camera = settings.camera.model_copy(
+            update={"downscale": 1, "distance_m": max(settings.camera.distance_m, 1.6 * bin_params.inner_x_m)}
+        )
         drop = settings.generate.placement.model_copy(update={"mode": "drop"})
         view = view_for(part)
         for n in counts:
@@ -97,7 +121,14 @@ def bench_generate(
                 t0 = time.perf_counter()
                 placed = place_objects(part.points_m, n, bin_params, drop, rng)
                 t1 = time.perf_counter()
-                render_scene(part, placed.T_bin_from_model, settings.generate.model_copy(update={"bin": bin_params, "placement": drop}), camera, view, rng)
+                render_scene(
+                    part,
+                    placed.T_bin_from_model,
+                    settings.generate.model_copy(update={"bin": bin_params, "placement": drop}),
+                    camera,
+                    view,
+                    rng,
+                )
                 t2 = time.perf_counter()
                 r = ours[str(n)]
                 r["s"].append(t2 - t0)
@@ -105,9 +136,13 @@ def bench_generate(
                 r["placed"].append(len(placed.T_bin_from_model))
                 r["pen"].append(max_penetration_mm(part, placed.T_bin_from_model, rng))
                 # The physics mode on the same start: drop placement, then settling by simulation.
-                gen = settings.generate.model_copy(update={"bin": bin_params, "placement": drop.model_copy(update={"mode": "physics"})})
+                gen = settings.generate.model_copy(
+                    update={"bin": bin_params, "placement": drop.model_copy(update={"mode": "physics"})}
+                )
                 if k == 0 and n == counts[0]:
-                    settle_in_bin(part, placed.T_bin_from_model[:1], gen, rng)  # the convex decomposition, once per part
+                    settle_in_bin(
+                        part, placed.T_bin_from_model[:1], gen, rng
+                    )  # the convex decomposition, once per part
                 t3 = time.perf_counter()
                 settled = settle_in_bin(part, placed.T_bin_from_model, gen, rng)
                 t4 = time.perf_counter()
@@ -126,11 +161,21 @@ def bench_generate(
                 b["s"].append(time.perf_counter() - t0)
                 b["placed"].append(len(poses))
                 b["pen"].append(max_penetration_mm(part, poses, rng))
-            log.info("%s, %d objects: ours %.2f s/scene (render %.2f), baseline %.2f s/scene", part.name, n,
-                     np.median(ours[str(n)]["s"][-scenes:]), np.median(ours[str(n)]["render_s"][-scenes:]), np.median(base[str(n)]["s"][-baseline_scenes:]))
+            log.info(
+                "%s, %d objects: ours %.2f s/scene (render %.2f), baseline %.2f s/scene",
+                part.name,
+                n,
+                np.median(ours[str(n)]["s"][-scenes:]),
+                np.median(ours[str(n)]["render_s"][-scenes:]),
+                np.median(base[str(n)]["s"][-baseline_scenes:]),
+            )
 
     def summarise(d: dict[str, list[float]], render: bool) -> dict[str, float]:
-        s = {"s_per_scene_median": float(np.median(d["s"])), "objects_placed_mean": float(np.mean(d["placed"])), "max_penetration_mm": float(np.max(d["pen"]))}
+        s = {
+            "s_per_scene_median": float(np.median(d["s"])),
+            "objects_placed_mean": float(np.mean(d["placed"])),
+            "max_penetration_mm": float(np.max(d["pen"])),
+        }
         if render:
             s["render_s_median"] = float(np.median(d["render_s"]))
             s["place_s_median"] = float(np.median(np.subtract(d["s"], d["render_s"])))
@@ -142,6 +187,9 @@ def bench_generate(
     out["rejection_baseline"] = baseline
     top = str(max(counts))
     out[f"speedup_at_{top}"] = baseline[top]["s_per_scene_median"] / out["binpick"][top]["s_per_scene_median"]  # type: ignore[index]
-    out["note"] = ("binpick times include rendering at 1920x1200 with noise; binpick_physics adds settling by rigid-body "
-                   "simulation (its place_s_median is placement + settling); the baseline times are placement only, as in the original work")
+    out["note"] = (
+        "binpick times include rendering at 1920x1200 with noise; binpick_physics adds settling by rigid-body "
+        "simulation (its place_s_median is placement + settling); the baseline times are placement only, as in the "
+        "original work"
+    )
     return out

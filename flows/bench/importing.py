@@ -27,7 +27,9 @@ def bench_import(settings: Params, repeats: int = 7, seed: int = 0) -> dict[str,
     mesh.apply_scale(1e-3)
     part = make_part_model(DEFAULT_PART_NAME, mesh, T_JOINT_SYMMETRY, 20000, np.random.default_rng(seed), "mm")
     camera = settings.camera.model_copy(update={"downscale": 1})
-    scene = generate_scene(part, settings.generate, camera, ViewParams.of_import(settings.import_capture), seed, n_objects=N_OBJECTS)
+    scene = generate_scene(
+        part, settings.generate, camera, ViewParams.of_import(settings.import_capture), seed, n_objects=N_OBJECTS
+    )
     H, W = scene.labels.shape
     xyz_mm = scene.xyz_m.reshape(-1, 3) * 1000.0
     rgb = np.full((H * W, 3), 128, np.uint8)
@@ -38,7 +40,11 @@ def bench_import(settings: Params, repeats: int = 7, seed: int = 0) -> dict[str,
         files = {"ply": Path(tmp) / "frame.ply", "pcd": Path(tmp) / "frame.pcd", "zdf": Path(tmp) / "frame.zdf"}
         save_ply(files["ply"], PointCloudData(xyz_mm, rgb, None, (H, W)))
         save_pcd(files["pcd"], PointCloudData(xyz_mm, rgb, None, (H, W)))
-        save_zdf_v1(files["zdf"], xyz_mm.reshape(H, W, 3), np.concatenate([rgb, np.full((H * W, 1), 255, np.uint8)], 1).reshape(H, W, 4))
+        save_zdf_v1(
+            files["zdf"],
+            xyz_mm.reshape(H, W, 3),
+            np.concatenate([rgb, np.full((H * W, 1), 255, np.uint8)], 1).reshape(H, W, 4),
+        )
         for fmt, path in files.items():
 
             def once(path: Path = path):

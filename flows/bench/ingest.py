@@ -55,8 +55,11 @@ def _child(params: Params, mesh_path: str, queue: Any) -> None:
     result: dict[str, Any]
     try:
         model, metrics = ingest_part(params, "bench", Path(mesh_path))
-        result = {"ingest_s": time.perf_counter() - t0, "diameter_mm": 1000.0 * model.diameter_m,
-                  "n_faces_model": int(len(model.mesh_faces))}
+        result = {
+            "ingest_s": time.perf_counter() - t0,
+            "diameter_mm": 1000.0 * model.diameter_m,
+            "n_faces_model": int(len(model.mesh_faces)),
+        }
     except BinpickError as exc:
         result = {"error": str(exc)}
     result["peak_rss_mb"] = _peak_rss_mb()
@@ -98,8 +101,11 @@ def bench_ingest(settings: Params) -> dict[str, object]:
             if "error" in got:
                 row["error"] = got["error"]
             else:
-                row.update(ingest_s=round(got["ingest_s"], 3), n_faces_model=got["n_faces_model"],
-                           diameter_rel_error=abs(got["diameter_mm"] - truth_mm) / truth_mm)
+                row.update(
+                    ingest_s=round(got["ingest_s"], 3),
+                    n_faces_model=got["n_faces_model"],
+                    diameter_rel_error=abs(got["diameter_mm"] - truth_mm) / truth_mm,
+                )
             results[name] = row
     ok = [r for r in results.values() if "error" not in r]
     largest = max(ok, key=lambda r: r["n_faces"]) if ok else {}

@@ -32,13 +32,21 @@ SHARED_PARTS = {
     "ipa_ring_screw": BenchPart("ipa_ring_screw.stl", "m", SymmetryParams(kind="n_fold", axis=(0, 0, 1), order=2)),
     # A T like the built-in part: two-fold about its branch axis (y), which passes through the
     # centre of its box (the file's origin is a corner).
-    "zju_three_way_pipe": BenchPart("zju_three_way_pipe.stl", "mm", SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=2,
-                                                                                   origin_m=(0.017, 0.0, 0.031))),
+    "zju_three_way_pipe": BenchPart(
+        "zju_three_way_pipe.stl",
+        "mm",
+        SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=2, origin_m=(0.017, 0.0, 0.031)),
+    ),
     # Despite its name the nut has eight sides (a 45 degree turn maps it onto itself within
     # 0.02 mm on average, a 60 degree one leaves 0.4 mm): eight-fold about its axis (y) through its
     # centre, which lies far from the file's origin, and its two faces alike (a flip about x).
-    "hex_nut": BenchPart("hex_nut.ply", "mm", SymmetryParams(kind="n_fold", axis=(0, 1, 0), order=8,
-                                                             origin_m=(0.0813611, -0.0819074, -0.0813611), flip_axis=(1, 0, 0))),
+    "hex_nut": BenchPart(
+        "hex_nut.ply",
+        "mm",
+        SymmetryParams(
+            kind="n_fold", axis=(0, 1, 0), order=8, origin_m=(0.0813611, -0.0819074, -0.0813611), flip_axis=(1, 0, 0)
+        ),
+    ),
     "featuretype_inch": BenchPart("featuretype_inch.stl", "in", SymmetryParams()),
 }
 

@@ -93,12 +93,18 @@ def picking_settings(settings: Params, part: PartModel) -> Params:
     or tilt (a plain bin of one part), the physics mode, and room for 10-20 parts."""
     p = scaled_settings(settings, part)
     g = p.generate
-    generate = g.model_copy(update={
-        "clutter": g.clutter.off(),
-        "placement": g.placement.model_copy(update={
-            "mode": "physics", "candidates_per_object": max(g.placement.candidates_per_object, DROPS_PER_PART),
-            "max_pile_height_m": max(g.placement.max_pile_height_m, 0.6 * part.diameter_m)}),
-    })
+    generate = g.model_copy(
+        update={
+            "clutter": g.clutter.off(),
+            "placement": g.placement.model_copy(
+                update={
+                    "mode": "physics",
+                    "candidates_per_object": max(g.placement.candidates_per_object, DROPS_PER_PART),
+                    "max_pile_height_m": max(g.placement.max_pile_height_m, 0.6 * part.diameter_m),
+                }
+            ),
+        }
+    )
     return p.model_copy(update={"generate": generate, "camera": p.camera.model_copy(update={"downscale": 1})})
 
 
@@ -113,10 +119,21 @@ def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartMod
         segmenter = load_segmenter(checkpoint, p.segment)
     mode = p.registration.mode if segmenter is not None else "whole_scene"
     kind = p.pick.gripper
-    grasps = expand_by_symmetry(generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS))
-    return PartModels(part, ppf, segmenter, p.import_capture,
-                      with_verification(p.registration.model_copy(update={"mode": mode}), chosen_verification(checkpoint and Layout.verification_of(checkpoint), segmenter)),
-                      grasps, p.pick)
+    grasps = expand_by_symmetry(
+        generate_grasps(part, p.pick)[kind], symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS)
+    )
+    return PartModels(
+        part,
+        ppf,
+        segmenter,
+        p.import_capture,
+        with_verification(
+            p.registration.model_copy(update={"mode": mode}),
+            chosen_verification(checkpoint and Layout.verification_of(checkpoint), segmenter),
+        ),
+        grasps,
+        p.pick,
+    )
 
 
 class TrueSurface:
@@ -135,7 +152,9 @@ class TrueSurface:
         self.tree = cKDTree(self.points_m)
         self.cup_radius_m = cup_radius_m
 
-    def approach_off_deg(self, closest_m: np.ndarray, face: int, T_cam_from_object: np.ndarray, T_cam_from_tool: np.ndarray) -> float:
+    def approach_off_deg(
+        self, closest_m: np.ndarray, face: int, T_cam_from_object: np.ndarray, T_cam_from_tool: np.ndarray
+    ) -> float:
         """Degrees between the tool's approach and the inward normal under a cup at closest_m (3,),
         model frame (on `face`): the mean over the sample within the cup's radius facing the
         cup, else the face's own."""
@@ -168,7 +187,9 @@ def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, truth: TrueSurf
     return None if best is None else best[0]
 
 
-def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray, truth: TrueSurface) -> tuple[float, float]:
+def _nearest_surface(
+    T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray, truth: TrueSurface
+) -> tuple[float, float]:
     """The distance (m) from the tool centre point to the nearest true part surface, and the angle
     (degrees) between the approach and that surface's inward normal under the cup: what a failed
     pick missed by."""
@@ -180,9 +201,20 @@ def _nearest_surface(T_cam_from_tool: np.ndarray, T_cam_from_objects: np.ndarray
     return best
 
 
-def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects: np.ndarray, part: PartModel, bin_points_cam: np.ndarray) -> bool:
+def _path_hits(
+    pick,
+    kind: str,
+    params: Params,
+    target: int,
+    T_cam_from_objects: np.ndarray,
+    part: PartModel,
+    bin_points_cam: np.ndarray,
+) -> bool:
     """True when the swept gripper enters the true meshes of the others or the bin (or its target too deep)."""
-    body = swept(gripper_primitives(params.pick, kind, pick.width_m), max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m))
+    body = swept(
+        gripper_primitives(params.pick, kind, pick.width_m),
+        max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m),
+    )
     to_tool = invert_T(pick.T_cam_from_grasp)
     if len(bin_points_cam) and signed_distance(transform_points(to_tool, bin_points_cam), body).min() < -PENETRATION_M:
         return True
@@ -193,15 +225,30 @@ def _path_hits(pick, kind: str, params: Params, target: int, T_cam_from_objects:
     return False
 
 
-def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_parts: int, seed: np.random.SeedSequence, folder: Path,
-               cycles: list[float], truth: TrueSurface, T_bin_from_camera: np.ndarray) -> Tally:
+def _clear_bin(
+    part: PartModel,
+    models: PartModels,
+    p: Params,
+    kind: str,
+    n_parts: int,
+    seed: np.random.SeedSequence,
+    folder: Path,
+    cycles: list[float],
+    truth: TrueSurface,
+    T_bin_from_camera: np.ndarray,
+) -> Tally:
     rng = np.random.default_rng(seed)
     g = p.generate
     placed = place_objects(part.points_m, n_parts, g.bin, g.placement, rng)
     T_bin = settle_in_bin(part, placed.T_bin_from_model, g, rng)
     tally = Tally(settled=len(T_bin))
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
-    bin_points = np.concatenate([trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0] for m in bin_meshes(g.bin)])
+    bin_points = np.concatenate(
+        [
+            trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0]
+            for m in bin_meshes(g.bin)
+        ]
+    )
     half = (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0)
     view = ViewParams.of_import(p.import_capture)
     failures = 0
@@ -224,8 +271,13 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
         if plan is None or not plan.picks:
             tally.no_pick += 1
             failures += 1
-            log.info("%s: no pick for %d parts left (%d poses; %s)", part.name, len(T_bin), len(plan.unpicked) if plan else 0,
-                     "; ".join(f"part {i}: {why}" for i, why in plan.unpicked) if plan else "refused")
+            log.info(
+                "%s: no pick for %d parts left (%d poses; %s)",
+                part.name,
+                len(T_bin),
+                len(plan.unpicked) if plan else 0,
+                "; ".join(f"part {i}: {why}" for i, why in plan.unpicked) if plan else "refused",
+            )
             continue
         first = plan.picks[0]
         target = _true_touch(first, kind, T_cam, truth)
@@ -233,9 +285,17 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
             tally.wrong_part += 1
             failures += 1
             distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, T_cam, truth)
-            log.info("%s: the first pick (part %d, grasp %s, pose score %.2f) touches no part as a grasp should: its contact lies %.1f mm from "
-                     "the nearest true surface, its approach %.0f degrees off that surface's inward normal", part.name, first.pose_index,
-                     first.grasp_id, first.score, 1000 * distance_m, angle_deg)
+            log.info(
+                "%s: the first pick (part %d, grasp %s, pose score %.2f) touches no part as a grasp should: its "
+                "contact lies %.1f mm from "
+                "the nearest true surface, its approach %.0f degrees off that surface's inward normal",
+                part.name,
+                first.pose_index,
+                first.grasp_id,
+                first.score,
+                1000 * distance_m,
+                angle_deg,
+            )
             continue
         if _path_hits(first, kind, p, target, T_cam, part, transform_points(scene.T_cam_from_bin, bin_points)):
             tally.collisions += 1
@@ -246,15 +306,30 @@ def _clear_bin(part: PartModel, models: PartModels, p: Params, kind: str, n_part
         failures = 0
         rest = np.delete(T_bin, target, axis=0)
         if len(rest):
-            rest, inside = settle(part.mesh_vertices_m, part.mesh_faces, rest, boxes, SettleSettings(max_time_s=g.placement.settle_max_s, drop_gap_m=0.0), half)
+            rest, inside = settle(
+                part.mesh_vertices_m,
+                part.mesh_faces,
+                rest,
+                boxes,
+                SettleSettings(max_time_s=g.placement.settle_max_s, drop_gap_m=0.0),
+                half,
+            )
             tally.lost += int((~inside).sum())
             rest = rest[inside]
         T_bin = rest
     return tally
 
 
-def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_per_bin: tuple[int, int], checkpoints: dict[str, Path],
-                  gripper: str | None = None, seed: int = 0, tilt_deg_max: float = TILT_DEG_MAX) -> dict[str, object]:
+def bench_picking(
+    settings: Params,
+    names: list[str] | None,
+    n_bins: int,
+    parts_per_bin: tuple[int, int],
+    checkpoints: dict[str, Path],
+    gripper: str | None = None,
+    seed: int = 0,
+    tilt_deg_max: float = TILT_DEG_MAX,
+) -> dict[str, object]:
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
     without one are registered over the whole scene); gripper: overrides pick.gripper;
     tilt_deg_max: the largest tilt of a bin's camera from the bin's up axis, degrees."""
@@ -263,9 +338,16 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
     parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
     kind = gripper or settings.pick.gripper
     per_part: dict[str, dict[str, float]] = {}
-    out: dict[str, object] = {"machine": machine(), "gripper": kind, "parts_per_bin": list(parts_per_bin),
-                              "touch_m": TOUCH_M, "touch_deg": TOUCH_DEG, "penetration_m": PENETRATION_M, "tilt_deg_max": tilt_deg_max,
-                              "parts": per_part}
+    out: dict[str, object] = {
+        "machine": machine(),
+        "gripper": kind,
+        "parts_per_bin": list(parts_per_bin),
+        "touch_m": TOUCH_M,
+        "touch_deg": TOUCH_DEG,
+        "penetration_m": PENETRATION_M,
+        "tilt_deg_max": tilt_deg_max,
+        "parts": per_part,
+    }
     total = Tally()
     all_cycles: list[float] = []
     by_band: dict[str, list[tuple[Tally, list[float]]]] = {}  # band -> (tally, cycles) of each bin
@@ -285,15 +367,32 @@ def bench_picking(settings: Params, names: list[str] | None, n_bins: int, parts_
                 n = int(draw.integers(parts_per_bin[0], parts_per_bin[1] + 1))
                 # Tilts spread evenly over the range across the bins, each at a random heading.
                 tilt_deg = tilt_deg_max * (b + float(draw.uniform())) / n_bins
-                T_bin_from_camera = tilted_camera(p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi)))
+                T_bin_from_camera = tilted_camera(
+                    p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi))
+                )
                 first_cycle = len(cycles)
                 one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles, truth, T_bin_from_camera)
-                log.info("%s bin %d (camera tilted %.0f degrees): %d of %d removed in %d attempts (%d wrong part, %d collisions, %d without a pick)",
-                         part.name, b, tilt_deg, one.removed, one.settled, one.attempts, one.wrong_part, one.collisions, one.no_pick)
+                log.info(
+                    "%s bin %d (camera tilted %.0f degrees): %d of %d removed in %d attempts (%d wrong part, %d "
+                    "collisions, %d without a pick)",
+                    part.name,
+                    b,
+                    tilt_deg,
+                    one.removed,
+                    one.settled,
+                    one.attempts,
+                    one.wrong_part,
+                    one.collisions,
+                    one.no_pick,
+                )
                 tally.add(one)
                 by_band.setdefault(tilt_band(tilt_deg), []).append((one, cycles[first_cycle:]))
-        per_part[part.name] = {**_keys(tally, cycles, n_bins), "n_grasps": float(len(grasps)), "segmentation": 1.0 if models.segmenter is not None else 0.0,
-                                   "diameter_mm": 1000.0 * part.diameter_m}
+        per_part[part.name] = {
+            **_keys(tally, cycles, n_bins),
+            "n_grasps": float(len(grasps)),
+            "segmentation": 1.0 if models.segmenter is not None else 0.0,
+            "diameter_mm": 1000.0 * part.diameter_m,
+        }
         total.add(tally)
         all_cycles += cycles
     out.update(_keys(total, all_cycles, n_bins * len(parts)))

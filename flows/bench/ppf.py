@@ -28,7 +28,9 @@ NOISE_M = 0.001
 CLUTTER_FRACTION = 0.10
 
 
-def make_view(part: PartModel, rng: np.random.Generator, intr: PinholeCamera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def make_view(
+    part: PartModel, rng: np.random.Generator, intr: PinholeCamera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """A view of the part alone at a random pose: (points (n, 3), normals, T_cam_from_model).
 
     The part is rendered from the virtual camera, sampled on the pipeline's 2 mm grid (1/100 of
@@ -74,7 +76,8 @@ def _opencv(part: PartModel, params: RegisterParams):
     model_pc = np.hstack([part.points_m[idx], part.normals[idx]]).astype(np.float32)
     t0 = time.perf_counter()
     detector = cv2.ppf_match_3d_PPF3DDetector(  # type: ignore[attr-defined]  # opencv-contrib, not in cv2's stubs
-        params.sample_step_rel, params.distance_step_rel)
+        params.sample_step_rel, params.distance_step_rel
+    )
     detector.trainModel(model_pc)
     train_s = time.perf_counter() - t0
     icp = cv2.ppf_match_3d_ICP(100, 0.005, 2.5, 8)  # type: ignore[attr-defined]
@@ -110,13 +113,22 @@ def _open3d(part: PartModel, params: RegisterParams):
         tgt.normals = o3d.utility.Vector3dVector(nrm[k])
         tgt_fpfh = reg.compute_fpfh_feature(tgt, feature)  # type: ignore[call-arg]  # open3d 0.20 stubs name an `indices` its binding does not need
         ransac = reg.registration_ransac_based_on_feature_matching(
-            src, tgt, src_fpfh, tgt_fpfh, True, 1.5 * voxel, reg.TransformationEstimationPointToPoint(False), 3,
+            src,
+            tgt,
+            src_fpfh,
+            tgt_fpfh,
+            True,
+            1.5 * voxel,
+            reg.TransformationEstimationPointToPoint(False),
+            3,
             [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * voxel)],
             reg.RANSACConvergenceCriteria(100000, 0.999),
         )
         scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         scene.normals = o3d.utility.Vector3dVector(nrm)
-        icp = reg.registration_icp(dense, scene, 0.5 * voxel, ransac.transformation, reg.TransformationEstimationPointToPlane())
+        icp = reg.registration_icp(
+            dense, scene, 0.5 * voxel, ransac.transformation, reg.TransformationEstimationPointToPlane()
+        )
         return np.asarray(icp.transformation)
 
     return train_s, match
@@ -178,9 +190,13 @@ def bench_ppf(
     result: dict[str, object] = {m: _summarise(per_method[m], train_times[m]) for m in methods}
     result["per_part"] = per_part
     result["setup"] = {
-        "parts": [p.name for p in models], "trials_per_part": trials, "noise_mm": 1000 * NOISE_M,
-        "clutter_fraction": CLUTTER_FRACTION, "machine": machine(),
+        "parts": [p.name for p in models],
+        "trials_per_part": trials,
+        "noise_mm": 1000 * NOISE_M,
+        "clutter_fraction": CLUTTER_FRACTION,
+        "machine": machine(),
     }
     if "binpick_ppf" in methods and "opencv_ppf_icp" in methods:
-        result["speedup_vs_opencv"] = result["opencv_ppf_icp"]["ms_per_instance_median"] / result["binpick_ppf"]["ms_per_instance_median"]  # type: ignore[index]
+        ours, theirs = result["binpick_ppf"], result["opencv_ppf_icp"]
+        result["speedup_vs_opencv"] = theirs["ms_per_instance_median"] / ours["ms_per_instance_median"]  # type: ignore[index]
     return result

@@ -68,14 +68,26 @@ PILE_HEIGHT_REL = 0.8
 def _overrides(p: Params) -> dict:
     """A part entry's overrides that make the project's settings the benchmark's for that part."""
     imp = p.import_capture
-    return {"import_capture": {k: getattr(imp, k) for k in ("voxel_size_m", "normal_radius_m", "plane_threshold_m", "keep_above_plane_m", "max_range_m")}}
+    return {
+        "import_capture": {
+            k: getattr(imp, k)
+            for k in ("voxel_size_m", "normal_radius_m", "plane_threshold_m", "keep_above_plane_m", "max_range_m")
+        }
+    }
 
 
 class ServiceProject:
     """A temporary project folder holding the benchmark parts' models, and a `binpick service`
     process answering for it."""
 
-    def __init__(self, root: Path, settings_text: str, entries: dict[str, dict], models: dict[str, PartModels], checkpoints: dict[str, Path]):
+    def __init__(
+        self,
+        root: Path,
+        settings_text: str,
+        entries: dict[str, dict],
+        models: dict[str, PartModels],
+        checkpoints: dict[str, Path],
+    ):
         from binpick.params import _edit
 
         self.root = root
@@ -113,8 +125,23 @@ class ServiceProject:
         # Its log goes to a file: a pipe nobody reads fills up and stops the service at a log line.
         self.log_file = open(self.root / "service.log", "w")  # noqa: SIM115 - closed in stop()
         t0 = time.perf_counter()
-        self.process = subprocess.Popen([sys.executable, "-m", "flows.cli", "service", "--http-port", str(self.http_port), "--tcp-port", str(self.tcp_port)],
-                                        cwd=self.root, env=env, stdout=self.log_file, stderr=subprocess.STDOUT, text=True)
+        self.process = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "flows.cli",
+                "service",
+                "--http-port",
+                str(self.http_port),
+                "--tcp-port",
+                str(self.tcp_port),
+            ],
+            cwd=self.root,
+            env=env,
+            stdout=self.log_file,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         return t0
 
     def wait_until_up(self) -> None:
@@ -141,7 +168,9 @@ class ServiceProject:
         # and opened a new connection each time.
         if self._client is None:
             self._client = httpx.Client(timeout=600)
-        return self._client.post(f"http://127.0.0.1:{self.http_port}/picks", json={"part": part, "path": str(capture)}).json()
+        return self._client.post(
+            f"http://127.0.0.1:{self.http_port}/picks", json={"part": part, "path": str(capture)}
+        ).json()
 
     def rss_mb(self) -> float:
         assert self.process is not None
@@ -181,15 +210,27 @@ def scene_generate_settings(part: PartModel, p: Params) -> GenerateParams:
     """The picking benchmark's bin (p: picking_settings of the part), dropped rather than settled
     by physics, heaped up to PILE_HEIGHT_REL of the part's size."""
     placement = p.generate.placement
-    return p.generate.model_copy(update={"placement": placement.model_copy(update={
-        "mode": "drop", "max_pile_height_m": max(placement.max_pile_height_m, PILE_HEIGHT_REL * part.diameter_m)})})
+    return p.generate.model_copy(
+        update={
+            "placement": placement.model_copy(
+                update={
+                    "mode": "drop",
+                    "max_pile_height_m": max(placement.max_pile_height_m, PILE_HEIGHT_REL * part.diameter_m),
+                }
+            )
+        }
+    )
 
 
-def _captures(part: PartModel, p: Params, n_objects: int, count: int, folder: Path, seed: int) -> list[tuple[Path, SyntheticScene]]:
+def _captures(
+    part: PartModel, p: Params, n_objects: int, count: int, folder: Path, seed: int
+) -> list[tuple[Path, SyntheticScene]]:
     out = []
     g = scene_generate_settings(part, p)
     for k in range(count):
-        scene = generate_scene(part, g, p.camera, ViewParams.of_import(p.import_capture), seed * 1000 + k, n_objects=n_objects)
+        scene = generate_scene(
+            part, g, p.camera, ViewParams.of_import(p.import_capture), seed * 1000 + k, n_objects=n_objects
+        )
         H, W = scene.labels.shape
         path = folder / f"{part.name}-{n_objects}-{k}.zdf"
         save_zdf_v1(path, scene.xyz_m.reshape(H, W, 3) * 1000.0)
@@ -199,18 +240,36 @@ def _captures(part: PartModel, p: Params, n_objects: int, count: int, folder: Pa
 
 def _score(poses: list, scene, models: PartModels) -> dict[str, float]:
     T = np.array(poses).reshape(-1, 4, 4)
-    summary, _ = scene_pose_metrics(T, scene.T_cam_from_model, scene.visible_fraction, models.ppf.dense_points_m, models.ppf.symmetries, models.ppf.diameter_m)
-    return {"n_pickable": summary["n_pickable"], "n_found": summary["pose_recall"] * summary["n_pickable"],
-            "n_est": float(len(T)), "n_ok": summary["pose_precision"] * len(T)}
+    summary, _ = scene_pose_metrics(
+        T,
+        scene.T_cam_from_model,
+        scene.visible_fraction,
+        models.ppf.dense_points_m,
+        models.ppf.symmetries,
+        models.ppf.diameter_m,
+    )
+    return {
+        "n_pickable": summary["n_pickable"],
+        "n_found": summary["pose_recall"] * summary["n_pickable"],
+        "n_est": float(len(T)),
+        "n_ok": summary["pose_precision"] * len(T),
+    }
 
 
-def bench_scene(settings: Params, settings_text: str, names: list[str] | None, checkpoints: dict[str, Path], seed: int = 0) -> dict[str, object]:
+def bench_scene(
+    settings: Params, settings_text: str, names: list[str] | None, checkpoints: dict[str, Path], seed: int = 0
+) -> dict[str, object]:
     """settings / settings_text: the project's params (parsed and as written)."""
     from flows.bench.parts import bench_parts
 
     parts = bench_parts(names or list(DEFAULT_PARTS), n_points=settings.ingest.n_surface_points)
-    out: dict[str, object] = {"machine": machine(), "frame": f"{settings.camera.width_px}x{settings.camera.height_px}", "captures_per_case": CAPTURES_PER_CASE,
-                              "repeats": REPEATS, "request_gap_s": REQUEST_GAP_S}
+    out: dict[str, object] = {
+        "machine": machine(),
+        "frame": f"{settings.camera.width_px}x{settings.camera.height_px}",
+        "captures_per_case": CAPTURES_PER_CASE,
+        "repeats": REPEATS,
+        "request_gap_s": REQUEST_GAP_S,
+    }
     per: dict[str, dict[str, dict[str, float]]] = {}
     with tempfile.TemporaryDirectory(prefix="binpick-bench-scene-") as tmp:
         root = Path(tmp)
@@ -226,7 +285,9 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
             for n in BIN_SIZES:
                 cases[(part.name, n)] = _captures(part, p, n, CAPTURES_PER_CASE, captures_folder, seed)
             for n in BIN_SIZES:
-                steps: dict[str, list[float]] = {k: [] for k in ("import_s", "segment_s", "register_s", "pick_s", "pipeline_s")}
+                steps: dict[str, list[float]] = {
+                    k: [] for k in ("import_s", "segment_s", "register_s", "pick_s", "pipeline_s")
+                }
                 rows = []
                 process(*_frame(cases[(part.name, n)][0][0]), models[part.name], SceneSeeds.of(seed, "warm-up"))
                 for path, scene in cases[(part.name, n)]:
@@ -250,7 +311,12 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
                     "n_parts_mean": float(np.mean([len(scene.T_cam_from_model) for _, scene in cases[(part.name, n)]])),
                     "segmentation": 1.0 if models[part.name].segmenter is not None else 0.0,
                 }
-                log.info("%s, %d parts, in process: %s", part.name, n, {k: round(v, 3) for k, v in per[part.name][str(n)].items()})
+                log.info(
+                    "%s, %d parts, in process: %s",
+                    part.name,
+                    n,
+                    {k: round(v, 3) for k, v in per[part.name][str(n)].items()},
+                )
         service = ServiceProject(root, settings_text, entries, models, checkpoints)
         try:
             t0 = service.start()
@@ -275,7 +341,9 @@ def bench_scene(settings: Params, settings_text: str, names: list[str] | None, c
                         tcp_s.append(time.perf_counter() - t)
                         if "error" in a or "error" in b:
                             raise BinpickError(f"the service refused {path.name}: {a.get('error') or b.get('error')}")
-                per[name][str(n)].update({"http_s_median": float(np.median(http_s)), "tcp_s_median": float(np.median(tcp_s))})
+                per[name][str(n)].update(
+                    {"http_s_median": float(np.median(http_s)), "tcp_s_median": float(np.median(tcp_s))}
+                )
                 log.info("%s, %d parts, service: http %.3f s, tcp %.3f s", name, n, np.median(http_s), np.median(tcp_s))
             client.close()
         finally:
@@ -296,11 +364,21 @@ def _recall_precision(rows: list[dict[str, float]]) -> dict[str, float]:
 
 
 def _signature(answer: dict) -> tuple[list, np.ndarray]:
-    return [(p["pose_index"], p["grasp_id"]) for p in answer["picks"]], np.array([p["T_cam_from_model"] for p in answer["poses"]]).reshape(-1, 4, 4)
+    return [(p["pose_index"], p["grasp_id"]) for p in answer["picks"]], np.array(
+        [p["T_cam_from_model"] for p in answer["poses"]]
+    ).reshape(-1, 4, 4)
 
 
-def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients: int, per_client: int, checkpoint: Path | None,
-               n_captures: int = 4, seed: int = 0) -> dict[str, object]:
+def bench_soak(
+    settings: Params,
+    settings_text: str,
+    n_requests: int,
+    n_clients: int,
+    per_client: int,
+    checkpoint: Path | None,
+    n_captures: int = 4,
+    seed: int = 0,
+) -> dict[str, object]:
     """The built-in part, 8-part bins at the camera's full resolution."""
     from flows.bench.parts import bench_parts
 
@@ -313,7 +391,9 @@ def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients:
         captures_folder.mkdir(parents=True)
         captures = [path for path, _ in _captures(part, p, 8, n_captures, captures_folder, seed)]
         text = settings_text.replace("keep_requests: 500", "keep_requests: 50")
-        service = ServiceProject(root, text, {"t_joint": _overrides(p)}, {"t_joint": models}, {"t_joint": checkpoint} if checkpoint else {})
+        service = ServiceProject(
+            root, text, {"t_joint": _overrides(p)}, {"t_joint": models}, {"t_joint": checkpoint} if checkpoint else {}
+        )
         failures: list[str] = []
         first: dict[str, tuple[list, np.ndarray]] = {}
         differing: set[str] = set()
@@ -327,7 +407,11 @@ def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients:
                 sig = _signature(answer)
                 if path.name not in first:
                     first[path.name] = sig
-                elif sig[0] != first[path.name][0] or sig[1].shape != first[path.name][1].shape or not np.allclose(sig[1], first[path.name][1], atol=1e-6):
+                elif (
+                    sig[0] != first[path.name][0]
+                    or sig[1].shape != first[path.name][1].shape
+                    or not np.allclose(sig[1], first[path.name][1], atol=1e-6)
+                ):
                     differing.add(path.name)
 
         try:
@@ -375,10 +459,20 @@ def bench_soak(settings: Params, settings_text: str, n_requests: int, n_clients:
         finally:
             service.stop()
     return {
-        "machine": machine(), "n_sequential": n_requests, "n_clients": n_clients, "requests_per_client": per_client, "n_captures": n_captures,
-        "failed_answers": len(failures), "failures": failures[:10], "captures_with_differing_answers": sorted(differing),
-        "same_answer_every_time": not differing, "sequential_s_median": float(np.median(seconds)) if seconds else 0.0,
-        "sequential_s_p90": float(np.percentile(seconds, 90)) if seconds else 0.0, "concurrent_s_per_request": concurrent_s / max(1, n_clients * per_client),
-        "rss_mb_after_warm_up": rss_after_warm_up, "rss_mb_after_sequential": rss_sequential_end, "rss_mb_end": rss_end,
+        "machine": machine(),
+        "n_sequential": n_requests,
+        "n_clients": n_clients,
+        "requests_per_client": per_client,
+        "n_captures": n_captures,
+        "failed_answers": len(failures),
+        "failures": failures[:10],
+        "captures_with_differing_answers": sorted(differing),
+        "same_answer_every_time": not differing,
+        "sequential_s_median": float(np.median(seconds)) if seconds else 0.0,
+        "sequential_s_p90": float(np.percentile(seconds, 90)) if seconds else 0.0,
+        "concurrent_s_per_request": concurrent_s / max(1, n_clients * per_client),
+        "rss_mb_after_warm_up": rss_after_warm_up,
+        "rss_mb_after_sequential": rss_sequential_end,
+        "rss_mb_end": rss_end,
         "rss_growth_mb": rss_end - rss_after_warm_up,
     }

@@ -42,7 +42,13 @@ def _sized(points: np.ndarray, normals: np.ndarray, n: int, rng: np.random.Gener
 
 
 def bench_segment(
-    checkpoint: Path, scenes: Path, segment: SegmentParams, voxel_size_m: float, seed: int, iou_threshold: float = 0.5, repeats: int = 3
+    checkpoint: Path,
+    scenes: Path,
+    segment: SegmentParams,
+    voxel_size_m: float,
+    seed: int,
+    iou_threshold: float = 0.5,
+    repeats: int = 3,
 ) -> dict[str, object]:
     """seed and iou_threshold as in params.yaml: the network's precision and recall are then
     those of the evaluate stage on the same checkpoint and scenes (the same routine scores both)."""
@@ -58,7 +64,11 @@ def bench_segment(
         ours = ours.add(segment_and_count(segmenter, s, segment, iou_threshold, seed, i)[1])
         db = dbscan_labels(s.view_points_m, DBSCAN_EPS_PER_VOXEL * voxel_size_m, 10)
         base = base.add(scene_counts(db, s.view_labels, iou_threshold, segment.min_points))
-    out: dict[str, object] = {**{k: v for k, v in ours.summary().items()}, "n_scenes": len(paths), "device": str(device)}
+    out: dict[str, object] = {
+        **{k: v for k, v in ours.summary().items()},
+        "n_scenes": len(paths),
+        "device": str(device),
+    }
     out["baseline_dbscan"] = base.summary()
 
     s = load_scene(paths[0])
@@ -87,7 +97,18 @@ def bench_segment(
     for k in range(repeats + 1):
         t0 = time.perf_counter()
         emb, ctr = train_model(input_features(pts, nrm, tp.features, settings.d_max_m), pts)
-        loss, _ = fpcc_loss(emb, ctr, pts, lab, settings.d_max_m, tp.eps1, tp.eps2, tp.centre_loss_weight, tp.centre_score_form, tp.loss_anchors)
+        loss, _ = fpcc_loss(
+            emb,
+            ctr,
+            pts,
+            lab,
+            settings.d_max_m,
+            tp.eps1,
+            tp.eps2,
+            tp.centre_loss_weight,
+            tp.centre_score_form,
+            tp.loss_anchors,
+        )
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -62,17 +62,23 @@ BIN_SAMPLE_SPACING_M = 0.004
 
 def _generate(p: Params, presets: list[str], clutter: bool):
     g = p.generate
-    return g.model_copy(update={
-        "sensor": g.sensor.model_copy(update={"presets": list(presets)}),
-        "clutter": g.clutter.model_copy(update={**CLUTTER, "camera_tilt_deg_max": TILT_DEG_MAX}) if clutter else g.clutter.off(),
-    })
+    return g.model_copy(
+        update={
+            "sensor": g.sensor.model_copy(update={"presets": list(presets)}),
+            "clutter": g.clutter.model_copy(update={**CLUTTER, "camera_tilt_deg_max": TILT_DEG_MAX})
+            if clutter
+            else g.clutter.off(),
+        }
+    )
 
 
 def _scene_seed(seed: int, part: str, tag: str, index: int) -> np.random.SeedSequence:
     return derive_seed(seed, "bench-sensors", part, tag, index)
 
 
-def _render(part: PartModel, p: Params, presets: list[str], clutter: bool, tag: str, n: int, seed: int) -> list[tuple[SyntheticScene, np.random.SeedSequence]]:
+def _render(
+    part: PartModel, p: Params, presets: list[str], clutter: bool, tag: str, n: int, seed: int
+) -> list[tuple[SyntheticScene, np.random.SeedSequence]]:
     g = _generate(p, presets, clutter)
     view = ViewParams.of_import(p.import_capture)
     out = []
@@ -84,10 +90,14 @@ def _render(part: PartModel, p: Params, presets: list[str], clutter: bool, tag: 
 
 def _views(scenes: list[tuple[SyntheticScene, np.random.SeedSequence]]) -> Views:
     seen = [s for s, _ in scenes if len(s.view_points_m)]
-    return Views([s.view_points_m for s in seen], [s.view_normals for s in seen], [s.view_labels.astype(np.int64) for s in seen])
+    return Views(
+        [s.view_points_m for s in seen], [s.view_normals for s in seen], [s.view_labels.astype(np.int64) for s in seen]
+    )
 
 
-def _train(part: PartModel, p: Params, presets: list[str], n_train: int, n_val: int, seed: int, work: Path, tag: str) -> tuple[Path, Views]:
+def _train(
+    part: PartModel, p: Params, presets: list[str], n_train: int, n_val: int, seed: int, work: Path, tag: str
+) -> tuple[Path, Views]:
     """A network trained on n_train scenes of these presets ([] = today's camera), clustering
     calibrated on n_val: its checkpoint and its synthetic training views."""
     from binpick.network.calibrate import recalibrate
@@ -97,9 +107,26 @@ def _train(part: PartModel, p: Params, presets: list[str], n_train: int, n_val: 
     folder = work / tag
     d_max = p.train.d_max_m if p.train.d_max_m is not None else part.diameter_m / 2.0
     log.info("%s: training %s on %d scenes", part.name, tag, len(train))
-    train_fpcc(train, val, p.train, d_max, derive_int(seed, "bench-sensors-train", part.name, tag), folder, part.name, part.diameter_m, progress=False)
+    train_fpcc(
+        train,
+        val,
+        p.train,
+        d_max,
+        derive_int(seed, "bench-sensors-train", part.name, tag),
+        folder,
+        part.name,
+        part.diameter_m,
+        progress=False,
+    )
     out = folder / "model.pt"
-    recalibrate(folder / BEST, out, val, p.segment, p.evaluate.iou_threshold, np.random.default_rng(derive_int(seed, "calibrate", part.name, tag)))
+    recalibrate(
+        folder / BEST,
+        out,
+        val,
+        p.segment,
+        p.evaluate.iou_threshold,
+        np.random.default_rng(derive_int(seed, "calibrate", part.name, tag)),
+    )
     return out, train + val
 
 
@@ -108,11 +135,22 @@ def _with_network(models: PartModels, p: Params, checkpoint: Path) -> PartModels
     from binpick.network.infer import load_segmenter
 
     segmenter = load_segmenter(checkpoint, p.segment)
-    return replace(models, segmenter=segmenter, register_params=with_verification(p.registration, chosen_verification(None, segmenter)))
+    return replace(
+        models,
+        segmenter=segmenter,
+        register_params=with_verification(p.registration, chosen_verification(None, segmenter)),
+    )
 
 
-def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes: list[tuple[SyntheticScene, np.random.SeedSequence]],
-          truth: TrueSurface, seed: int) -> dict[str, float]:
+def _test(
+    part: PartModel,
+    p: Params,
+    base: PartModels,
+    checkpoint: Path,
+    scenes: list[tuple[SyntheticScene, np.random.SeedSequence]],
+    truth: TrueSurface,
+    seed: int,
+) -> dict[str, float]:
     """The keys of one train/test pair over its test scenes."""
     models = _with_network(base, p, checkpoint)
     assert models.segmenter is not None
@@ -125,7 +163,9 @@ def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes
         drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
         H, W = scene.labels.shape
         try:
-            result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-{part.name}-{k}"))
+            result = process(
+                scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-{part.name}-{k}")
+            )
             poses, plan = result.registration.poses, result.picks
         except BinpickError as exc:
             log.warning("%s test scene %d: %s", part.name, k, exc)
@@ -136,12 +176,23 @@ def _test(part: PartModel, p: Params, base: PartModels, checkpoint: Path, scenes
             first = plan.picks[0]
             target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
             bins = np.concatenate([_surface(m) for m in bin_meshes(drawn)])
-            if target is not None and not _path_hits(first, p.pick.gripper, p, target, scene.T_cam_from_model, part,
-                                                     transform_points(scene.T_cam_from_bin, bins)):
+            if target is not None and not _path_hits(
+                first,
+                p.pick.gripper,
+                p,
+                target,
+                scene.T_cam_from_model,
+                part,
+                transform_points(scene.T_cam_from_bin, bins),
+            ):
                 good += 1
     summary = seg.summary()
-    return {**_summary(rows), "pick_success_rate": good / len(scenes) if scenes else 0.0,
-            "seg_precision": summary["precision"], "seg_recall": summary["recall"]}
+    return {
+        **_summary(rows),
+        "pick_success_rate": good / len(scenes) if scenes else 0.0,
+        "seg_precision": summary["precision"],
+        "seg_recall": summary["recall"],
+    }
 
 
 def _surface(mesh) -> np.ndarray:
@@ -150,8 +201,16 @@ def _surface(mesh) -> np.ndarray:
     return trimesh.sample.sample_surface_even(mesh, max(100, int(mesh.area / BIN_SAMPLE_SPACING_M**2)), seed=0)[0]
 
 
-def _finetuned(part: PartModel, p: Params, built: PartModels, base: Path, synthetic: Views, captures: list[tuple[SyntheticScene, np.random.SeedSequence]],
-               seed: int, work: Path) -> tuple[Path, dict[str, float]]:
+def _finetuned(
+    part: PartModel,
+    p: Params,
+    built: PartModels,
+    base: Path,
+    synthetic: Views,
+    captures: list[tuple[SyntheticScene, np.random.SeedSequence]],
+    seed: int,
+    work: Path,
+) -> tuple[Path, dict[str, float]]:
     """The base network fine-tuned on the captures it labelled itself (binpick learn's recipe)."""
     models = _with_network(built, p, base)
     labelled = []
@@ -159,26 +218,62 @@ def _finetuned(part: PartModel, p: Params, built: PartModels, base: Path, synthe
     for k, (scene, _) in enumerate(captures):
         H, W = scene.labels.shape
         try:
-            result = process(scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-capture-{part.name}-{k}"))
+            result = process(
+                scene.xyz_m.reshape(-1, 3),
+                None,
+                (H, W),
+                models,
+                SceneSeeds.of(seed, f"sensors-capture-{part.name}-{k}"),
+            )
         except BinpickError as exc:
             log.warning("%s capture %d: %s", part.name, k, exc)
             continue
-        c = label_capture(result.cloud, result.registration.poses, models.ppf.dense_points_m, part.diameter_m, p.registration.min_score,
-                          p.learn.trust_margin, p.import_capture.voxel_size_m)
+        c = label_capture(
+            result.cloud,
+            result.registration.poses,
+            models.ppf.dense_points_m,
+            part.diameter_m,
+            p.registration.min_score,
+            p.learn.trust_margin,
+            p.import_capture.voxel_size_m,
+        )
         if len(c.T_cam_from_model):
             labelled.append(c)
             n_trusted += len(c.T_cam_from_model)
     state = read_checkpoint(base)
     folder = work / "finetune"
-    best = finetune_fpcc(state, synthetic + Views.of_captures(labelled), synthetic, p.train, p.learn.finetune_epochs, p.learn.finetune_learning_rate,
-                         derive_int(seed, "bench-sensors-finetune", part.name), folder, progress=False)
+    best = finetune_fpcc(
+        state,
+        synthetic + Views.of_captures(labelled),
+        synthetic,
+        p.train,
+        p.learn.finetune_epochs,
+        p.learn.finetune_learning_rate,
+        derive_int(seed, "bench-sensors-finetune", part.name),
+        folder,
+        progress=False,
+    )
     out = folder / "model.pt"
     write_finetuned(best, out, state, state["sha256"], [f"capture-{k}" for k in range(len(labelled))], [])
-    return out, {"n_captures": float(len(captures)), "n_labelled_captures": float(len(labelled)), "n_trusted_poses": float(n_trusted)}
+    return out, {
+        "n_captures": float(len(captures)),
+        "n_labelled_captures": float(len(labelled)),
+        "n_trusted_poses": float(n_trusted),
+    }
 
 
-def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, n_test: int, n_captures: int, finetune_sensor: str,
-                  leave_one_out: bool = True, seed: int = 0, trust_margin: float | None = None) -> dict[str, object]:
+def bench_sensors(
+    settings: Params,
+    names: list[str],
+    n_train: int,
+    n_val: int,
+    n_test: int,
+    n_captures: int,
+    finetune_sensor: str,
+    leave_one_out: bool = True,
+    seed: int = 0,
+    trust_margin: float | None = None,
+) -> dict[str, object]:
     """settings: the project's params (its train section sizes the networks, its bin and camera
     are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
     network; n_test: cluttered test bins per test sensor; n_captures: captures of
@@ -186,11 +281,21 @@ def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, 
     from flows.bench.parts import bench_parts
 
     if trust_margin is not None:
-        settings = settings.model_copy(update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})})
+        settings = settings.model_copy(
+            update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})}
+        )
 
-    out: dict[str, object] = {"machine": machine(), "n_train": n_train, "n_val": n_val, "n_test": n_test, "n_captures": n_captures,
-                              "tilt_deg_max": TILT_DEG_MAX, "renderer_only": True, "trust_margin": settings.learn.trust_margin,
-                              "parts": {}}
+    out: dict[str, object] = {
+        "machine": machine(),
+        "n_train": n_train,
+        "n_val": n_val,
+        "n_test": n_test,
+        "n_captures": n_captures,
+        "tilt_deg_max": TILT_DEG_MAX,
+        "renderer_only": True,
+        "trust_margin": settings.learn.trust_margin,
+        "parts": {},
+    }
     presets = sorted(settings.generate.sensor.models)
     if finetune_sensor not in presets:
         raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")
@@ -199,8 +304,10 @@ def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, 
         p = scaled_settings(settings, part, TILT_DEG_MAX)
         truth = TrueSurface(part, p.pick.suction.cup_radius_m)
         built = bench_models(part, p, None)
-        tests = {TODAY: _render(part, p, [], True, "test-today", n_test, seed),
-                 **{q: _render(part, p, [q], True, f"test-{q}", n_test, seed) for q in presets}}
+        tests = {
+            TODAY: _render(part, p, [], True, "test-today", n_test, seed),
+            **{q: _render(part, p, [q], True, f"test-{q}", n_test, seed) for q in presets},
+        }
         pairs: dict[str, dict[str, float]] = {}
         with tempfile.TemporaryDirectory(prefix="binpick-sensors-") as tmp:
             work = Path(tmp)
@@ -209,18 +316,40 @@ def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, 
             for train_name, checkpoint in ((TODAY, today), (RANDOMISED, randomised)):
                 for test_name, scenes in tests.items():
                     pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed)
-                    log.info("%s %s@%s: %s", name, train_name, test_name, {k: round(v, 3) for k, v in pairs[f"{train_name}@{test_name}"].items()})
+                    log.info(
+                        "%s %s@%s: %s",
+                        name,
+                        train_name,
+                        test_name,
+                        {k: round(v, 3) for k, v in pairs[f"{train_name}@{test_name}"].items()},
+                    )
             if leave_one_out:
                 for q in presets:
-                    without, _ = _train(part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}")
+                    without, _ = _train(
+                        part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}"
+                    )
                     pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed)
-                    log.info("%s without_%s@%s: %s", name, q, q, {k: round(v, 3) for k, v in pairs[f"without_{q}@{q}"].items()})
+                    log.info(
+                        "%s without_%s@%s: %s",
+                        name,
+                        q,
+                        q,
+                        {k: round(v, 3) for k, v in pairs[f"without_{q}@{q}"].items()},
+                    )
             captures = _render(part, p, [finetune_sensor], True, f"captures-{finetune_sensor}", n_captures, seed)
             tuned, labelling = _finetuned(part, p, built, today, today_views, captures, seed, work)
-            finetune: dict[str, object] = {"base": TODAY, "sensor": finetune_sensor, **labelling,
-                                           "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed),
-                                           "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed)}
-        before, after, reference = pairs[f"{TODAY}@{finetune_sensor}"], finetune["after@" + finetune_sensor], pairs[f"{RANDOMISED}@{finetune_sensor}"]
+            finetune: dict[str, object] = {
+                "base": TODAY,
+                "sensor": finetune_sensor,
+                **labelling,
+                "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed),
+                "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed),
+            }
+        before, after, reference = (
+            pairs[f"{TODAY}@{finetune_sensor}"],
+            finetune["after@" + finetune_sensor],
+            pairs[f"{RANDOMISED}@{finetune_sensor}"],
+        )
         assert isinstance(after, dict)
         for key in ("pose_precision", "pose_recall", "pick_success_rate", "seg_precision", "seg_recall"):
             gap = reference[key] - before[key]
@@ -230,9 +359,16 @@ def bench_sensors(settings: Params, names: list[str], n_train: int, n_val: int, 
             finetune[f"synthetic_change_{key}"] = synthetic_after[key] - pairs[f"{TODAY}@{TODAY}"][key]
         loo = {q: pairs[f"without_{q}@{q}"] for q in presets if f"without_{q}@{q}" in pairs}
         out["parts"][name] = {  # type: ignore[index]
-            "pairs": pairs, "finetune": finetune, "presets": presets,
+            "pairs": pairs,
+            "finetune": finetune,
+            "presets": presets,
             # The target: a preset never seen against the same preset seen in training.
-            "leave_one_out_gap": {q: {k: pairs[f"{RANDOMISED}@{q}"][k] - v[k] for k in ("pose_precision", "pose_recall", "pick_success_rate")}
-                                  for q, v in loo.items()},
+            "leave_one_out_gap": {
+                q: {
+                    k: pairs[f"{RANDOMISED}@{q}"][k] - v[k]
+                    for k in ("pose_precision", "pose_recall", "pick_success_rate")
+                }
+                for q, v in loo.items()
+            },
         }
     return out

@@ -12,7 +12,9 @@ from flows.cli.common import PARAMS, bench_app, checkpoints, fail, trained_part_
 
 @bench_app.command("import")
 def bench_import_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"), repeats: int = typer.Option(7, min=1), params: Path = PARAMS
+    out: Path = typer.Option(..., help="JSON file to write"),
+    repeats: int = typer.Option(7, min=1),
+    params: Path = PARAMS,
 ) -> None:
     """Import + clean + downsample of a full 1920 x 1200 organized frame (PLY, PCD, ZDF)."""
     from binpick.params import load_params
@@ -36,8 +38,12 @@ def bench_ingest_cmd(out: Path = typer.Option(..., help="JSON file to write"), p
 def bench_clutter_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),
     scenes: int = typer.Option(4, min=1, help="cluttered scenes per part"),
-    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw, three-way pipe and IC-BIN coffee cup)"),
-    tilt_deg_max: float = typer.Option(45.0, min=0.0, max=59.0, help="the camera's largest tilt from the bin's up axis, degrees"),
+    part: list[str] = typer.Option(
+        None, help="parts (default: t_joint, the gear shaft, ring screw, three-way pipe and IC-BIN coffee cup)"
+    ),
+    tilt_deg_max: float = typer.Option(
+        45.0, min=0.0, max=59.0, help="the camera's largest tilt from the bin's up axis, degrees"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Pose precision/recall and wrong poses outside the bin on bins with distractors and tilted
@@ -61,9 +67,13 @@ def bench_picking_cmd(
     bins: int = typer.Option(10, min=1, help="bins per part"),
     min_parts: int = typer.Option(10, min=1, help="parts per bin, at least"),
     max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
-    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"),
+    part: list[str] = typer.Option(
+        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
+    ),
     gripper: str = typer.Option(None, help="suction or jaw (default: pick.gripper)"),
-    tilt_deg_max: float = typer.Option(45.0, min=0.0, max=59.0, help="each bin's camera is tilted from the bin's up axis by up to this, degrees"),
+    tilt_deg_max: float = typer.Option(
+        45.0, min=0.0, max=59.0, help="each bin's camera is tilted from the bin's up axis by up to this, degrees"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Empty simulated bins one pick at a time through the real scene path; every pick checked
@@ -79,7 +89,15 @@ def bench_picking_cmd(
     root = project_root()
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_picking(load_params(params), names, bins, (min_parts, max_parts), checkpoints(root, names), gripper, tilt_deg_max=tilt_deg_max)
+        result = bench_picking(
+            load_params(params),
+            names,
+            bins,
+            (min_parts, max_parts),
+            checkpoints(root, names),
+            gripper,
+            tilt_deg_max=tilt_deg_max,
+        )
     except ValueError as exc:
         fail(str(exc))
     write_json(out, result)
@@ -95,7 +113,9 @@ def bench_sensors_cmd(
     captures: int = typer.Option(12, min=1, help="captures of the fine-tuning sensor the cell labels itself"),
     finetune_sensor: str = typer.Option("kinect_v1", help="the sensor model the cell's captures come from"),
     leave_one_out: bool = typer.Option(True, help="train a network without each preset and test it on that preset"),
-    trust_margin: float = typer.Option(None, min=0.0, max=1.0, help="the labelling's trust margin (default: learn.trust_margin)"),
+    trust_margin: float = typer.Option(
+        None, min=0.0, max=1.0, help="the labelling's trust margin (default: learn.trust_margin)"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Networks trained on today's camera, on the randomised sensor models and without each
@@ -105,8 +125,17 @@ def bench_sensors_cmd(
     from flows.bench.sensors import bench_sensors
 
     try:
-        result = bench_sensors(load_params(params), part or ["t_joint"], train_scenes, val_scenes, test_scenes, captures, finetune_sensor, leave_one_out,
-                               trust_margin=trust_margin)
+        result = bench_sensors(
+            load_params(params),
+            part or ["t_joint"],
+            train_scenes,
+            val_scenes,
+            test_scenes,
+            captures,
+            finetune_sensor,
+            leave_one_out,
+            trust_margin=trust_margin,
+        )
     except ValueError as exc:
         fail(str(exc))
     write_json(out, result)
@@ -115,7 +144,9 @@ def bench_sensors_cmd(
 @bench_app.command("scene")
 def bench_scene_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),
-    part: list[str] = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"),
+    part: list[str] = typer.Option(
+        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """The in-process scene path per step on 1920 x 1200 captures of 8- and 20-part bins, and the
@@ -147,7 +178,14 @@ def bench_soak_cmd(
 
     checkpoint = checkpoints(project_root(), ["t_joint"])["t_joint"]
     try:
-        result = bench_soak(load_params(params), params.read_text(), requests, clients, per_client, checkpoint if checkpoint.is_file() else None)
+        result = bench_soak(
+            load_params(params),
+            params.read_text(),
+            requests,
+            clients,
+            per_client,
+            checkpoint if checkpoint.is_file() else None,
+        )
     except ValueError as exc:
         fail(str(exc))
     write_json(out, result)
@@ -187,7 +225,9 @@ def bench_segment_cmd(
     checkpoint, scenes = trained_part_paths(part, checkpoint, scenes)
     try:
         p = load_params(params, part)
-        result = bench_segment(checkpoint, scenes, p.segment, p.import_capture.voxel_size_m, p.seed, p.evaluate.iou_threshold)
+        result = bench_segment(
+            checkpoint, scenes, p.segment, p.import_capture.voxel_size_m, p.seed, p.evaluate.iou_threshold
+        )
     except ValueError as exc:
         fail(str(exc))
     write_json(out, {"part": part, **result})

@@ -1,4 +1,5 @@
-"""`binpick` commands of a running cell: the pick service and its kept requests, the camera, the bin, hand-eye calibration, overlays."""
+"""`binpick` commands of a running cell: the pick service and its kept requests, the camera, the
+bin, hand-eye calibration, overlays."""
 
 from __future__ import annotations
 
@@ -17,7 +18,9 @@ from flows.cli.common import PARAMS, app, fail, listed_capture, log
 def service(
     host: str = typer.Option(None, help="address to bind (default service.host, 127.0.0.1)"),
     http_port: int = typer.Option(None, min=1, max=65535, help="default service.http_port"),
-    tcp_port: int = typer.Option(None, min=0, max=65535, help="the JSON line protocol; 0 = off (default service.tcp_port)"),
+    tcp_port: int = typer.Option(
+        None, min=0, max=65535, help="the JSON line protocol; 0 = off (default service.tcp_port)"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """The pick service: loads every trained part once, then answers "picks for this capture"
@@ -36,7 +39,10 @@ def service(
             try:
                 probe.bind((host or s.host, port))
             except OSError as exc:
-                fail(f"cannot listen on {host or s.host}:{port} ({exc.strerror}); another program holds it, or choose another port")
+                fail(
+                    f"cannot listen on {host or s.host}:{port} ({exc.strerror}); another program holds it, or choose "
+                    "another port"
+                )
     try:
         run_service(root, params, host, http_port, tcp_port)
     except KeyboardInterrupt:
@@ -46,8 +52,12 @@ def service(
 @app.command()
 def requests(
     last: int = typer.Option(10, min=1, help="how many of the newest kept requests to list"),
-    open_id: str = typer.Option(None, "--open", help="print the command that opens this request's recording (an id, or 'latest')"),
-    add: str = typer.Option(None, "--add", help="add this kept request (an id, or 'latest') to params.yaml as a capture, for dvc repro"),
+    open_id: str = typer.Option(
+        None, "--open", help="print the command that opens this request's recording (an id, or 'latest')"
+    ),
+    add: str = typer.Option(
+        None, "--add", help="add this kept request (an id, or 'latest') to params.yaml as a capture, for dvc repro"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """The service's kept requests, newest first: when, part, picks, timings; open one in rerun,
@@ -63,7 +73,10 @@ def requests(
     p = load_params(params)
     kept = list_requests(root / p.service.keep_dir / "requests")
     if not kept:
-        fail(f"no kept requests under {root / p.service.keep_dir / 'requests'} (is `binpick service` running, and asked?)")
+        fail(
+            f"no kept requests under {root / p.service.keep_dir / 'requests'} (is `binpick service` running, and "
+            "asked?)"
+        )
 
     def find(wanted: str) -> Path:
         for folder in kept:
@@ -100,7 +113,9 @@ def requests(
             typer.echo(f"{folder.name}  (being written)")
             continue
         t, c = info["timings_s"], info["counts"]
-        typer.echo(f"{folder.name}  {info['part']}: {c['n_picks']:.0f} picks of {c['n_parts']:.0f} parts, {t['total_s']:.2f} s")
+        typer.echo(
+            f"{folder.name}  {info['part']}: {c['n_picks']:.0f} picks of {c['n_parts']:.0f} parts, {t['total_s']:.2f} s"
+        )
 
 
 @app.command()
@@ -117,7 +132,9 @@ def grab(out: Path = typer.Option(..., help="capture to write (.ply, millimetres
 def fit_bin(
     capture: str = typer.Option(..., help="a capture listed in params.yaml that shows the cell's bin"),
     apply: bool = typer.Option(False, "--apply", help="write the box into the capture's params entry (import_capture)"),
-    force: bool = typer.Option(False, "--force", help="keep a box that does not look like a bin for the part and the camera"),
+    force: bool = typer.Option(
+        False, "--force", help="keep a box that does not look like a bin for the part and the camera"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Fit the bin as a box from one capture (support plane, then the region standing on it where
@@ -147,7 +164,9 @@ def fit_bin(
         valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
         pts = xyz[valid]
         grid = pts[view_grid(pts, ViewParams(max(settings.voxel_size_m, 0.002), settings.normal_radius_m))]
-        floor, inliers = fit_plane_ransac(grid, settings.plane_threshold_m, settings.plane_ransac_iterations, p.seed, settings.plane_ransac_confidence)
+        floor, inliers = fit_plane_ransac(
+            grid, settings.plane_threshold_m, settings.plane_ransac_iterations, p.seed, settings.plane_ransac_confidence
+        )
         if floor[3] < 0:
             floor = -floor
         box = fit_bin_box(grid, floor, settings.keep_above_plane_m)
@@ -156,10 +175,21 @@ def fit_bin(
     in_bin = transform_points(invert_T(box.T_cam_from_bin), pts)
     inside = np.all((in_bin >= box.inner_min_m) & (in_bin <= box.inner_max_m), axis=1)
     rrd = Layout(root).bin_recording(capture)
-    write_bin_recording(rrd, capture, pts, cap.rgb[valid] if cap.rgb is not None else None, inside, box.T_cam_from_bin, box.inner_min_m, box.inner_max_m)
+    write_bin_recording(
+        rrd,
+        capture,
+        pts,
+        cap.rgb[valid] if cap.rgb is not None else None,
+        inside,
+        box.T_cam_from_bin,
+        box.inner_min_m,
+        box.inner_max_m,
+    )
     size = 1000 * (box.inner_max_m - box.inner_min_m)
-    typer.echo(f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
-               f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}")
+    typer.echo(
+        f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
+        f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}"
+    )
     part_model = Layout(root).part_model(entry.part)
     diameter = None
     if part_model.is_file():
@@ -184,12 +214,18 @@ def fit_bin(
 
 @app.command("hand-eye")
 def hand_eye(
-    pairs: Path = typer.Option(..., help='JSON: {"pairs": [{"capture": FILE, "T_base_from_flange": 4x4 metres, "unit": "mm", "image": PNG?, "intrinsics": JSON?}, ...]}'),
+    pairs: Path = typer.Option(
+        ...,
+        help='JSON: {"pairs": [{"capture": FILE, "T_base_from_flange": 4x4 metres, "unit": "mm", '
+        '"image": PNG?, "intrinsics": JSON?}, ...]}',
+    ),
     setup: str = typer.Option("eye-to-hand", help="eye-to-hand (camera fixed, board on the flange) or eye-in-hand"),
     pattern: str = typer.Option("9x6", help="inner corners of the checkerboard, columns x rows"),
     square_mm: float = typer.Option(25.0, min=0.1, help="side of a checkerboard square"),
     out: Path = typer.Option(Layout(Path()).hand_eye, help="result to write"),
-    apply: bool = typer.Option(False, "--apply", help="eye-to-hand: write T_base_from_cam into params.yaml (pick.T_base_from_cam)"),
+    apply: bool = typer.Option(
+        False, "--apply", help="eye-to-hand: write T_base_from_cam into params.yaml (pick.T_base_from_cam)"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Hand-eye calibration from robot flange poses and captures of a checkerboard (OpenCV): the
@@ -231,7 +267,11 @@ def hand_eye(
             fail(f"{capture}: not an organized capture: the board must be found in its image")
         H, W = cap.shape
         xyz = cap.xyz_m.reshape(H, W, 3)
-        camera = load_intrinsics(intrinsics, (H, W)) if intrinsics is not None else fit_intrinsics(cap.xyz_m.reshape(-1, 3), (H, W))
+        camera = (
+            load_intrinsics(intrinsics, (H, W))
+            if intrinsics is not None
+            else fit_intrinsics(cap.xyz_m.reshape(-1, 3), (H, W))
+        )
         if e.get("image"):
             from PIL import Image
 
@@ -244,14 +284,23 @@ def hand_eye(
         targets.append(T)
     result = solve_hand_eye(flange, np.array(targets), "eye_to_hand" if setup == "eye-to-hand" else "eye_in_hand")
     key = "T_base_from_cam" if result.setup == "eye_to_hand" else "T_flange_from_cam"
-    answer = {"setup": result.setup, key: result.T.round(9).tolist(), "n_poses": result.n_poses,
-              "residual_mm_median": result.residual_mm_median, "residual_mm_max": result.residual_mm_max,
-              "residual_deg_median": result.residual_deg_median, "residual_deg_max": result.residual_deg_max}
+    answer = {
+        "setup": result.setup,
+        key: result.T.round(9).tolist(),
+        "n_poses": result.n_poses,
+        "residual_mm_median": result.residual_mm_median,
+        "residual_mm_max": result.residual_mm_max,
+        "residual_deg_median": result.residual_deg_median,
+        "residual_deg_max": result.residual_deg_max,
+    }
     if apply and result.setup != "eye_to_hand":
         fail("--apply sets pick.T_base_from_cam, which an eye-in-hand result is not (it moves with the flange)")
     write_text(out, json.dumps(answer, indent=1) + "\n")
-    typer.echo(f"{key} from {result.n_poses} poses: residuals {result.residual_mm_median:.2f} mm / {result.residual_deg_median:.2f} deg "
-               f"(median), {result.residual_mm_max:.2f} mm / {result.residual_deg_max:.2f} deg (largest); wrote {out}")
+    typer.echo(
+        f"{key} from {result.n_poses} poses: residuals {result.residual_mm_median:.2f} mm / "
+        f"{result.residual_deg_median:.2f} deg "
+        f"(median), {result.residual_mm_max:.2f} mm / {result.residual_deg_max:.2f} deg (largest); wrote {out}"
+    )
     if apply:
         from binpick.params import set_section_key
 
@@ -263,7 +312,10 @@ def hand_eye(
 def overlay(
     capture: str = typer.Option(..., help="a capture listed in params.yaml, processed (poses.json exists)"),
     out: Path = typer.Option(None, help="PNG to write; default data/results/<capture>/overlay.png"),
-    image: Path = typer.Option(None, help="colour image of the capture (e.g. an RGB-D camera's rgb/0000.png); default: the capture's own colours"),
+    image: Path = typer.Option(
+        None,
+        help="colour image of the capture (e.g. an RGB-D camera's rgb/0000.png); default: the capture's own colours",
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Draw a capture's poses over its colour image (each pose's visible model surface, tinted, with

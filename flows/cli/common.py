@@ -20,10 +20,14 @@ if TYPE_CHECKING:
     from binpick.io.capture import ImportOptions
     from binpick.params import CaptureParams, Params
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help="The `binpick` command.")
+app = typer.Typer(
+    add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help="The `binpick` command."
+)
 bench_app = typer.Typer(no_args_is_help=True, help="Benchmarks: each writes its measurements as JSON.")
 app.add_typer(bench_app, name="bench")
-learn_app = typer.Typer(no_args_is_help=True, help="Learning from the cell: review labelled captures, fine-tune on them.")
+learn_app = typer.Typer(
+    no_args_is_help=True, help="Learning from the cell: review labelled captures, fine-tune on them."
+)
 app.add_typer(learn_app, name="learn")
 log = logging.getLogger("binpick")
 
@@ -43,7 +47,9 @@ def params_file(given: Path | None) -> Path:
     return given if given is not None else project_root() / "params.yaml"
 
 
-PARAMS = typer.Option(None, "--params", callback=params_file, help="settings file (default: params.yaml of the project this folder is in)")
+PARAMS = typer.Option(
+    None, "--params", callback=params_file, help="settings file (default: params.yaml of the project this folder is in)"
+)
 
 
 def project() -> Path:
@@ -61,7 +67,9 @@ def quiet_prefect() -> Iterator[None]:
     if _state["verbose"]:
         yield
         return
-    loggers = [logging.getLogger(name) for name in ("prefect.flow_runs", "prefect.task_runs", "prefect.engine", "prefect")]
+    loggers = [
+        logging.getLogger(name) for name in ("prefect.flow_runs", "prefect.task_runs", "prefect.engine", "prefect")
+    ]
     before = [lg.level for lg in loggers]
     for lg in loggers:
         lg.setLevel(logging.CRITICAL)
@@ -73,7 +81,9 @@ def quiet_prefect() -> Iterator[None]:
 
 
 @app.callback()
-def _main(verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging, and Prefect's reports of failures")) -> None:
+def _main(
+    verbose: bool = typer.Option(False, "--verbose", "-v", help="debug logging, and Prefect's reports of failures"),
+) -> None:
     _state["verbose"] = verbose
     configure_environment()
     setup_logging(verbose)
@@ -84,9 +94,14 @@ def listed_capture(p: Params, params: Path, capture: str, root: Path) -> tuple[C
     from binpick.io.capture import ImportOptions
 
     if capture not in p.captures:
-        fail(f"{params}: capture {capture!r} is not listed under 'captures' (have: {', '.join(sorted(p.captures)) or 'none'})")
+        fail(
+            f"{params}: capture {capture!r} is not listed under 'captures' (have: "
+            f"{', '.join(sorted(p.captures)) or 'none'})"
+        )
     entry = p.captures[capture]
-    return entry, ImportOptions(unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None)
+    return entry, ImportOptions(
+        unit=entry.unit, columns=tuple(entry.columns), intrinsics=root / entry.intrinsics if entry.intrinsics else None
+    )
 
 
 def checkpoints(root: Path, names: list[str]) -> dict[str, Path]:

@@ -1,4 +1,5 @@
-"""`binpick learn ...` (labelled captures reviewed, networks fine-tuned on them) and the network tools `calibrate` and `eval-labels`."""
+"""`binpick learn ...` (labelled captures reviewed, networks fine-tuned on them) and the network
+tools `calibrate` and `eval-labels`."""
 
 from __future__ import annotations
 
@@ -14,7 +15,9 @@ from flows.cli.common import PARAMS, app, fail, learn_app, log, trained_part_pat
 @learn_app.command("review")
 def learn_review_cmd(
     part: str = typer.Option(..., help="the part whose labelled captures to review"),
-    approve: bool = typer.Option(False, "--approve", help="approve every pending labelled capture (except --reject ones)"),
+    approve: bool = typer.Option(
+        False, "--approve", help="approve every pending labelled capture (except --reject ones)"
+    ),
     reject: list[str] = typer.Option(None, help="a pending capture whose labels are wrong (with --approve)"),
 ) -> None:
     """Show the labelled captures nobody has reviewed (a rerun recording), then approve them,
@@ -28,20 +31,29 @@ def learn_review_cmd(
     root = project_root()
     result = review(root, part, approve, list(reject or []))
     if approve:
-        typer.echo(f"{part}: approved {len(result.approved)}, rejected {len(result.rejected)}"
-                   + (f" ({', '.join(result.rejected)})" if result.rejected else "") + "; recorded in data/real/" + f"{part}/reviewed.json")
+        typer.echo(
+            f"{part}: approved {len(result.approved)}, rejected {len(result.rejected)}"
+            + (f" ({', '.join(result.rejected)})" if result.rejected else "")
+            + "; recorded in data/real/"
+            + f"{part}/reviewed.json"
+        )
     elif result.recording is None:
         typer.echo(f"{part}: no labelled capture is waiting for review")
     else:
-        typer.echo(f"{part}: {len(result.pending)} labelled captures to review ({', '.join(result.pending)}). Look at them with\n"
-                   f"  {Path(sys.executable).parent / 'rerun'} {result.recording.relative_to(root)}\n"
-                   f"then `binpick learn review --part {part} --approve [--reject CAPTURE ...]`")
+        typer.echo(
+            f"{part}: {len(result.pending)} labelled captures to review ({', '.join(result.pending)}). Look at them "
+            "with\n"
+            f"  {Path(sys.executable).parent / 'rerun'} {result.recording.relative_to(root)}\n"
+            f"then `binpick learn review --part {part} --approve [--reject CAPTURE ...]`"
+        )
 
 
 @learn_app.command("finetune")
 def learn_finetune_cmd(
     part: str = typer.Option(..., help="the part whose network to fine-tune"),
-    force: bool = typer.Option(False, "--force", help="fine-tune even if fewer than learn.min_new_scenes approved captures are new"),
+    force: bool = typer.Option(
+        False, "--force", help="fine-tune even if fewer than learn.min_new_scenes approved captures are new"
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Fine-tune the part's served network on its synthetic scenes plus the approved captures;
@@ -53,12 +65,19 @@ def learn_finetune_cmd(
     root = project_root()
     result = finetune(root, load_params(params, part), part, force)
     if not result["finetuned"]:
-        typer.echo(f"{part}: {result['new']} of {result['approved']} approved captures are new; not fine-tuned (see learn.min_new_scenes, or --force)")
+        typer.echo(
+            f"{part}: {result['new']} of {result['approved']} approved captures are new; not fine-tuned (see "
+            "learn.min_new_scenes, or --force)"
+        )
         return
-    figures = ", ".join(f"{k}: {result[f'before_{k}']:.2f} -> {result[f'after_{k}']:.2f}"
-                        for k in ("real_precision", "real_recall", "synthetic_precision", "synthetic_recall"))
-    typer.echo(f"{part}: fine-tuned on {result['n_train_real']} captures, judged on {result['n_heldout_real']}: {figures}; "
-               + (f"served (version {result['version']})" if result["served"] else "worse, not served"))
+    figures = ", ".join(
+        f"{k}: {result[f'before_{k}']:.2f} -> {result[f'after_{k}']:.2f}"
+        for k in ("real_precision", "real_recall", "synthetic_precision", "synthetic_recall")
+    )
+    typer.echo(
+        f"{part}: fine-tuned on {result['n_train_real']} captures, judged on {result['n_heldout_real']}: {figures}; "
+        + (f"served (version {result['version']})" if result["served"] else "worse, not served")
+    )
 
 
 @app.command()
@@ -85,10 +104,23 @@ def calibrate(
         p = load_params(params, part)
         read_checkpoint(checkpoint)  # a damaged checkpoint is named before the scenes are read
         views = load_views(scenes / "val")
-        chosen = recalibrate(checkpoint, out, views, p.segment, p.evaluate.iou_threshold, np.random.default_rng(derive_seed(p.seed, "calibrate", part)))
+        chosen = recalibrate(
+            checkpoint,
+            out,
+            views,
+            p.segment,
+            p.evaluate.iou_threshold,
+            np.random.default_rng(derive_seed(p.seed, "calibrate", part)),
+        )
     except (BinpickError, ValueError, OSError) as exc:
         fail(str(exc))
-    log.info("%s: %s on %d validation scenes -> %s", part, ", ".join(f"{k} {v:.3g}" for k, v in chosen.items()), len(views), out)
+    log.info(
+        "%s: %s on %d validation scenes -> %s",
+        part,
+        ", ".join(f"{k} {v:.3g}" for k, v in chosen.items()),
+        len(views),
+        out,
+    )
 
 
 @app.command("eval-labels")

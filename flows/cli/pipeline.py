@@ -1,4 +1,5 @@
-"""`binpick` commands that run the pipeline: the demo, the project check, repro, the watcher, folders of captures, the schedule, the review commands."""
+"""`binpick` commands that run the pipeline: the demo, the project check, repro, the watcher,
+folders of captures, the schedule, the review commands."""
 
 from __future__ import annotations
 
@@ -16,7 +17,9 @@ from flows.cli.common import PARAMS, app, fail, project, quiet_prefect
 
 
 @app.command("default-part")
-def default_part(out: Path = typer.Option(Layout(Path()).parts_folder / "t_joint.stl", help="STL to write (millimetres)")) -> None:
+def default_part(
+    out: Path = typer.Option(Layout(Path()).parts_folder / "t_joint.stl", help="STL to write (millimetres)"),
+) -> None:
     """Write the built-in T-joint pipe part as an STL file (millimetres)."""
     from binpick.io.mesh import save_mesh
     from binpick.part.model import build_t_joint_mesh
@@ -30,7 +33,8 @@ def review_commands(root: Path, capture: str = "demo") -> list[str]:
     """The commands that open the latest results (loopback only)."""
     bin_dir = Path(sys.executable).parent
     return [
-        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{Layout(root).mlflow_store} --host 127.0.0.1 --port 5000",
+        f"{bin_dir / 'mlflow'} ui --backend-store-uri sqlite:///{Layout(root).mlflow_store} --host 127.0.0.1 --port "
+        "5000",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'scene.rrd'}",
         f"{bin_dir / 'rerun'} {root / 'data' / 'results' / capture / 'picks.rrd'}",
         # rerun binds to every interface unless told otherwise
@@ -47,7 +51,11 @@ def summary_table(results: dict[str, dict[str, float]], minutes: float) -> str:
     rows = [
         ("segmentation precision (IoU >= 0.5, test scenes)", f(ev, "precision")),
         ("segmentation recall (IoU >= 0.5, test scenes)", f(ev, "recall")),
-        ("parts found in the demo capture", f"{f(reg, 'n_found', '{:.0f}')} of {f(reg, 'n_ground_truth', '{:.0f}')} ({f(reg, 'n_pickable', '{:.0f}')} at least half visible)"),
+        (
+            "parts found in the demo capture",
+            f"{f(reg, 'n_found', '{:.0f}')} of {f(reg, 'n_ground_truth', '{:.0f}')} ({f(reg, 'n_pickable', '{:.0f}')} "
+            "at least half visible)",
+        ),
         ("pose recall (ADD < 0.1 d, half-visible parts)", f(reg, "pose_recall")),
         ("pose precision (ADD < 0.1 d)", f(reg, "pose_precision")),
         ("rotation error, median", f(reg, "rot_err_deg_median", "{:.2f} deg")),
@@ -89,7 +97,8 @@ def check() -> None:
     result = check_project(root)
     aside = [f"{k}.{n}" for k, entries in result.set_aside.items() for n in entries]
     typer.echo(
-        f"params.yaml is valid: {len(result.pipeline.parts)} parts, {len(result.pipeline.captures)} captures in the pipeline"
+        f"params.yaml is valid: {len(result.pipeline.parts)} parts, {len(result.pipeline.captures)} captures in the "
+        "pipeline"
         + (f"; set aside: {', '.join(aside)}" if aside else "")
         + ("; data/pipeline.yaml updated" if result.vars_changed else "")
     )
@@ -144,7 +153,9 @@ def scenes(
 
     try:
         with quiet_prefect():
-            outcome, results = process_folder(root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit)
+            outcome, results = process_folder(
+                root, folder.resolve() if folder.is_absolute() else Path.cwd() / folder, part, unit
+            )
     except (StageFailed, BinpickError) as exc:
         fail(str(exc))
     for name, metrics in results.items():
@@ -156,7 +167,9 @@ def scenes(
 
 @app.command()
 def serve(
-    interval_s: float = typer.Option(None, "--interval-s", min=1, help="run every N seconds instead of the cron schedule in params"),
+    interval_s: float = typer.Option(
+        None, "--interval-s", min=1, help="run every N seconds instead of the cron schedule in params"
+    ),
     port: int = typer.Option(4200, help="port of the local Prefect server (when PREFECT_API_URL is not set)"),
     params: Path = PARAMS,
 ) -> None:

@@ -104,7 +104,14 @@ def write_metrics(path: str | Path, metrics: dict[str, Any]) -> None:
     write_text(path, json.dumps(kept, indent=1, sort_keys=True) + "\n")
 
 
-def log_timings(experiment: str, run_name: str, configured_uri: str | None, dvc_stage: str, metrics: dict[str, Any], tags: dict[str, str] | None = None) -> None:
+def log_timings(
+    experiment: str,
+    run_name: str,
+    configured_uri: str | None,
+    dvc_stage: str,
+    metrics: dict[str, Any],
+    tags: dict[str, str] | None = None,
+) -> None:
     """The timings among metrics as an MLflow run of their own (stages that log no other run)."""
     timings = {k: float(v) for k, v in metrics.items() if is_timing(k)}
     if not timings:
@@ -138,7 +145,9 @@ def artifact_location(configured_uri: str | None) -> str | None:
 
 
 @contextlib.contextmanager
-def mlflow_run(experiment: str, run_name: str, configured_uri: str | None, tags: dict[str, str] | None = None) -> Iterator[Any]:
+def mlflow_run(
+    experiment: str, run_name: str, configured_uri: str | None, tags: dict[str, str] | None = None
+) -> Iterator[Any]:
     """An MLflow run in `experiment`, artifacts under <project>/data/mlflow/artifacts for the local store."""
     import mlflow
 
@@ -180,7 +189,9 @@ def end_dead_runs(experiment: str) -> list[str]:
     if found is None:
         return []
     ended = []
-    for run in client.search_runs([found.experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=200):
+    for run in client.search_runs(
+        [found.experiment_id], filter_string="attributes.status = 'RUNNING'", max_results=200
+    ):
         pid, host = run.data.tags.get("binpick.pid"), run.data.tags.get("binpick.host")
         if host == socket.gethostname() and pid and pid.isdigit() and not pid_alive(int(pid)):
             client.set_terminated(run.info.run_id, status="KILLED")
@@ -235,7 +246,9 @@ def add_model_version(part: str, checkpoint: Path, run: Any, dvc_stage: str) -> 
     if not client.search_registered_models(filter_string=f"name='{name}'"):
         client.create_registered_model(name, description=f"FPCC instance segmentation of part {part}")
     version = client.create_model_version(
-        name, source=f"{run.info.artifact_uri}/model", run_id=run.info.run_id,
+        name,
+        source=f"{run.info.artifact_uri}/model",
+        run_id=run.info.run_id,
         tags={"checkpoint_sha256": file_sha256(checkpoint), "dvc_stage": dvc_stage},
     )
     return str(version.version)

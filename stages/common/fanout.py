@@ -66,7 +66,9 @@ def fan_out(
                 bar.update()
             return results
         # spawn, not fork: Open3D's and torch's thread pools do not survive a fork.
-        with ProcessPoolExecutor(workers, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(shared,)) as pool:
+        with ProcessPoolExecutor(
+            workers, mp_context=get_context("spawn"), initializer=_init_worker, initargs=(shared,)
+        ) as pool:
             futures = {pool.submit(_call, fn, job): i for i, job in enumerate(jobs)}
             for future in as_completed(futures):
                 results[futures[future]] = future.result()
@@ -74,7 +76,14 @@ def fan_out(
     return results
 
 
-def _dask(fn: Callable[[Any, Job], Result], shared: Any, jobs: Sequence[Job], orchestration: OrchestrationParams, desc: str, progress: bool) -> list[Result]:
+def _dask(
+    fn: Callable[[Any, Job], Result],
+    shared: Any,
+    jobs: Sequence[Job],
+    orchestration: OrchestrationParams,
+    desc: str,
+    progress: bool,
+) -> list[Result]:
     """The jobs on a Dask cluster: the one at `dask_address`, else a local cluster of `workers`
     single-threaded processes. Dask's own client, not a Prefect flow: a DVC stage that a Prefect
     flow started must not start flows of its own."""
@@ -87,7 +96,9 @@ def _dask(fn: Callable[[Any, Job], Result], shared: Any, jobs: Sequence[Job], or
         where = orchestration.dask_address
     else:
         n = worker_count(orchestration)
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.WARNING)
+        cluster = LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=logging.WARNING
+        )
         client = Client(cluster)
         where = f"a local Dask cluster of {n} workers"
     log.info("%s: %d jobs on %s", desc, len(jobs), where)

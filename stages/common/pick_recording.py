@@ -56,27 +56,55 @@ def write_grasp_recording(path: Path, part: PartModel, sets: dict, params) -> No
     length = 0.25 * part.diameter_m
     with atomic_path(path) as tmp:
         rec.save(str(tmp))
-        rec.log("model/mesh", rr.Mesh3D(vertex_positions=part.mesh_vertices_m.astype(np.float32), triangle_indices=part.mesh_faces.astype(np.uint32),
-                                        albedo_factor=np.array([200, 200, 200, 255], np.uint8)), static=True)
+        rec.log(
+            "model/mesh",
+            rr.Mesh3D(
+                vertex_positions=part.mesh_vertices_m.astype(np.float32),
+                triangle_indices=part.mesh_faces.astype(np.uint32),
+                albedo_factor=np.array([200, 200, 200, 255], np.uint8),
+            ),
+            static=True,
+        )
         for kind, grasps in sets.items():
             if len(grasps) == 0:
                 continue
             origins, vectors = _grasp_arrows(grasps.T_model_from_tool, length)
-            rec.log(f"model/grasps/{kind}", rr.Arrows3D(origins=origins, vectors=vectors, colors=GRASP_COLOURS[kind], labels=grasps.ids), static=True)
+            rec.log(
+                f"model/grasps/{kind}",
+                rr.Arrows3D(origins=origins, vectors=vectors, colors=GRASP_COLOURS[kind], labels=grasps.ids),
+                static=True,
+            )
             if kind == "jaw":
                 T = grasps.T_model_from_tool
-                half = (T[:, :3, 0] * grasps.width_m[:, None] / 2.0)
+                half = T[:, :3, 0] * grasps.width_m[:, None] / 2.0
                 strips = np.stack([T[:, :3, 3] - half, T[:, :3, 3] + half], axis=1).astype(np.float32)
                 rec.log("model/grasps/jaw_contacts", rr.LineStrips3D(strips, colors=GRASP_COLOURS[kind]), static=True)
-            vertices, faces = _gripper_mesh(gripper_primitives(params, kind, float(grasps.width_m[0])), grasps.T_model_from_tool[0])
-            rec.log(f"model/gripper/{kind}", rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=GRIPPER_COLOUR), static=True)
-        rec.log("model/summary", rr.TextDocument("\n".join(f"{k}: {len(g)} grasps" for k, g in sets.items())), static=True)
+            vertices, faces = _gripper_mesh(
+                gripper_primitives(params, kind, float(grasps.width_m[0])), grasps.T_model_from_tool[0]
+            )
+            rec.log(
+                f"model/gripper/{kind}",
+                rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=GRIPPER_COLOUR),
+                static=True,
+            )
+        rec.log(
+            "model/summary", rr.TextDocument("\n".join(f"{k}: {len(g)} grasps" for k, g in sets.items())), static=True
+        )
         rec.flush()
         rec.disconnect()
 
 
-def write_pick_recording(path: Path, name: str, cloud: CleanCloud, part: PartModel, estimates: list[PartPose], plan, kind: str, params,
-                         stream=None) -> None:
+def write_pick_recording(
+    path: Path,
+    name: str,
+    cloud: CleanCloud,
+    part: PartModel,
+    estimates: list[PartPose],
+    plan,
+    kind: str,
+    params,
+    stream=None,
+) -> None:
     """The scene with the parts at their poses, the gripper at the first picks (pre-grasp
     arrow to grasp), the order as labels, and the refused grasps in their own entity. stream: a
     RecordingStream to reuse (a resident process writing many recordings: each new stream keeps
@@ -95,17 +123,40 @@ def write_pick_recording(path: Path, name: str, cloud: CleanCloud, part: PartMod
             log_part(rec, f"camera/parts/{k}", pose, part, np.append(palette[k % len(palette)], 255).astype(np.uint8))
         for rank, p in enumerate(plan.picks[:DRAWN_PICKS]):
             vertices, faces = _gripper_mesh(gripper_primitives(params, kind, p.width_m), p.T_cam_from_grasp)
-            rec.log(f"camera/picks/{rank}/gripper", rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=GRIPPER_COLOUR), static=True)
+            rec.log(
+                f"camera/picks/{rank}/gripper",
+                rr.Mesh3D(vertex_positions=vertices, triangle_indices=faces, albedo_factor=GRIPPER_COLOUR),
+                static=True,
+            )
         if plan.picks:
             T = np.array([p.T_cam_from_grasp for p in plan.picks])
             pre = np.array([p.T_cam_from_pregrasp[:3, 3] for p in plan.picks], np.float32)
-            rec.log("camera/picks/approach", rr.Arrows3D(origins=pre, vectors=(T[:, :3, 3] - pre).astype(np.float32),
-                                                         labels=[f"#{k} part {p.pose_index} {p.grasp_id}" for k, p in enumerate(plan.picks)]), static=True)
+            rec.log(
+                "camera/picks/approach",
+                rr.Arrows3D(
+                    origins=pre,
+                    vectors=(T[:, :3, 3] - pre).astype(np.float32),
+                    labels=[f"#{k} part {p.pose_index} {p.grasp_id}" for k, p in enumerate(plan.picks)],
+                ),
+                static=True,
+            )
         if plan.rejected:
             origins, vectors = _grasp_arrows(np.array([r.T_cam_from_grasp for r in plan.rejected]), 0.01)
-            rec.log("camera/rejected", rr.Arrows3D(origins=origins, vectors=vectors, colors=REJECTED_COLOUR,
-                                                   labels=[f"part {r.pose_index} {r.grasp_id}: {r.reason}" for r in plan.rejected]), static=True)
-        lines = [f"#{k}: part {p.pose_index}, grasp {p.grasp_id}, score {p.score:.3f}, clearance {1000 * p.clearance_m:.1f} mm" for k, p in enumerate(plan.picks)]
+            rec.log(
+                "camera/rejected",
+                rr.Arrows3D(
+                    origins=origins,
+                    vectors=vectors,
+                    colors=REJECTED_COLOUR,
+                    labels=[f"part {r.pose_index} {r.grasp_id}: {r.reason}" for r in plan.rejected],
+                ),
+                static=True,
+            )
+        lines = [
+            f"#{k}: part {p.pose_index}, grasp {p.grasp_id}, score {p.score:.3f}, clearance "
+            f"{1000 * p.clearance_m:.1f} mm"
+            for k, p in enumerate(plan.picks)
+        ]
         lines += [f"part {i}: {reason}" for i, reason in plan.unpicked]
         rec.log("picks", rr.TextDocument("\n".join(lines) or "no parts"), static=True)
         rec.flush()

@@ -37,13 +37,25 @@ def write_scene_recording(
         rec.log("camera/scene", rr.Points3D(cloud.points_m, colors=cloud.rgb, radii=0.0008))
         n = int(labels.max()) + 1 if len(labels) and labels.max() >= 0 else 0
         palette = instance_colours(max(n, 1))
-        rec.log("camera/segments", rr.Points3D(cloud.points_m, colors=instance_rgb(labels), radii=0.001, class_ids=labels))
+        rec.log(
+            "camera/segments", rr.Points3D(cloud.points_m, colors=instance_rgb(labels), radii=0.001, class_ids=labels)
+        )
         if np.isfinite(cloud.floor_plane).all():
             a, b, c, d = cloud.floor_plane
             quad = plane_quad(cloud.floor_plane, cloud.points_m)
             if quad is not None:
-                rec.log("camera/floor_plane", rr.Mesh3D(vertex_positions=quad, triangle_indices=[[0, 1, 2], [0, 2, 3]], albedo_factor=PLANE_COLOUR), static=True)
-            rec.log("camera/floor_plane/equation", rr.TextDocument(f"removed floor plane: {a:.4f} x + {b:.4f} y + {c:.4f} z + {d:.4f} = 0 (metres)"), static=True)
+                rec.log(
+                    "camera/floor_plane",
+                    rr.Mesh3D(
+                        vertex_positions=quad, triangle_indices=[[0, 1, 2], [0, 2, 3]], albedo_factor=PLANE_COLOUR
+                    ),
+                    static=True,
+                )
+            rec.log(
+                "camera/floor_plane/equation",
+                rr.TextDocument(f"removed floor plane: {a:.4f} x + {b:.4f} y + {c:.4f} z + {d:.4f} = 0 (metres)"),
+                static=True,
+            )
         for k, pose in enumerate(estimates):
             colour = palette[pose.segment % len(palette)] if pose.segment >= 0 else UNLABELLED_GREY
             log_part(rec, f"camera/parts/{k}", pose, part, np.append(colour, 255).astype(np.uint8))
@@ -73,7 +85,11 @@ def log_part(rec, entity: str, pose: PartPose, part: PartModel, rgba: np.ndarray
     rec.log(entity, rr.Transform3D(translation=T[:3, 3], mat3x3=T[:3, :3]))
     rec.log(
         f"{entity}/mesh",
-        rr.Mesh3D(vertex_positions=part.mesh_vertices_m.astype(np.float32), triangle_indices=part.mesh_faces.astype(np.uint32), albedo_factor=rgba),
+        rr.Mesh3D(
+            vertex_positions=part.mesh_vertices_m.astype(np.float32),
+            triangle_indices=part.mesh_faces.astype(np.uint32),
+            albedo_factor=rgba,
+        ),
     )
     rec.log(f"{entity}/score", rr.TextDocument(f"score {pose.score:.3f}"))
 
@@ -92,7 +108,9 @@ class TrainingRecording:
         self.rec.log("views", rr.ViewCoordinates.RDF, static=True)
         self.views = views
         for i, (points, labels) in enumerate(views):
-            self.rec.log(f"views/{i}/truth", rr.Points3D(points, colors=instance_rgb(labels), radii=0.0008), static=True)
+            self.rec.log(
+                f"views/{i}/truth", rr.Points3D(points, colors=instance_rgb(labels), radii=0.0008), static=True
+            )
 
     def log_epoch(self, epoch: int, predictions: list[np.ndarray], metrics: dict[str, float]) -> None:
         import rerun as rr
@@ -109,8 +127,16 @@ class TrainingRecording:
         self.rec.disconnect()
 
 
-def write_bin_recording(path: Path, name: str, points_m: np.ndarray, rgb: np.ndarray | None, inside: np.ndarray,
-                        T_cam_from_bin: np.ndarray, inner_min_m: np.ndarray, inner_max_m: np.ndarray) -> None:
+def write_bin_recording(
+    path: Path,
+    name: str,
+    points_m: np.ndarray,
+    rgb: np.ndarray | None,
+    inside: np.ndarray,
+    T_cam_from_bin: np.ndarray,
+    inner_min_m: np.ndarray,
+    inner_max_m: np.ndarray,
+) -> None:
     """`binpick fit-bin`'s recording: the capture (points inside the fitted box in colour, the
     rest grey) and the box, camera frame, for the user to check before keeping the box."""
     import rerun as rr
@@ -128,7 +154,17 @@ def write_bin_recording(path: Path, name: str, points_m: np.ndarray, rgb: np.nda
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         c = transform_points(T_cam_from_bin, corners)
         edges = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-        rec.log("camera/bin_box", rr.LineStrips3D([[c[a], c[b]] for a, b in edges], colors=[255, 160, 0], radii=0.0015), static=True)
-        rec.log("camera/bin_box/size", rr.TextDocument(
-            f"inner box {1000 * (hi[0] - lo[0]):.0f} x {1000 * (hi[1] - lo[1]):.0f} mm, {1000 * lo[2]:.0f}-{1000 * hi[2]:.0f} mm above the support plane"), static=True)
+        rec.log(
+            "camera/bin_box",
+            rr.LineStrips3D([[c[a], c[b]] for a, b in edges], colors=[255, 160, 0], radii=0.0015),
+            static=True,
+        )
+        rec.log(
+            "camera/bin_box/size",
+            rr.TextDocument(
+                f"inner box {1000 * (hi[0] - lo[0]):.0f} x {1000 * (hi[1] - lo[1]):.0f} mm, "
+                f"{1000 * lo[2]:.0f}-{1000 * hi[2]:.0f} mm above the support plane"
+            ),
+            static=True,
+        )
         rec.disconnect()
