@@ -26,5 +26,10 @@ class ParamsError(BinpickError):
     """A settings file that does not validate."""
 
 
+class NothingAboveTheFloor(BinpickError):
+    """Cleaning left (almost) nothing above the support plane and inside the walls: an empty bin,
+    or a capture of something else."""
+
+
 class MissingDependencyError(BinpickError):
     """An optional package is needed for this action and is not installed."""

@@ -149,5 +149,16 @@ class Layout:
     def overlay(self, capture: str) -> Path:
         return self.results(capture) / "overlay.png"
 
+    # -- the running cell
+    @property
+    def cell_runs(self) -> Path:
+        """`binpick cell run`'s cycles, one folder per run."""
+        return self.data / "cell" / "runs"
+
+    @property
+    def cell_stop(self) -> Path:
+        """A file here asks a running `binpick cell run` to stop after its cycle."""
+        return self.data / "cell" / "STOP"
+
     def scene_metrics(self, capture: str, stage: str) -> Path:
         return self.data / "metrics" / "scenes" / capture / f"{stage}.json"

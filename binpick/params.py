@@ -112,6 +112,10 @@ class SymmetryParams(_Strict):
         return self
 
 
+# Aluminium: a part whose material is not given weighs this much per cubic metre of its mesh.
+DEFAULT_DENSITY_KG_M3 = 2700.0
+
+
 class PartParams(_Strict):
     """One part: its CAD file, the unit of that file and its symmetry, plus section overrides."""
 
@@ -129,6 +133,9 @@ class PartParams(_Strict):
     segment: dict[str, Any] = {}
     registration: dict[str, Any] = Field({}, alias="register")
     pick: dict[str, Any] = {}
+    density_kg_m3: float = Field(
+        DEFAULT_DENSITY_KG_M3, gt=0, description="the part's material (its weight on the gripper in bench cell)"
+    )
     # A grasp file (data/README.md#grasps) with the part's pick points; '' = generated from the CAD model.
     grasps: str = ""
     # The part's finish, as the sensor models render it (generate.sensor.materials); null = the
@@ -505,6 +512,9 @@ class SuctionParams(_Strict):
     tool_length_m: float = Field(gt=0)
     max_deviation_m: float = Field(gt=0)
     max_normal_deg: float = Field(gt=0, lt=90)
+    holding_force_n: float = Field(
+        gt=0, description="the most the sealed cup holds against the part's weight and the lift's acceleration"
+    )
 
 
 class JawParams(_Strict):
@@ -524,6 +534,9 @@ class JawParams(_Strict):
     tool_radius_m: float = Field(gt=0)
     tool_length_m: float = Field(gt=0)
     friction_deg: float = Field(gt=0, lt=90)
+    grip_force_n: float = Field(
+        gt=0, description="each jaw's closing force (the hold is friction: tan(friction_deg) x 2 x this)"
+    )
 
     @model_validator(mode="after")
     def _opening(self) -> JawParams:
@@ -587,21 +600,84 @@ class PickParams(_Strict):
     @field_validator("T_base_from_cam")
     @classmethod
     def _rigid(cls, T: list[list[float]] | None) -> list[list[float]] | None:
-        if T is None:
-            return T
-        M = np.asarray(T, dtype=float)
-        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-            raise ValueError("pick.T_base_from_cam must be a 4 x 4 matrix of numbers")
-        R = M[:3, :3]
-        if (
-            not np.allclose(R @ R.T, np.eye(3), atol=1e-4)
-            or np.linalg.det(R) < 0
-            or not np.allclose(M[3], [0, 0, 0, 1])
-        ):
-            raise ValueError(
-                "pick.T_base_from_cam must be a rigid transform (a rotation and a translation, last row 0 0 0 1)"
-            )
-        return T
+        return None if T is None else rigid_matrix(T, "pick.T_base_from_cam")
+
+
+def rigid_matrix(T: list[list[float]], name: str) -> list[list[float]]:
+    """T, checked to be a 4 x 4 rigid transform (ValueError naming `name` otherwise)."""
+    M = np.asarray(T, dtype=float)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise ValueError(f"{name} must be a 4 x 4 matrix of numbers")
+    R = M[:3, :3]
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0 or not np.allclose(M[3], [0, 0, 0, 1]):
+        raise ValueError(f"{name} must be a rigid transform (a rotation and a translation, last row 0 0 0 1)")
+    return T
+
+
+class PlaceParams(_Strict):
+    """Where a picked part is put, in the robot's base frame (binpick/picking/arm.py)."""
+
+    kind: Literal["fixture", "conveyor", "drop"] = Field(
+        description="fixture: the part at exactly T_base_from_part; conveyor: any turn of it about the base's "
+        "vertical; drop: its centre at that position, any orientation"
+    )
+    T_base_from_part: list[list[float]] = Field(description="the part's pose at the place (model frame)")
+    above_m: float = Field(ge=0, description="the part comes down onto the place from this far above it")
+    tolerance_m: float = Field(gt=0, description="a part within this of the place arrived (bench cell)")
+    tolerance_deg: float = Field(gt=0, description="... and within this of its orientation (fixture)")
+
+    @field_validator("T_base_from_part")
+    @classmethod
+    def _rigid(cls, T: list[list[float]]) -> list[list[float]]:
+        return rigid_matrix(T, "cell.place.T_base_from_part")
+
+
+class RobotParams(_Strict):
+    """The robot `binpick cell run` drives (binpick/cell/robot.py)."""
+
+    driver: Literal["sim", "ur_rtde"] = Field(description="sim: the physics cell; ur_rtde: a Universal Robots arm")
+    host: str = Field(description="ur_rtde: the controller's address")
+    vacuum_out: int = Field(ge=0, le=7, description="ur_rtde: the standard digital output that switches the vacuum")
+    vacuum_in: int | None = Field(
+        ge=0, le=7, description="ur_rtde: the standard digital input of the vacuum sensor (null: none, hold assumed)"
+    )
+    grip_s: float = Field(ge=0, description="the arm waits this long at the grasp for the vacuum (the jaws)")
+    release_s: float = Field(ge=0, description="... and this long at the place for the release")
+
+
+class CellParams(_Strict):
+    """The robot arm around the pipeline (binpick/robot, binpick/picking/arm.py): which arm, the tool
+    on its flange, its home, the place; picks are checked for the whole arm when `arm` is set and
+    pick.T_base_from_cam says where the camera is."""
+
+    arm: Literal["ur5e", "ur3e"] | None = Field(
+        description="the arm (airo-models URDF, ur_analytic_ik IK); null: picks checked for the gripper only"
+    )
+    T_flange_from_tcp: list[list[float]] = Field(
+        description="the tool on the flange: its centre point (the cup's lip, the jaws' middle) in the flange frame"
+    )
+    home_q_rad: list[float] = Field(min_length=6, max_length=6, description="joint angles the cell starts from")
+    place: PlaceParams
+    turn_step_deg: float = Field(
+        gt=0, le=180, description="a suction cup's free turn about its axis is tried in steps of this"
+    )
+    joint_limit_margin_deg: float = Field(ge=0, description="configurations keep this far from every joint limit")
+    min_singularity: float = Field(
+        ge=0, lt=1, description="configurations keep at least this sine from the arm's singularities"
+    )
+    arm_clearance_m: float = Field(ge=0, description="the arm's links keep this far from everything measured")
+    table_z_m: float = Field(
+        description="the table the arm stands on, in the base frame (0: its mounting face): no link comes below it"
+    )
+    lift_m: float = Field(gt=0, description="the part is lifted this far above its grasp before the arm turns away")
+    max_step_rad: float = Field(gt=0, le=0.5, description="paths are checked at joint steps of at most this")
+    speed_scaling: float = Field(gt=0, le=1, description="share of the arm's rated joint speed and acceleration")
+    robot: RobotParams
+
+    @field_validator("T_flange_from_tcp")
+    @classmethod
+    def _rigid(cls, T: list[list[float]]) -> list[list[float]]:
+        return rigid_matrix(T, "cell.T_flange_from_tcp")
 
 
 class RenderDemoParams(_Strict):
@@ -707,6 +783,7 @@ class Params(_Strict):
     registration: RegisterParams = Field(alias="register")
     render_demo: RenderDemoParams
     pick: PickParams
+    cell: CellParams
     service: ServiceParams
     learn: LearnParams
     zivid_camera: ZividCameraParams

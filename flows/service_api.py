@@ -47,6 +47,28 @@ class PosesOfPick(BaseModel):
     postgrasp: Matrix4
 
 
+class ArmJoints(BaseModel):
+    lift: list[float] = Field(description="the post-grasp pose raised by cell.lift_m (the approach comes down from it)")
+    pregrasp: list[float]
+    grasp: list[float]
+    postgrasp: list[float]
+    place_above: list[float] = Field(description="cell.place.above_m above the place")
+    place: list[float]
+
+
+class ArmOfPick(BaseModel):
+    joints_rad: ArmJoints = Field(
+        description="the arm's joint angles (base, shoulder, elbow, wrist 1, 2, 3) at each waypoint; the pick moves "
+        "from the start through lift, pregrasp, grasp, postgrasp, lift, place_above, place in straight joint lines"
+    )
+    turn_deg: float = Field(
+        description="the tool turned about its axis from the grasp's own (the poses above include it)"
+    )
+    place_tcp_base: Matrix4 = Field(description="T_base_from_tcp at the place")
+    motion_s: float = Field(description="seconds of arm motion from the start to the place at cell.speed_scaling")
+    path: list[str] = Field(description="the waypoints in the order the arm moves through them from where it starts")
+
+
 class Pick(BaseModel):
     rank: int = Field(description="0 = pick this first")
     pose_index: int = Field(description="index into `poses`")
@@ -58,6 +80,7 @@ class Pick(BaseModel):
     width_m: float | None = Field(None, description="jaw gripper: the opening at the grasp")
     camera: PosesOfPick = Field(description="T_cam_from_tool of the pre-grasp, grasp and post-grasp poses (metres)")
     base: PosesOfPick = Field(description="the same in the robot base frame (T_base_from_cam applied)")
+    arm: ArmOfPick | None = Field(None, description="the arm's motion, when cell.arm is set and the camera calibrated")
 
 
 class Unpicked(BaseModel):

@@ -43,7 +43,13 @@ def run(
     grasps = load_grasps(grasps_path)[kind]
     t0 = time.perf_counter()
     plan = pick(
-        cloud, poses, part, grasps, params.pick, params.import_capture_for(name if name in params.captures else None)
+        cloud,
+        poses,
+        part,
+        grasps,
+        params.pick,
+        params.import_capture_for(name if name in params.captures else None),
+        params.cell,
     )
     pick_s = time.perf_counter() - t0
     metrics = {"pick_s": pick_s, **plan.counts()}

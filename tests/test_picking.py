@@ -9,6 +9,7 @@ import json
 import numpy as np
 import pytest
 import trimesh
+import yaml
 from conftest import ROOT, box_part_model
 
 from binpick.cell.bin_box import BinBox
@@ -595,14 +596,16 @@ def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, pick_settings
 def test_pick_settings_refuse_a_non_rigid_base_transform(tmp_path):
     from binpick.errors import ParamsError
 
-    text = (
-        (ROOT / "params.yaml")
-        .read_text()
-        .replace("T_base_from_cam: null", "T_base_from_cam: [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]")
-    )
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["pick"]["T_base_from_cam"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
     path = tmp_path / "params.yaml"
-    path.write_text(text)
-    with pytest.raises(ParamsError, match="rigid"):
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ParamsError, match="pick.T_base_from_cam must be a rigid"):
+        load_params(path)
+    raw["pick"]["T_base_from_cam"] = None
+    raw["cell"]["T_flange_from_tcp"] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.17], [0, 0, 1, 1]]
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ParamsError, match="cell.T_flange_from_tcp must be a rigid"):
         load_params(path)
 
 

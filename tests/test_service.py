@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import copy_project
+from conftest import ROOT, copy_project
 
 from binpick.generation.scene import generate_scene
 from binpick.geometry.symmetry import symmetry_transforms
@@ -124,7 +124,14 @@ def test_http_answers_picks_for_an_upload_and_a_named_file(server, project, t_jo
         assert answer["timings_s"][step] >= 0
     # The first pick's grasp lies on the pose it names (the grasp applied to that pose).
     first = answer["picks"][0]
-    assert np.allclose(first["camera"]["grasp"], first["base"]["grasp"])
+    T_base_from_cam = np.asarray(answer["T_base_from_cam"])
+    assert np.allclose(T_base_from_cam @ np.asarray(first["camera"]["grasp"]), first["base"]["grasp"])
+    # The arm was checked: its joints put the tool at the grasp (forward kinematics).
+    from binpick.robot.arm import load_arm
+
+    flange = load_arm("ur5e").flange_pose(first["arm"]["joints_rad"]["grasp"])
+    T_flange_from_tcp = np.asarray(load_params(ROOT / "params.yaml").cell.T_flange_from_tcp)
+    assert np.allclose(flange @ T_flange_from_tcp, first["base"]["grasp"], atol=1e-6)
     named = httpx.post(
         f"{url}/picks", json={"part": "t_joint", "path": str(capture.relative_to(root))}, timeout=120
     ).json()

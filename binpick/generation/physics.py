@@ -11,19 +11,17 @@ otherwise float millimetres apart or sink into each other.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import logging
 import os
-import sys
 import tempfile
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from binpick.geometry.transforms import invert_T, make_T
+from binpick.native import stdout_silenced
 
 log = logging.getLogger(__name__)
 
@@ -40,7 +38,7 @@ class SettleSettings:
     drop_gap_m: float = 0.005  # objects start this far above their drop-placement pose, per object
 
 
-def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
+def convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
     """Path of an OBJ holding the V-HACD convex decomposition of the mesh (scaled by SCALE)."""
     import pybullet as pb
 
@@ -58,7 +56,7 @@ def _convex_parts_obj(vertices_m: np.ndarray, faces: np.ndarray) -> str:
         src.write_text("\n".join(lines) + "\n")
         client = pb.connect(pb.DIRECT)
         try:
-            with _quiet_stdout():  # V-HACD prints its progress from C
+            with stdout_silenced():  # V-HACD prints its progress from C
                 pb.vhacd(
                     str(src),
                     str(parts),
@@ -103,7 +101,7 @@ def settle(
     centre = (vertices_m.min(axis=0) + vertices_m.max(axis=0)) / 2.0
     T_model_from_body = make_T(np.eye(3), centre)
     T_bin_from_body = T_bin_from_model @ T_model_from_body
-    shape_file = _convex_parts_obj(vertices_m - centre, faces)
+    shape_file = convex_parts_obj(vertices_m - centre, faces)
     client = pb.connect(pb.DIRECT)
     try:
         pb.setGravity(0, 0, -9.81 * SCALE, physicsClientId=client)
@@ -123,7 +121,7 @@ def settle(
                 1.0,
                 shape,
                 basePosition=position.tolist(),
-                baseOrientation=_quaternion_xyzw(T[:3, :3]).tolist(),
+                baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
                 physicsClientId=client,
             )
             pb.changeDynamics(
@@ -155,21 +153,7 @@ def settle(
     return out, inside
 
 
-@contextlib.contextmanager
-def _quiet_stdout() -> Iterator[None]:
-    sys.stdout.flush()
-    saved = os.dup(1)
-    devnull = os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 1)
-        yield
-    finally:
-        os.dup2(saved, 1)
-        os.close(saved)
-        os.close(devnull)
-
-
-def _quaternion_xyzw(R: np.ndarray) -> np.ndarray:
+def quaternion_xyzw(R: np.ndarray) -> np.ndarray:
     from scipy.spatial.transform import Rotation
 
     return Rotation.from_matrix(R).as_quat()  # scipy's order is (x, y, z, w), as pybullet's

@@ -10,6 +10,7 @@ import numpy as np
 
 from binpick.errors import InputError
 from binpick.io.atomic import write_text
+from binpick.picking.arm import WAYPOINTS, ArmMotion
 from binpick.picking.plan import PickPlan
 
 FORMAT = "binpick-picks"
@@ -27,6 +28,15 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
     def poses(p) -> dict:
         cam = {"pregrasp": p.T_cam_from_pregrasp, "grasp": p.T_cam_from_grasp, "postgrasp": p.T_cam_from_postgrasp}
         return {"camera": {k: _T(v) for k, v in cam.items()}, "base": {k: _T(T_base @ v) for k, v in cam.items()}}
+
+    def arm(motion: ArmMotion) -> dict:
+        return {
+            "joints_rad": {name: [round(float(x), 9) for x in motion.q[name]] for name in WAYPOINTS},
+            "turn_deg": round(motion.turn_deg, 6),
+            "place_tcp_base": _T(motion.T_base_from_place_tcp),
+            "motion_s": round(motion.motion_s, 6),
+            "path": list(motion.path),
+        }
 
     return {
         "format": FORMAT,
@@ -51,6 +61,7 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
                 "trusted": p.trusted,
                 **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}),
                 **poses(p),
+                **({"arm": arm(p.arm)} if p.arm is not None else {}),
             }
             for k, p in enumerate(plan.picks)
         ],

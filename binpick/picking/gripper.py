@@ -168,3 +168,25 @@ def surface_samples(primitives: list[Primitive], spacing_m: float) -> np.ndarray
             A, Z = np.meshgrid(a, z, indexing="ij")
             out.append(np.column_stack([prim.radius * np.cos(A).ravel(), prim.radius * np.sin(A).ravel(), Z.ravel()]))
     return np.concatenate(out) if out else np.zeros((0, 3))
+
+
+def surface_points(primitives: list[Primitive], spacing_m: float) -> np.ndarray:
+    """(n, 3) points on the primitives' surfaces about spacing_m apart, tool frame: rings around
+    each cylinder (and its end discs' rims), a grid on each box's faces."""
+    out = []
+    for prim in primitives:
+        if isinstance(prim, Cylinder):
+            z = np.linspace(prim.z0, prim.z1, max(2, int(np.ceil((prim.z1 - prim.z0) / spacing_m)) + 1))
+            n = max(6, int(np.ceil(2.0 * np.pi * prim.radius / spacing_m)))
+            a = 2.0 * np.pi * np.arange(n) / n
+            ring = np.column_stack([prim.radius * np.cos(a), prim.radius * np.sin(a)])
+            out.append(np.column_stack([np.tile(ring, (len(z), 1)), np.repeat(z, n)]))
+        else:
+            axes = [
+                np.linspace(lo, hi, max(2, int(np.ceil((hi - lo) / spacing_m)) + 1))
+                for lo, hi in zip(prim.lo, prim.hi, strict=True)
+            ]
+            grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+            on_face = np.any(np.isclose(grid, prim.lo) | np.isclose(grid, prim.hi), axis=1)
+            out.append(grid[on_face])
+    return np.concatenate(out) if out else np.zeros((0, 3))

@@ -45,6 +45,7 @@ from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
+from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
 from binpick.picking.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
@@ -81,8 +82,9 @@ BIN_PLANE_AGREEMENT_M = 0.02
 @dataclass(frozen=True)
 class Pick:
     """pose_index: the part (its index in the poses); T_cam_from_tool at pre-grasp, grasp and
-    post-grasp; clearance_m of the swept gripper (capped at CLEARANCE_CAP_M); height_m of the
-    part's centre above the support plane."""
+    post-grasp (turned about the tool axis as the arm takes it, when it was checked); clearance_m
+    of the swept gripper (capped at CLEARANCE_CAP_M); height_m of the part's centre above the
+    support plane."""
 
     pose_index: int
     grasp_id: str
@@ -95,6 +97,7 @@ class Pick:
     clearance_m: float
     height_m: float
     trusted: bool = True  # the pose's seen-through share within max_seen_through (or not measured)
+    arm: ArmMotion | None = None  # the arm's motion when the arm was checked (picking/arm.py)
 
 
 @dataclass(frozen=True)
@@ -181,6 +184,8 @@ def plan_picks(
     params: PickParams,
     bin_box: BinBox | None = None,
     seen_through: np.ndarray | None = None,
+    arm: ArmPlanner | None = None,
+    q_from: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the detected parts.
 
@@ -192,6 +197,8 @@ def plan_picks(
     floor_plane      : (4,) the support plane (NaN: none)
     seen_through     : (p,) each pose's seen-through share (registration/visibility.py; NaN or
                        None: not measured, trusted)
+    arm              : the whole arm's check of a grasp the gripper check kept (None: the gripper
+                       only); q_from (6,) the configuration the arm starts each pick from
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -282,6 +289,15 @@ def plan_picks(
                 causes.update(hit)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(hit))))
                 continue
+            motion = None
+            if arm is not None and q_from is not None:
+                planned = arm.plan(T_tool, grasps.T_model_from_tool[g], grasps.kind, centre_m, q_from)
+                if isinstance(planned, str):
+                    causes[planned] += 1
+                    rejected.append(Rejected(i, grasps.ids[g], T_tool, planned))
+                    continue
+                motion = planned
+                T_tool = turned(T_tool, np.radians(motion.turn_deg))
             approach = T_tool[:3, 2]
             found = Pick(
                 i,
@@ -295,6 +311,7 @@ def plan_picks(
                 clearance,
                 float(heights[i]),
                 not shares[i] > params.max_seen_through,
+                motion,
             )
             break
         if found is not None:
@@ -306,6 +323,9 @@ def plan_picks(
             unpicked.append(
                 (i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone")
             )
+        elif set(causes) & ARM_REASONS:
+            refused = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
+            unpicked.append((i, f"no grasp in reach the arm can execute: {refused}"))
         else:
             hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
             unpicked.append(

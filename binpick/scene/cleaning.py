@@ -9,7 +9,7 @@ import logging
 import numpy as np
 from numba import njit, prange
 
-from binpick.errors import BinpickError
+from binpick.errors import BinpickError, NothingAboveTheFloor
 from binpick.geometry.pointcloud import first_in_each_voxel, fit_plane_ransac, sample_normals, statistical_outliers
 from binpick.geometry.transforms import invert_T
 from binpick.io.cloud import CleanCloud
@@ -104,7 +104,7 @@ def inside_walls(points: np.ndarray, floor: np.ndarray, walls: list[np.ndarray],
         if abs(side) < 0.01:
             continue
         inner = np.sign(side) * (points @ wall[:3] + wall[3]) > -threshold_m
-        if inner.mean() >= WALL_INNER_SHARE:
+        if len(inner) and inner.mean() >= WALL_INNER_SHARE:
             keep &= inner
     return keep
 
@@ -265,7 +265,7 @@ def clean_capture(
         removed_outliers = int((~kept).sum())
         pts, idx = pts[kept], idx[kept]
     if len(pts) < MIN_POINTS:
-        raise BinpickError(f"only {len(pts)} points are left after removing the floor and walls")
+        raise NothingAboveTheFloor(f"only {len(pts)} points are left after removing the floor and walls")
 
     normals = view_normals(pts, view)
     organized = frame_shape is not None

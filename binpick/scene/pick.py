@@ -9,9 +9,15 @@ from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
-from binpick.params import ImportCaptureParams, PickParams
+from binpick.params import CellParams, ImportCaptureParams, PickParams
+from binpick.picking.arm import ArmPlanner
+from binpick.picking.gripper import gripper_primitives, surface_points
 from binpick.picking.plan import PickPlan, plan_picks
 from binpick.registration.visibility import DepthView
+from binpick.robot.arm import load_arm
+
+# The gripper's surface is sampled this finely for the arm's check of its moves outside the approach.
+TOOL_SAMPLE_SPACING_M = 0.005
 
 
 def pick(
@@ -21,11 +27,30 @@ def pick(
     grasps: GraspSet,
     params: PickParams,
     import_params: ImportCaptureParams,
+    cell: CellParams | None = None,
+    q_from: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
-    when params give it, and the other parts at their poses."""
-    captured = DepthView(cloud.seen_depth_m, cloud.seen_K).points_m()
+    when params give it, and the other parts at their poses. With a cell whose arm is set and
+    the camera's place in the base frame (pick.T_base_from_cam), each pick is checked for the
+    whole arm (binpick/picking/arm.py), starting from q_from (default: the cell's home)."""
+    seen = DepthView(cloud.seen_depth_m, cloud.seen_K)
+    planner = None
+    if cell is not None and cell.arm is not None and params.T_base_from_cam is not None:
+        planner = ArmPlanner(
+            load_arm(cell.arm),
+            cell,
+            np.asarray(params.T_base_from_cam, dtype=float),
+            seen,
+            cloud.wall_planes,
+            params.pregrasp_distance_m,
+            params.retreat_distance_m,
+            surface_points(gripper_primitives(params, grasps.kind, params.jaw.opening_max_m), TOOL_SAMPLE_SPACING_M),
+            params.clearance_m,
+        )
+        q_from = np.asarray(cell.home_q_rad if q_from is None else q_from, dtype=float)
+    captured = seen.points_m()
     if len(captured) == 0:
         captured = cloud.points_m
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
@@ -43,4 +68,6 @@ def pick(
         params,
         BinBox.of_import(import_params),
         shares,
+        planner,
+        q_from,
     )

@@ -17,7 +17,7 @@ from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel, load_ppf_model
 from binpick.io.verification import Verification, load_verification
 from binpick.network.infer import Segmenter, load_segmenter
-from binpick.params import ImportCaptureParams, Params, PickParams, RegisterParams
+from binpick.params import CellParams, ImportCaptureParams, Params, PickParams, RegisterParams
 from binpick.picking.plan import PickPlan
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
@@ -41,6 +41,7 @@ class PartModels:
     register_params: RegisterParams
     grasps: GraspSet | None = None  # None: no picks
     pick_params: PickParams | None = None
+    cell_params: CellParams | None = None  # None: picks checked for the gripper only
 
     @classmethod
     def load(
@@ -68,6 +69,7 @@ class PartModels:
             register_params=with_verification(register_params, chosen_verification(verification, segmenter)),
             grasps=load_grasps(grasps)[params.pick.gripper] if grasps is not None else None,
             pick_params=params.pick,
+            cell_params=params.cell,
         )
 
 
@@ -103,9 +105,11 @@ def process(
     frame_shape: tuple[int, int] | None,
     models: PartModels,
     seeds: SceneSeeds,
+    q_from: np.ndarray | None = None,
 ) -> SceneResult:
     """clean, segment (unless the models have no segmenter), register and (when the models carry
-    grasps) pick one capture."""
+    grasps) pick one capture; q_from: the arm's joint angles when the arm is checked (default:
+    cell.home_q_rad)."""
     t0 = time.perf_counter()
     cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
     t1 = time.perf_counter()
@@ -115,7 +119,16 @@ def process(
     t3 = time.perf_counter()
     plan = None
     if models.grasps is not None and models.pick_params is not None:
-        plan = pick(cloud, registration.poses, models.part, models.grasps, models.pick_params, models.import_params)
+        plan = pick(
+            cloud,
+            registration.poses,
+            models.part,
+            models.grasps,
+            models.pick_params,
+            models.import_params,
+            models.cell_params,
+            q_from,
+        )
     t4 = time.perf_counter()
     if labels is None:
         labels = np.full(len(cloud.points_m), -1, np.int32)

@@ -61,6 +61,42 @@ def bench_clutter_cmd(
     write_json(out, result)
 
 
+@bench_app.command("cell")
+def bench_cell_cmd(
+    out: Path = typer.Option(..., help="JSON file to write"),
+    bins: int = typer.Option(2, min=1, help="bins per part"),
+    min_parts: int = typer.Option(10, min=1, help="parts per bin, at least"),
+    max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
+    part: list[str] = typer.Option(
+        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
+    ),
+    params: Path = PARAMS,
+) -> None:
+    """Empty simulated bins with the arm (cell.arm) in physics: every pick executed from the
+    arm's joint plan; picks per hour, collisions, drops, double picks; against today's
+    gripper-only picks handed to the arm (baseline_*). The first bin of each part is recorded
+    beside FILE as <FILE without .json>-<part>.rrd (rerun)."""
+    from binpick.params import load_params
+    from flows.bench.cell import DEFAULT_PARTS, bench_cell
+
+    if min_parts > max_parts:
+        fail(f"--min-parts {min_parts} is above --max-parts {max_parts}")
+    root = project_root()
+    names = part or list(DEFAULT_PARTS)
+    try:
+        result = bench_cell(
+            load_params(params),
+            names,
+            bins,
+            (min_parts, max_parts),
+            checkpoints(root, names),
+            record_prefix=out.with_suffix(""),
+        )
+    except ValueError as exc:
+        fail(str(exc))
+    write_json(out, result)
+
+
 @bench_app.command("picking")
 def bench_picking_cmd(
     out: Path = typer.Option(..., help="JSON file to write"),

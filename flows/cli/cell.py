@@ -11,7 +11,7 @@ import typer
 from binpick.env import project_root
 from binpick.errors import BinpickError
 from binpick.layout import Layout
-from flows.cli.common import PARAMS, app, fail, listed_capture, log
+from flows.cli.common import PARAMS, app, cell_app, fail, listed_capture, log
 
 
 @app.command()
@@ -334,3 +334,51 @@ def overlay(
     with atomic_path(target) as tmp:
         Image.fromarray(drawn).save(tmp)
     typer.echo(f"wrote {target}")
+
+
+@cell_app.command("run")
+def cell_run(
+    part: str = typer.Option(..., help="the part in the bin (its models built: make repro)"),
+    max_cycles: int = typer.Option(None, min=1, help="stop after this many cycles (default: until the bin is empty)"),
+    max_failures: int = typer.Option(3, min=1, help="stop after this many failed attempts in a row"),
+    sim_parts: int = typer.Option(10, min=1, help="sim: parts settled in the bin"),
+    seed: int = typer.Option(0, help="sim: the bin's and the camera noise's seed"),
+    params: Path = PARAMS,
+) -> None:
+    """Run the cell: capture, picks (the arm checked), move, grasp, place, until the bin is empty,
+    a stop is asked for (Ctrl-C, or the file data/cell/STOP), the arm stops itself or
+    --max-failures attempts in a row fail; cell.robot.driver chooses the physics cell (sim) or a
+    UR arm (ur_rtde). Every cycle is kept in data/cell/runs/<run>/."""
+    import threading
+
+    from binpick.cell.robot import Robot
+    from binpick.params import load_params
+    from binpick.scene.process import PartModels
+    from flows.cell_run import Camera, ZividCamera, real_robot, run_cell, simulated_cell, stop_on_signals
+
+    root = project_root()
+    layout = Layout(root)
+    p = load_params(params, part)
+    if p.cell.arm is None or p.pick.T_base_from_cam is None:
+        fail(f"{params}: the cell needs cell.arm and pick.T_base_from_cam (binpick hand-eye --apply)")
+    needed = [layout.part_model(part), layout.ppf_model(part), layout.grasps(part)]
+    missing = [str(path.relative_to(root)) for path in needed if not path.is_file()]
+    if missing:
+        fail(f"{part}: {', '.join(missing)} not built (run make repro)")
+    checkpoint = layout.checkpoint(part) if layout.checkpoint(part).is_file() else None
+    models = PartModels.load(p, needed[0], needed[1], checkpoint, needed[2], layout.verification(part))
+    robot: Robot
+    camera: Camera
+    if p.cell.robot.driver == "sim":
+        robot, camera = simulated_cell(p, models.part, sim_parts, seed)
+    else:
+        robot, camera = real_robot(p), ZividCamera(p)
+    layout.cell_stop.unlink(missing_ok=True)
+    stop = threading.Event()
+    try:
+        with stop_on_signals(stop):
+            summary = run_cell(root, p, part, robot, camera, models, max_cycles, stop, max_failures)
+    finally:
+        robot.close()
+    typer.echo(f"{summary.placed} placed in {summary.cycles} cycles; {summary.ended}")
+    typer.echo(f"cycles kept in {summary.folder.relative_to(root)}")

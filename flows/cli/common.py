@@ -29,6 +29,8 @@ learn_app = typer.Typer(
     no_args_is_help=True, help="Learning from the cell: review labelled captures, fine-tune on them."
 )
 app.add_typer(learn_app, name="learn")
+cell_app = typer.Typer(no_args_is_help=True, help="The robot cell: capture, pick, move, place, in a loop.")
+app.add_typer(cell_app, name="cell")
 log = logging.getLogger("binpick")
 
 _state = {"verbose": False}

@@ -1,0 +1,148 @@
+"""The robot behind one interface (`Robot`): the simulated cell (binpick/cell/simulation.py) or a
+Universal Robots arm through ur_rtde (`URRobot`), and one pick executed on either
+(`execute_pick`). Joint angles in radians, in the arm's joint order.
+
+The real arm: joint moves with `moveJ` (a path of configurations, each reached at rest: speed and
+acceleration are the leading joint's, the slowest joint's limit times cell.speed_scaling), the
+suction cup's vacuum on a standard digital output and its vacuum sensor on a standard digital
+input (cell.robot.vacuum_out / vacuum_in; no sensor: the hold is assumed). Not tried on hardware.
+"""
+
+from __future__ import annotations
+
+import time
+from types import ModuleType
+from typing import Protocol
+
+import numpy as np
+
+from binpick.errors import BinpickError
+from binpick.picking.arm import ArmMotion
+from binpick.robot.trajectory import JointLimits
+
+# What a pick on the robot came to (besides "placed").
+NO_GRIP, GRASP_LOST, ARM_STOPPED = "no grip", "grasp lost", "arm stopped"
+
+
+class RobotStopped(BinpickError):
+    """The arm stopped on its own (a protective or emergency stop, the program ended): the cell must
+    not go on until someone has looked."""
+
+
+class Robot(Protocol):
+    def joints(self) -> np.ndarray:
+        """(6,) the arm's joint angles now."""
+        ...
+
+    def move(self, path: list[np.ndarray]) -> None:
+        """Through the configurations in order (straight joint lines, at rest at each); raises
+        RobotStopped when the arm stops on its own."""
+        ...
+
+    def grip(self, width_m: float) -> bool:
+        """Vacuum on (jaws closed on a part width_m wide); whether it holds a part."""
+        ...
+
+    def holding(self) -> bool:
+        """Whether the gripper still holds a part."""
+        ...
+
+    def release(self) -> None:
+        """Vacuum off (jaws open)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:
+    """Run one pick's motion on the robot: to the grasp, grip, out and over to the place, release.
+    "placed", or NO_GRIP (nothing held at the grasp: the arm goes on without a part only back up
+    to where it came down from), GRASP_LOST (the part fell on the way: the gripper is opened),
+    ARM_STOPPED (RobotStopped: the arm stopped itself, nothing more is sent)."""
+    at = motion.path.index("grasp")
+    try:
+        robot.move([motion.q[name] for name in motion.path[: at + 1]])
+        if not robot.grip(width_m):
+            robot.release()
+            robot.move([motion.q[motion.path[at - 1]]])  # back out along the approach
+            return NO_GRIP
+        robot.move([motion.q[name] for name in motion.path[at + 1 :]])
+        if not robot.holding():
+            robot.release()
+            return GRASP_LOST
+        robot.release()
+        return "placed"
+    except RobotStopped:
+        return ARM_STOPPED
+
+
+class URRobot:
+    """A Universal Robots arm through ur_rtde's control, receive and IO interfaces."""
+
+    def __init__(
+        self,
+        host: str,
+        limits: JointLimits,
+        vacuum_out: int,
+        vacuum_in: int | None,
+        grip_s: float,
+        release_s: float,
+        modules: tuple[ModuleType, ModuleType, ModuleType] | None = None,
+    ) -> None:
+        """modules: (rtde_control, rtde_receive, rtde_io) (default: imported; tests pass fakes)."""
+        if modules is None:
+            try:
+                import rtde_control
+                import rtde_io
+                import rtde_receive
+            except ImportError:
+                raise BinpickError(
+                    "the real robot needs ur_rtde: pip install -e .[robot] (or set cell.robot.driver: sim)"
+                ) from None
+            modules = (rtde_control, rtde_receive, rtde_io)
+        control, receive, io = modules
+        try:
+            self.control = control.RTDEControlInterface(host)
+            self.receive = receive.RTDEReceiveInterface(host)
+            self.io = io.RTDEIOInterface(host)
+        except RuntimeError as exc:
+            raise BinpickError(f"cannot reach the robot at {host}: {exc}") from None
+        # moveJ takes one speed and acceleration, the leading joint's: the slowest joint's limit.
+        self.speed = float(np.min(limits.max_velocity))
+        self.acceleration = float(np.min(limits.max_acceleration))
+        self.vacuum_out, self.vacuum_in = vacuum_out, vacuum_in
+        self.grip_s, self.release_s = grip_s, release_s
+
+    def joints(self) -> np.ndarray:
+        return np.asarray(self.receive.getActualQ(), dtype=float)
+
+    def move(self, path: list[np.ndarray]) -> None:
+        if not path:
+            return
+        # Blend 0: the arm stops at each configuration, the path the plan checked.
+        moves = [[*map(float, q), self.speed, self.acceleration, 0.0] for q in path]
+        if not self.control.moveJ(moves):
+            raise RobotStopped(self._why_stopped())
+
+    def _why_stopped(self) -> str:
+        if self.receive.isEmergencyStopped():
+            return "the arm is emergency-stopped"
+        if self.receive.isProtectiveStopped():
+            return "the arm made a protective stop"
+        return "the arm did not complete the move (its program is not running)"
+
+    def grip(self, width_m: float) -> bool:
+        self.io.setStandardDigitalOut(self.vacuum_out, True)
+        time.sleep(self.grip_s)
+        return self.holding()
+
+    def holding(self) -> bool:
+        return True if self.vacuum_in is None else bool(self.receive.getDigitalInState(self.vacuum_in))
+
+    def release(self) -> None:
+        self.io.setStandardDigitalOut(self.vacuum_out, False)
+        time.sleep(self.release_s)
+
+    def close(self) -> None:
+        self.control.stopScript()
+        self.control.disconnect()

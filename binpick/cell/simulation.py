@@ -1,0 +1,585 @@
+"""The cell in physics (pybullet): the bin, the parts in it, the arm from its URDF and the tool on
+its flange. A pick's joint waypoints are executed along ruckig's time-optimal motions at the
+simulator's step; the suction cup holds a part only where its lip seals on the part's true mesh,
+the jaws only where both pads touch it, and the hold is a constraint whose force is limited to the
+cup's rated holding force (the jaws' friction), so that a part too heavy for the lift's
+acceleration, or hooked under a neighbour, is lost as it would be in the cell.
+
+World frame: the bin frame (the floor's centre, z up), metres at the interface; the simulator runs
+with lengths scaled by generation.physics.SCALE (its contact tolerances suit metre-sized bodies).
+The arm and the tool are moved kinematically (their joint states set each step); they collide
+with nothing by themselves, so every step asks the simulator for their closest points to the bin
+and the parts: any within CONTACT_M is a touch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from binpick.cell.robot import NO_GRIP, execute_pick
+from binpick.generation.physics import SCALE, TIME_STEP_S, convex_parts_obj, quaternion_xyzw
+from binpick.geometry.camera import PinholeCamera
+from binpick.geometry.transforms import invert_T, make_T, transform_points
+from binpick.io.part_model import PartModel
+from binpick.native import stdout_silenced
+from binpick.params import CellParams, PickParams
+from binpick.picking.arm import ArmMotion
+from binpick.picking.gripper import Box, Cylinder, gripper_primitives
+from binpick.robot.arm import ArmModel
+from binpick.robot.trajectory import JointLimits, motion
+
+# A body this close to the arm or the tool touches it (metres).
+CONTACT_M = 0.0005
+# Steps between two contact queries while the arm moves (at 240 Hz: every 8 ms).
+CONTACT_EVERY = 2
+# Rays around the cup's lip that test its seal on the true mesh.
+LIP_RAYS = 16
+# The planned contact lies within this of the part's true surface along the approach, or the
+# cup meets air (or presses in).
+CONTACT_TOLERANCE_M = 0.002
+# A held part this far from where the hold put it has torn off the cup (slipped out of the jaws).
+SLIP_M = 0.005
+# Parts still faster than this after the pick are left to settle (at most SETTLE_S).
+REST_SPEED_M_S, SETTLE_S = 0.002, 1.5
+FRICTION = 0.6
+
+
+@dataclass
+class Execution:
+    """What one pick did in the simulated cell.
+
+    outcome: "placed" (the part arrived within tolerance), "misplaced" (arrived outside it),
+    "no seal" / "no hold" (the cup did not seal / the jaws did not close on a part), "dropped"
+    (held, then lost on the way); target: the body index of the part grasped (None: none);
+    touched: what the arm or tool touched on the way ("bin", "part"); double: other parts that
+    left the bin with it; motion_s: the arm's motion time including the dwell at the grasp and
+    the place; out_of_view_s: when the arm left the camera's view after the grasp (seconds from
+    the motion's start; the next capture may be taken from then).
+    """
+
+    outcome: str
+    target: int | None
+    touched: set[str] = field(default_factory=set)
+    double: int = 0
+    motion_s: float = 0.0
+    out_of_view_s: float = 0.0
+
+
+def in_view_of(camera: PinholeCamera, T_cam_from_bin: np.ndarray) -> Callable[[np.ndarray], bool]:
+    """Whether any of some points (n, 3), bin frame, lies in the camera's image (in front of it)."""
+
+    def in_view(points_bin: np.ndarray) -> bool:
+        uv = camera.project(points_bin @ T_cam_from_bin[:3, :3].T + T_cam_from_bin[:3, 3])
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        return bool(np.any(inside))
+
+    return in_view
+
+
+class SimulatedCell:
+    """One bin of parts and the arm, in a pybullet world of its own (DIRECT, no window)."""
+
+    def __init__(
+        self,
+        arm: ArmModel,
+        cell: CellParams,
+        pick: PickParams,
+        kind: str,
+        part: PartModel,
+        density_kg_m3: float,
+        bin_boxes: list[tuple[np.ndarray, np.ndarray]],
+        inner_half_xy_m: tuple[float, float],
+        wall_height_m: float,
+        T_bin_from_base: np.ndarray,
+        T_bin_from_parts: np.ndarray,
+        in_view: Callable[[np.ndarray], bool],
+    ) -> None:
+        import pybullet as pb
+
+        self.pb, self.arm, self.cell, self.pick, self.kind, self.part = pb, arm, cell, pick, kind, part
+        self.inner_half_xy_m, self.wall_height_m = inner_half_xy_m, wall_height_m
+        self.T_bin_from_base = np.asarray(T_bin_from_base, dtype=float)
+        self.T_flange_from_tcp = np.asarray(cell.T_flange_from_tcp, dtype=float)
+        self.limits = JointLimits(arm.max_velocity_rad_s, arm.max_acceleration_rad_s2).scaled(cell.speed_scaling)
+        self.in_view = in_view  # (n, 3) bin-frame points -> whether any lies in the camera's image
+        self.client = pb.connect(pb.DIRECT)
+        c = self.client
+        pb.setGravity(0, 0, -9.81 * SCALE, physicsClientId=c)
+        pb.setTimeStep(TIME_STEP_S, physicsClientId=c)
+        pb.setPhysicsEngineParameter(numSolverIterations=50, deterministicOverlappingPairs=1, physicsClientId=c)
+        # A table under the bin and the arm (the bin's ground reaches only just beyond its walls).
+        ground_top = min(float(hi[2]) for _, hi in bin_boxes) if bin_boxes else 0.0
+        table = (np.array([-3.0, -3.0, ground_top - 0.05]), np.array([3.0, 3.0, ground_top]))
+        self.bin_bodies = []
+        self.body_names: dict[int, str] = {}
+        for lo, hi in [table, *bin_boxes]:
+            half = (np.asarray(hi) - np.asarray(lo)) / 2.0 * SCALE
+            middle = (np.asarray(hi) + np.asarray(lo)) / 2.0 * SCALE
+            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=c)
+            body = pb.createMultiBody(0.0, shape, basePosition=middle.tolist(), physicsClientId=c)
+            pb.changeDynamics(body, -1, lateralFriction=FRICTION, physicsClientId=c)
+            self.bin_bodies.append(body)
+            self.body_names[body] = "table" if float(hi[2]) <= ground_top else "bin"
+        # Part bodies live in a frame at the centre of the part's box (as generation.physics).
+        vertices = part.mesh_vertices_m
+        self.centre_m = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
+        self.T_model_from_body = make_T(np.eye(3), self.centre_m)
+        self.part_shape = pb.createCollisionShape(
+            pb.GEOM_MESH, fileName=convex_parts_obj(vertices - self.centre_m, part.mesh_faces), physicsClientId=c
+        )
+        mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
+        self.mass_kg = abs(float(mesh.volume)) * density_kg_m3
+        self.rays = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+        self.parts: list[int | None] = []
+        for T in np.asarray(T_bin_from_parts, dtype=float):
+            self.parts.append(self._add_part(T))
+        self.robot = self._add_arm()
+        self.tool = self._add_tool()
+        self.hold: int | None = None
+        self.aimed: int | None = None
+        # One pick's record: the simulated clock, what was touched, when the grip came and the arm
+        # left the camera's view after it, the part held, whether it arrived, parts out with it.
+        self.clock_s, self.touched = 0.0, set[str]()
+        self.gripped_at_s: float | None = None
+        self.out_of_view_s: float | None = None
+        self.target: int | None = None
+        self.arrived, self.double = False, 0
+        self.q = np.asarray(cell.home_q_rad, dtype=float)
+        self._pose_arm(self.q, np.zeros(6))
+
+    # -- building the world
+
+    def _add_part(self, T_bin_from_model: np.ndarray) -> int:
+        pb, c = self.pb, self.client
+        T = T_bin_from_model @ self.T_model_from_body
+        body = pb.createMultiBody(
+            self.mass_kg,
+            self.part_shape,
+            basePosition=(T[:3, 3] * SCALE).tolist(),
+            baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
+            physicsClientId=c,
+        )
+        pb.changeDynamics(
+            body,
+            -1,
+            lateralFriction=FRICTION,
+            restitution=0.0,
+            linearDamping=0.1,
+            angularDamping=0.1,
+            physicsClientId=c,
+        )
+        return int(body)
+
+    def _add_arm(self) -> int:
+        pb, c = self.pb, self.client
+        # pybullet's root is the URDF's base_link, the controller's base turned half a turn about z.
+        T = self.T_bin_from_base @ make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
+        # pybullet notes every URDF link without inertia on stdout.
+        with stdout_silenced():
+            body = pb.loadURDF(
+                str(self.arm.urdf_path),
+                basePosition=(T[:3, 3] * SCALE).tolist(),
+                baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
+                useFixedBase=True,
+                globalScaling=SCALE,
+                physicsClientId=c,
+            )
+        names = {
+            pb.getJointInfo(body, j, physicsClientId=c)[1].decode(): j
+            for j in range(pb.getNumJoints(body, physicsClientId=c))
+        }
+        self.joint_index = [names[name] for name in self.arm.joint_names]
+        # The links that move (the base and its cable connector stand beside the bin).
+        self.moving_links = [
+            j
+            for j in range(pb.getNumJoints(body, physicsClientId=c))
+            if pb.getJointInfo(body, j, physicsClientId=c)[12].decode() != "base_link_inertia"
+        ]
+        return int(body)
+
+    def _add_tool(self) -> int:
+        """The gripper's primitives (picking/gripper.py) as one body in the tool frame."""
+        pb, c = self.pb, self.client
+        shapes, positions = [], []
+        for prim in gripper_primitives(self.pick, self.kind, self.pick.jaw.opening_max_m):
+            if isinstance(prim, Cylinder):
+                length = prim.z1 - prim.z0
+                shapes.append(
+                    pb.createCollisionShape(
+                        pb.GEOM_CYLINDER, radius=prim.radius * SCALE, height=length * SCALE, physicsClientId=c
+                    )
+                )
+                positions.append([0.0, 0.0, (prim.z0 + prim.z1) / 2.0 * SCALE])
+            elif isinstance(prim, Box):
+                half = (prim.hi - prim.lo) / 2.0 * SCALE
+                shapes.append(pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=c))
+                positions.append(((prim.hi + prim.lo) / 2.0 * SCALE).tolist())
+        body = pb.createMultiBody(
+            0.0,
+            -1,
+            linkMasses=[0.0] * len(shapes),
+            linkCollisionShapeIndices=shapes,
+            linkVisualShapeIndices=[-1] * len(shapes),
+            linkPositions=positions,
+            linkOrientations=[[0, 0, 0, 1]] * len(shapes),
+            linkInertialFramePositions=[[0, 0, 0]] * len(shapes),
+            linkInertialFrameOrientations=[[0, 0, 0, 1]] * len(shapes),
+            linkParentIndices=[0] * len(shapes),
+            linkJointTypes=[pb.JOINT_FIXED] * len(shapes),
+            linkJointAxis=[[0, 0, 1]] * len(shapes),
+            physicsClientId=c,
+        )
+        return int(body)
+
+    # -- state
+
+    def part_poses(self) -> tuple[np.ndarray, list[int]]:
+        """(k, 4, 4) T_bin_from_model of the parts still in the world, and their indices."""
+        poses, index = [], []
+        for i, body in enumerate(self.parts):
+            if body is None:
+                continue
+            poses.append(self._body_pose(body) @ invert_T(self.T_model_from_body))
+            index.append(i)
+        return np.array(poses).reshape(-1, 4, 4), index
+
+    def in_bin(self) -> np.ndarray:
+        """(k,) bool per part index: its centre within the bin's walls, below their top."""
+        out = np.zeros(len(self.parts), bool)
+        for i, body in enumerate(self.parts):
+            if body is None:
+                continue
+            p = self._body_pose(body)[:3, 3]
+            out[i] = bool(np.all(np.abs(p[:2]) < self.inner_half_xy_m) and -0.01 < p[2] < self.wall_height_m)
+        return out
+
+    def remove_outside(self) -> int:
+        """Take the parts that left the bin out of the world (they fell out, or came out with a
+        pick); how many."""
+        gone = 0
+        inside = self.in_bin()
+        for i, body in enumerate(self.parts):
+            if body is not None and not inside[i] and i != self.hold:
+                self.pb.removeBody(body, physicsClientId=self.client)
+                self.parts[i] = None
+                gone += 1
+        return gone
+
+    def close(self) -> None:
+        self.pb.disconnect(self.client)
+
+    def _body_pose(self, body: int) -> np.ndarray:
+        position, q = self.pb.getBasePositionAndOrientation(body, physicsClientId=self.client)
+        R = np.asarray(self.pb.getMatrixFromQuaternion(q, physicsClientId=self.client)).reshape(3, 3)
+        return make_T(R, np.asarray(position) / SCALE)
+
+    def tcp_pose(self, q: np.ndarray) -> np.ndarray:
+        """T_bin_from_tcp at joint angles q."""
+        return self.T_bin_from_base @ self.arm.flange_pose(q) @ self.T_flange_from_tcp
+
+    def _pose_arm(self, q: np.ndarray, qd: np.ndarray) -> None:
+        pb, c = self.pb, self.client
+        for j, angle, speed in zip(self.joint_index, q, qd, strict=True):
+            pb.resetJointState(self.robot, j, float(angle), float(speed), physicsClientId=c)
+        T = self.tcp_pose(q)
+        pb.resetBasePositionAndOrientation(
+            self.tool, (T[:3, 3] * SCALE).tolist(), quaternion_xyzw(T[:3, :3]).tolist(), physicsClientId=c
+        )
+        # The tool's velocity too: the hold's constraint then carries the part along with it instead
+        # of pulling it after a tool that seems to stand still and jump (the part would lag).
+        self.q_ahead = q + qd * TIME_STEP_S  # where the simulator's step carries what the tool holds
+        ahead = self.tcp_pose(self.q_ahead)
+        linear = (ahead[:3, 3] - T[:3, 3]) / TIME_STEP_S * SCALE
+        turn = ahead[:3, :3] @ T[:3, :3].T
+        angular = Rotation.from_matrix(turn).as_rotvec() / TIME_STEP_S
+        pb.resetBaseVelocity(self.tool, linear.tolist(), angular.tolist(), physicsClientId=c)
+
+    # -- execution
+
+    # -- the robot's interface (binpick/cell/robot.py)
+
+    def joints(self) -> np.ndarray:
+        return self.q.copy()
+
+    def move(self, path: list[np.ndarray]) -> None:
+        """Through the configurations along ruckig's motions, stepping the world; what the arm or the
+        tool touches collects in `touched`, a held part that tears off is let go."""
+        for q_next in path:
+            self._aim(q_next)
+            trajectory = motion(self.q, q_next, self.limits)
+            steps = max(1, int(np.ceil(trajectory.duration / TIME_STEP_S)))
+            for s in range(1, steps + 1):
+                q, qd, _ = trajectory.at_time(min(s * TIME_STEP_S, trajectory.duration))
+                self._pose_arm(np.asarray(q), np.asarray(qd))
+                self.pb.stepSimulation(physicsClientId=self.client)
+                self.clock_s += TIME_STEP_S
+                if s % CONTACT_EVERY == 0 or s == steps:
+                    self.touched |= self._touches()
+                    if self.hold is not None and self._slipped():
+                        self._let_go()
+                if (
+                    self.gripped_at_s is not None
+                    and self.out_of_view_s is None
+                    and not self._arm_in_view(np.asarray(q))
+                ):
+                    self.out_of_view_s = self.clock_s
+            self.q = np.asarray(q_next, dtype=float)
+
+    def grip(self, width_m: float) -> bool:
+        self.clock_s += self._dwell(self.cell.robot.grip_s)
+        self.gripped_at_s = self.clock_s
+        self.target = self._grasp(width_m)
+        return self.target is not None
+
+    def holding(self) -> bool:
+        return self.hold is not None
+
+    def release(self) -> None:
+        if self.hold is not None:
+            self.arrived = self._arrived()
+            others = np.array([b is not None for b in self.parts]) & (np.arange(len(self.parts)) != self.hold)
+            self.double = int(np.sum(~self.in_bin() & others))
+            self._release()
+        self.clock_s += self._dwell(self.cell.robot.release_s)
+
+    def _aim(self, q_next: np.ndarray) -> None:
+        """The part the tool comes down on, when this move ends at a part's surface: the tool may
+        touch it (a bellows cup gives), and no other."""
+        aimed = self._part_at(self.tcp_pose(q_next)) if self.hold is None else None
+        if aimed == self.aimed:
+            return
+        if self.aimed is not None and self.aimed != self.hold and self.parts[self.aimed] is not None:
+            self._collide(self.tool, self.aimed, True)
+        if aimed is not None:
+            self._collide(self.tool, aimed, False)
+        self.aimed = aimed
+
+    # -- one pick, judged (bench cell)
+
+    def execute(self, plan: ArmMotion, q_from: np.ndarray, width_m: float = 0.0) -> Execution:
+        """The pick executed (robot.execute_pick) from q_from (where the arm is), then the rest
+        left to settle: what it did, for the benchmark's judge."""
+        assert np.allclose(q_from, self.q, atol=1e-6), "the arm is not where the plan starts"
+        self.clock_s, self.touched, self.gripped_at_s, self.out_of_view_s = 0.0, set(), None, None
+        self.target, self.arrived, self.double = None, False, 0
+        state = execute_pick(self, plan, width_m)
+        if state == "placed":
+            outcome = "placed" if self.arrived else "misplaced"
+        elif state == NO_GRIP:
+            outcome = "no seal" if self.kind == "suction" else "no hold"
+        else:
+            outcome = "dropped"
+        self._settle()
+        return Execution(
+            outcome,
+            self.target,
+            set(self.touched),
+            self.double,
+            self.clock_s,
+            self.out_of_view_s if self.out_of_view_s is not None else self.clock_s,
+        )
+
+    def _dwell(self, seconds: float) -> float:
+        for _ in range(int(round(seconds / TIME_STEP_S))):
+            self.pb.stepSimulation(physicsClientId=self.client)
+        return seconds
+
+    def _settle(self) -> None:
+        for step in range(int(SETTLE_S / TIME_STEP_S)):
+            self.pb.stepSimulation(physicsClientId=self.client)
+            if step % 24 == 23:
+                speeds = [
+                    np.linalg.norm(self.pb.getBaseVelocity(b, physicsClientId=self.client)[0]) / SCALE
+                    for b in self.parts
+                    if b is not None
+                ]
+                if not speeds or max(speeds) < REST_SPEED_M_S:
+                    break
+
+    def _part_at(self, T_bin_from_tcp: np.ndarray) -> int | None:
+        """The part whose true surface lies nearest the tool centre point, within 5 CONTACT_TOLERANCE_M."""
+        best: tuple[float, int] | None = None
+        for i, body in enumerate(self.parts):
+            if body is None:
+                continue
+            local = transform_points(
+                invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)), T_bin_from_tcp[:3, 3][None]
+            )
+            _, distance, _ = trimesh.proximity.closest_point(self.rays.mesh, local)
+            if distance[0] <= 5 * CONTACT_TOLERANCE_M and (best is None or distance[0] < best[0]):
+                best = (float(distance[0]), i)
+        return None if best is None else best[1]
+
+    def _collide(self, body: int, part: int, enable: bool) -> None:
+        """Switch collisions between every link of body (the tool, the arm) and a part on or off."""
+        other = self.parts[part]
+        assert other is not None
+        for link in range(-1, self.pb.getNumJoints(body, physicsClientId=self.client)):
+            self.pb.setCollisionFilterPair(body, other, link, -1, int(enable), physicsClientId=self.client)
+
+    def _touches(self) -> set[str]:
+        """What the arm's moving links, or the tool, are within CONTACT_M of: the table, the bin, or a
+        part other than the one the tool comes down on or holds."""
+        pb, c, d = self.pb, self.client, CONTACT_M * SCALE
+        out: set[str] = set()
+        for body in self.bin_bodies:
+            if any(
+                pb.getClosestPoints(self.robot, body, d, linkIndexA=j, physicsClientId=c) for j in self.moving_links
+            ):
+                out.add(self.body_names[body])
+            if pb.getClosestPoints(self.tool, body, d, physicsClientId=c):
+                out.add(self.body_names[body])
+        for i, body in enumerate(self.parts):
+            if body is None or i == self.hold:
+                continue
+            if any(
+                pb.getClosestPoints(self.robot, body, d, linkIndexA=j, physicsClientId=c) for j in self.moving_links
+            ):
+                out.add("part")
+            if i != self.aimed and pb.getClosestPoints(self.tool, body, d, physicsClientId=c):
+                out.add("part")
+        return out
+
+    def _arm_in_view(self, q: np.ndarray) -> bool:
+        points, link = self.arm.surface_points(q)
+        points = points[0] @ self.T_bin_from_base[:3, :3].T + self.T_bin_from_base[:3, 3]
+        return bool(self.in_view(points))
+
+    def _slipped(self) -> bool:
+        """Whether the held part has moved SLIP_M from where the hold keeps it in the tool frame."""
+        assert self.hold is not None
+        body = self.parts[self.hold]
+        assert body is not None
+        T_tcp = self.tcp_pose(self.q_ahead)
+        return bool(
+            np.linalg.norm((invert_T(T_tcp) @ self._body_pose(body))[:3, 3] - self.T_tcp_from_body[:3, 3]) > SLIP_M
+        )
+
+    def _let_go(self) -> None:
+        """The hold is lost: the part falls where it is, and collides again."""
+        assert self.hold is not None
+        self.pb.removeConstraint(self.constraint, physicsClientId=self.client)
+        self._collide(self.tool, self.hold, True)
+        self._collide(self.robot, self.hold, True)
+        self.hold = None
+
+    def _grasp(self, width_m: float) -> int | None:
+        """The part the tool holds now (its index), or None: the cup's lip seals on one part's true
+        mesh at the tool (the jaws' pads both touch one part); the hold is a constraint limited
+        to the rated force."""
+        T_tcp = self.tcp_pose(self.q)
+        held = self._sealed_part(T_tcp) if self.kind == "suction" else self._jawed_part(T_tcp, width_m)
+        if held is None:
+            return None
+        pb, c = self.pb, self.client
+        body = self.parts[held]
+        assert body is not None
+        T_tcp_from_body = invert_T(T_tcp) @ self._body_pose(body)
+        self.T_tcp_from_body = T_tcp_from_body
+        # Held: the tool and the arm carry it, their shapes no longer push it.
+        self._collide(self.tool, held, False)
+        self._collide(self.robot, held, False)
+        self.constraint = pb.createConstraint(
+            self.tool,
+            -1,
+            body,
+            -1,
+            pb.JOINT_FIXED,
+            [0, 0, 0],
+            parentFramePosition=(T_tcp_from_body[:3, 3] * SCALE).tolist(),
+            childFramePosition=[0, 0, 0],
+            parentFrameOrientation=quaternion_xyzw(T_tcp_from_body[:3, :3]).tolist(),
+            physicsClientId=c,
+        )
+        force = (
+            self.pick.suction.holding_force_n
+            if self.kind == "suction"
+            else 2.0 * np.tan(np.radians(self.pick.jaw.friction_deg)) * self.pick.jaw.grip_force_n
+        )
+        # Forces in the scaled world: kg * (m * SCALE) / s^2.
+        pb.changeConstraint(self.constraint, maxForce=float(force) * SCALE, physicsClientId=c)
+        self.hold = held
+        return held
+
+    def _sealed_part(self, T_bin_from_tcp: np.ndarray) -> int | None:
+        """The part whose true mesh the cup's lip seals on at this tool pose: rays along the approach
+        from the lip's circle and its centre all meet that part's surface within the cup's
+        tolerance (flat within max_deviation_m, normal within max_normal_deg of the axis), the
+        centre within CONTACT_TOLERANCE_M of the tool centre point."""
+        s = self.pick.suction
+        angles = 2.0 * np.pi * np.arange(LIP_RAYS) / LIP_RAYS
+        lip = np.column_stack([s.cup_radius_m * np.cos(angles), s.cup_radius_m * np.sin(angles), np.zeros(LIP_RAYS)])
+        starts_tool = np.vstack([[0.0, 0.0, 0.0], lip]) - np.array([0.0, 0.0, 0.02])
+        for i, body in enumerate(self.parts):
+            if body is None:
+                continue
+            T_model_from_tool = invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)) @ T_bin_from_tcp
+            origins = transform_points(T_model_from_tool, starts_tool)
+            direction = np.broadcast_to(T_model_from_tool[:3, 2], origins.shape)
+            hits, rays, _ = self.rays.intersects_location(origins, direction, multiple_hits=False)
+            if len(rays) == 0 or 0 not in rays:
+                continue
+            depth = np.full(LIP_RAYS + 1, np.nan)
+            depth[rays] = (hits - origins[rays]) @ T_model_from_tool[:3, 2] - 0.02
+            if abs(depth[0]) > CONTACT_TOLERANCE_M:
+                continue
+            if len(rays) < LIP_RAYS + 1:
+                return None  # the lip hangs over an edge: no seal
+            lip_hits = transform_points(invert_T(T_model_from_tool), hits[np.argsort(rays)][1:])
+            centre = lip_hits.mean(axis=0)
+            _, sv, vt = np.linalg.svd(lip_hits - centre)
+            normal = vt[2] * np.sign(vt[2, 2] or 1.0)
+            flat = np.max(np.abs((lip_hits - centre) @ vt[2])) <= s.max_deviation_m
+            facing = np.degrees(np.arccos(min(1.0, abs(normal[2])))) <= s.max_normal_deg
+            return i if flat and facing else None
+        return None
+
+    def _jawed_part(self, T_bin_from_tcp: np.ndarray, width_m: float) -> int | None:
+        """The part both jaw pads touch (their centres, width_m apart along the closing axis,
+        within CONTACT_TOLERANCE_M of its true surface) when the jaws close at this tool pose."""
+        half = T_bin_from_tcp[:3, 0] * width_m / 2.0
+        pads = np.stack([T_bin_from_tcp[:3, 3] - half, T_bin_from_tcp[:3, 3] + half])
+        for i, body in enumerate(self.parts):
+            if body is None:
+                continue
+            local = transform_points(invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)), pads)
+            _, distance, _ = trimesh.proximity.closest_point(self.rays.mesh, local)
+            if np.all(distance <= CONTACT_TOLERANCE_M):
+                return i
+        return None
+
+    def _arrived(self) -> bool:
+        """Whether the held part is where the place wants it (cell.place's kind and tolerances)."""
+        assert self.hold is not None
+        body = self.parts[self.hold]
+        assert body is not None
+        place = self.cell.place
+        T = self._body_pose(body) @ invert_T(self.T_model_from_body)
+        T_target = np.asarray(place.T_base_from_part, dtype=float)
+        T_base = invert_T(self.T_bin_from_base) @ T
+        if place.kind == "drop":
+            centre = T_base[:3, :3] @ self.centre_m + T_base[:3, 3]
+            return bool(np.linalg.norm(centre - T_target[:3, 3]) <= place.tolerance_m)
+        if np.linalg.norm(T_base[:3, 3] - T_target[:3, 3]) > place.tolerance_m:
+            return False
+        if place.kind == "conveyor":
+            tilt = np.degrees(np.arccos(np.clip(T_base[:3, 2] @ T_target[:3, 2], -1.0, 1.0)))
+            return bool(tilt <= place.tolerance_deg)
+        R = T_base[:3, :3].T @ T_target[:3, :3]
+        angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
+        return bool(angle <= place.tolerance_deg)
+
+    def _release(self) -> None:
+        """Let go at the place and take the part out of the world (the next machine has it)."""
+        assert self.hold is not None
+        self.pb.removeConstraint(self.constraint, physicsClientId=self.client)
+        body = self.parts[self.hold]
+        if body is not None:
+            self.pb.removeBody(body, physicsClientId=self.client)
+        self.parts[self.hold] = None
+        self.hold = None

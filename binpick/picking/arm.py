@@ -1,0 +1,323 @@
+"""Picks the arm can execute: a grasp the gripper check kept (picking/plan.py) is given to the arm,
+turned about the suction cup's axis (or the jaws flipped) to the turn the arm reaches with the
+least motion, away from its joint limits and singularities, and kept only when the arm's links
+stay clear of what the camera measured from the lift above the bin, down along the approach, up
+out of the bin and over to the place, and the place is reachable holding the part by this grasp.
+
+Frames: base (the robot's), camera, tool (the tool centre point, z the approach), flange; a pose
+T_a_from_b maps b coordinates to a. Motion is in joint space along straight lines (robot/trajectory.py).
+
+The motion of one pick, through the named configurations:
+from (home or the last place) -> lift -> pregrasp -> grasp -> postgrasp -> lift -> place_above -> place
+where lift is the post-grasp pose raised by cell.lift_m along the base's vertical, and the
+approach comes down from it. The target part itself is not an obstacle of the links (the tool
+meets it; the gripper check has the tool), and the arm's base link is left out (it stands beside the
+bin and does not move). The held part is not checked against the bin on the way out.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from binpick.geometry.transforms import invert_T
+from binpick.params import CellParams, PlaceParams
+from binpick.registration.visibility import DepthView
+from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
+from binpick.robot.clearance import collides, near_planes, obstacle_view
+from binpick.robot.configuration import JOINT_LIMIT, SINGULAR, UNREACHABLE, choose_configuration, ur_singularity_margin
+from binpick.robot.trajectory import JointLimits, line_samples, path_duration_s
+
+WAYPOINTS = ("lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
+# Reasons the arm refuses a grasp (beside robot.configuration's unreachable, joint limit, singular).
+HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE = (
+    "arm hits the bin wall",
+    "arm hits the scene",
+    "arm hits the table",
+    "place unreachable with this grasp",
+)
+ARM_REASONS = frozenset({UNREACHABLE, JOINT_LIMIT, SINGULAR, HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE})
+# A colliding link point this near a wall plane of the capture hit the bin wall.
+WALL_BAND_M = 0.03
+# Consecutive configurations of the short moves in the bin (5-20 cm) turn no joint further than this:
+# more means the solver jumped to another branch (near a singularity), not a move to make.
+MAX_SHORT_MOVE_RAD = 1.0
+# An approach within this of straight down leaves the bin straight up (no separate retreat).
+VERTICAL_DEG = 1.0
+# Configurations whose links are checked in one pass.
+PATH_CHUNK = 64
+# Turns tried about the vertical at a conveyor and a drop zone.
+PLACE_TURNS = 12
+
+
+@dataclass(frozen=True)
+class ArmMotion:
+    """The arm's plan of one pick: q (waypoint -> (6,) joint angles, WAYPOINTS), the turn about
+    the tool's axis it chose (degrees, from the grasp's own), the tool's pose at the place
+    (T_base_from_place_tcp), the motion's seconds at the scaled joint limits and the path: the
+    waypoints in the order the arm moves through them from where it starts (straight joint
+    lines, stopping at each)."""
+
+    q: dict[str, np.ndarray]
+    turn_deg: float
+    T_base_from_place_tcp: np.ndarray
+    motion_s: float
+    path: tuple[str, ...]
+
+
+def turned(T: np.ndarray, angle_rad: float) -> np.ndarray:
+    """The pose T (4, 4) turned about its own z axis by angle_rad."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    R = np.array([[c, -s, 0.0, 0.0], [s, c, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+    return T @ R
+
+
+def raised(T: np.ndarray, height_m: float) -> np.ndarray:
+    """The pose T (4, 4) moved up the base's z by height_m."""
+    out = np.array(T, dtype=float)
+    out[2, 3] += height_m
+    return out
+
+
+def place_tool_poses(place: PlaceParams, T_model_from_tool: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
+    """(k, 4, 4) T_base_from_tcp that put a part held by the grasp T_model_from_tool where the place
+    wants it: fixture: the part at T_base_from_part exactly (T_base_from_part @ T_model_from_tool);
+    conveyor: that turned about the vertical through the part's place; drop: the part's centre
+    (centre_m, model frame) at the place's position, the tool straight down, any turn."""
+    T_target = np.asarray(place.T_base_from_part, dtype=float)
+    if place.kind == "fixture":
+        return (T_target @ T_model_from_tool)[None]
+    angles = 2.0 * np.pi * np.arange(PLACE_TURNS) / PLACE_TURNS
+    if place.kind == "conveyor":
+        out = []
+        for a in angles:
+            spin = np.eye(4)
+            spin[:3, :3] = _rz(a)
+            out.append(_about(T_target[:3, 3]) @ spin @ _about(-T_target[:3, 3]) @ T_target @ T_model_from_tool)
+        return np.array(out)
+    centre_tool = invert_T(T_model_from_tool)[:3, :3] @ centre_m + invert_T(T_model_from_tool)[:3, 3]
+    down = np.diag([1.0, -1.0, -1.0])  # tool z along the base's -z
+    out = []
+    for a in angles:
+        R = _rz(a) @ down
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = T_target[:3, 3] - R @ centre_tool
+        out.append(T)
+    return np.array(out)
+
+
+def _rz(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _about(p: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, 3] = p
+    return T
+
+
+class ArmPlanner:
+    """The arm's checks for one capture: built once (the obstacle z-buffer), asked per grasp."""
+
+    def __init__(
+        self,
+        arm: ArmModel,
+        cell: CellParams,
+        T_base_from_cam: np.ndarray,
+        seen: DepthView,
+        wall_planes_cam: np.ndarray,
+        pregrasp_m: float,
+        retreat_m: float,
+        tool_points_tcp: np.ndarray | None = None,
+        tool_clearance_m: float = 0.0,
+        check_path: bool = True,
+    ) -> None:
+        """tool_points_tcp: (n, 3) the gripper's surface, tool frame, checked on the moves to the
+        pre-grasp and from the lift on (tool_clearance_m: pick.clearance_m; along the approach the
+        gripper check has it); check_path False: the grasp's own turn only, its path not checked
+        (today's hand-over of a gripper-only pick to the arm, the cell benchmark's baseline)."""
+        self.arm, self.cell = arm, cell
+        self.T_base_from_cam = np.asarray(T_base_from_cam, dtype=float)
+        self.T_cam_from_base = invert_T(self.T_base_from_cam)
+        self.T_tcp_from_flange = invert_T(np.asarray(cell.T_flange_from_tcp, dtype=float))
+        self.view = obstacle_view(seen, cell.arm_clearance_m + LINK_SAMPLE_SPACING_M / 2.0)
+        self.walls = np.asarray(wall_planes_cam, dtype=float).reshape(-1, 4)
+        self.pregrasp_m, self.retreat_m = pregrasp_m, retreat_m
+        self.limits = JointLimits(arm.max_velocity_rad_s, arm.max_acceleration_rad_s2).scaled(cell.speed_scaling)
+        self.margin = np.radians(cell.joint_limit_margin_deg)
+        self.check_path = check_path
+        tool = np.zeros((0, 3)) if tool_points_tcp is None else np.asarray(tool_points_tcp, dtype=float)
+        # The tool's points in the flange frame, carried by the last link (wrist 3).
+        T = np.asarray(cell.T_flange_from_tcp, dtype=float)
+        self.tool_points_flange = tool @ T[:3, :3].T + T[:3, 3]
+        self.tool_clearance_m = tool_clearance_m
+
+    def configuration(self, T_base_from_tcp: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, str | None]:
+        """The arm's configuration (6,) with the tool at T_base_from_tcp nearest q_ref, or NaN and why not."""
+        solutions = self.arm.ik(T_base_from_tcp @ self.T_tcp_from_flange)
+        choice = choose_configuration(
+            solutions,
+            q_ref,
+            self.arm.lower_rad,
+            self.arm.upper_rad,
+            self.limits.max_velocity,
+            self.margin,
+            ur_singularity_margin(solutions, self.arm.upper_arm_m, self.arm.forearm_m) if len(solutions) else None,
+            self.cell.min_singularity,
+        )
+        return choice.q, choice.reason
+
+    def plan(
+        self,
+        T_cam_from_tool: np.ndarray,
+        T_model_from_tool: np.ndarray,
+        kind: str,
+        centre_m: np.ndarray,
+        q_from: np.ndarray,
+    ) -> ArmMotion | str:
+        """The motion for the grasp of gripper `kind` at T_cam_from_tool (T_model_from_tool on the
+        part, whose centre is centre_m, model frame), the tool turned about its axis (turns_for)
+        to the turn the arm reaches with the least motion from q_from whose place is reachable
+        and whose path is clear; else why none is (the commonest reason)."""
+        reasons: Counter[str] = Counter()
+        reachable: list[tuple[float, float, dict[str, np.ndarray]]] = []
+        for angle in turns_for(kind, self.cell.turn_step_deg) if self.check_path else np.zeros(1):
+            q = self._in_bin(T_cam_from_tool, float(angle), q_from)
+            if isinstance(q, str):
+                reasons[q] += 1
+                continue
+            seconds = path_duration_s([q_from, q["pregrasp"], q["grasp"]], self.limits)
+            reachable.append((seconds, float(angle), q))
+        for _, angle, q in sorted(reachable, key=lambda c: c[0]):
+            placed = False
+            for q_above, q_place, T_place in self._places(turned(T_model_from_tool, angle), centre_m, q["lift"]):
+                placed = True
+                q.update(place_above=q_above, place=q_place)
+                for names in self._paths(T_cam_from_tool):
+                    path = [q_from] + [q[name] for name in names]
+                    hit = self.path_hit(path, _tool_checked(names)) if self.check_path else None
+                    if hit is None:
+                        seconds = path_duration_s(path, self.limits)
+                        return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names)
+                    reasons[hit] += 1
+            if not placed:
+                reasons[PLACE_UNREACHABLE] += 1
+        return reasons.most_common(1)[0][0] if reasons else UNREACHABLE
+
+    def _paths(self, T_cam_from_tool: np.ndarray) -> list[tuple[str, ...]]:
+        """The waypoint orders to try, quickest first: straight to the pre-grasp, else down from
+        the lift; out of the bin straight up to the lift when the approach is vertical (the
+        post-grasp lies on that line), else back along the approach first. Unchecked (check_path
+        False): the pick as today's pick list hands it over, pre-grasp, grasp, post-grasp, place."""
+        if not self.check_path:
+            return [("pregrasp", "grasp", "postgrasp", "place_above", "place")]
+        approach = (self.T_base_from_cam @ T_cam_from_tool)[:3, 2]
+        out = ("lift",) if approach[2] <= -np.cos(np.radians(VERTICAL_DEG)) else ("postgrasp", "lift")
+        down = ("pregrasp", "grasp", *out, "place_above", "place")
+        return [down, ("lift", *down)]
+
+    def _in_bin(self, T_cam_from_tool: np.ndarray, angle: float, q_from: np.ndarray) -> dict[str, np.ndarray] | str:
+        """The configurations at the grasp, pre-grasp, post-grasp and lift with the tool turned by
+        angle, on one branch of the arm's solutions; or why there are none."""
+        grasp = self.T_base_from_cam @ turned(T_cam_from_tool, angle)
+        approach = grasp[:3, 2]
+        poses = {"grasp": grasp, "pregrasp": _back(grasp, approach * self.pregrasp_m)}
+        poses["postgrasp"] = _back(grasp, approach * self.retreat_m)
+        poses["lift"] = raised(poses["postgrasp"], self.cell.lift_m)
+        q: dict[str, np.ndarray] = {}
+        for name, ref in (("grasp", None), ("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp")):
+            q_ref = q_from if ref is None else q[ref]
+            q[name], why = self.configuration(poses[name], q_ref)
+            if why:
+                return why
+            if ref is not None and np.max(np.abs(q[name] - q_ref)) > MAX_SHORT_MOVE_RAD:
+                return UNREACHABLE
+        return q
+
+    def _places(
+        self, T_model_from_tool: np.ndarray, centre_m: np.ndarray, q_lift: np.ndarray
+    ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """(q_place_above, q_place, T_base_from_place_tcp) for the part held by T_model_from_tool:
+        the place's reachable tool poses in order of the least turn of the tool about the vertical
+        from the lift (the wrist turns least)."""
+        T_lift = self.arm.flange_pose(q_lift) @ np.asarray(self.cell.T_flange_from_tcp, dtype=float)
+        candidates = place_tool_poses(self.cell.place, T_model_from_tool, centre_m)
+        yaw_lift = np.arctan2(T_lift[1, 0], T_lift[0, 0])
+        turn = np.abs(np.angle(np.exp(1j * (np.arctan2(candidates[:, 1, 0], candidates[:, 0, 0]) - yaw_lift))))
+        for k in np.argsort(turn, kind="stable"):
+            q_place, why = self.configuration(candidates[k], q_lift)
+            if why:
+                continue
+            q_above, why = self.configuration(raised(candidates[k], self.cell.place.above_m), q_place)
+            if why or np.max(np.abs(q_above - q_place)) > MAX_SHORT_MOVE_RAD:
+                continue
+            yield q_above, q_place, candidates[k]
+
+    def path_hit(self, waypoints: list[np.ndarray], with_tool: list[bool] | None = None) -> str | None:
+        """Why the straight joint-space path through the configurations is not clear (the links,
+        and the tool on the segments with_tool says, against the table and what the camera
+        measured), None when it is."""
+        flags = with_tool or [False] * (len(waypoints) - 1)
+        for tool in (False, True):
+            segments = [
+                line_samples(a, b, self.cell.max_step_rad)[1:]
+                for a, b, f in zip(waypoints[:-1], waypoints[1:], flags, strict=True)
+                if f == tool or not tool
+            ]
+            samples = np.concatenate(segments) if segments else np.zeros((0, 6))
+            for start in range(0, len(samples), PATH_CHUNK):
+                hit = self.configurations_hit(samples[start : start + PATH_CHUNK], tool)
+                if hit:
+                    return hit
+            if not any(flags):
+                break
+        return None
+
+    def configurations_hit(self, q: np.ndarray, with_tool: bool = False) -> str | None:
+        """Why the arm at any of the configurations q (N, 6) touches the table it stands on
+        (HITS_TABLE: below cell.table_z_m, the camera need not see it) or what the camera measured
+        (HITS_WALL near a wall plane of the capture, HITS_SCENE elsewhere), None when none does."""
+        points, link = self.arm.surface_points(q)
+        moving = points[:, link > 0].reshape(-1, 3)  # the base link stands still beside the bin
+        clearance = np.full(len(moving), self.cell.arm_clearance_m)
+        if with_tool and len(self.tool_points_flange):
+            flange = self.arm.flange_poses(q)
+            tool = (
+                np.matmul(self.tool_points_flange[None], flange[:, :3, :3].transpose(0, 2, 1)) + flange[:, None, :3, 3]
+            )
+            moving = np.concatenate([moving, tool.reshape(-1, 3)])
+            clearance = np.concatenate([clearance, np.full(tool.shape[0] * tool.shape[1], self.tool_clearance_m)])
+        if np.any(moving[:, 2] < self.cell.table_z_m + clearance):
+            return HITS_TABLE
+        cam = moving @ self.T_cam_from_base[:3, :3].T + self.T_cam_from_base[:3, 3]
+        hit = collides(cam, self.view, clearance)
+        if not hit.any():
+            return None
+        return HITS_WALL if near_planes(cam[hit], self.walls, WALL_BAND_M).any() else HITS_SCENE
+
+
+def _tool_checked(names: tuple[str, ...]) -> list[bool]:
+    """Per segment of a path (from its start through names): whether the tool is checked on it;
+    not from the pre-grasp down to the grasp and back out to the lift (the gripper check's)."""
+    starts = ("from", *names[:-1])
+    along_approach = {("pregrasp", "grasp"), ("grasp", "postgrasp"), ("grasp", "lift"), ("postgrasp", "lift")}
+    return [(a, b) not in along_approach for a, b in zip(starts, names, strict=True)]
+
+
+def _back(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    out = np.array(T, dtype=float)
+    out[:3, 3] -= offset
+    return out
+
+
+def turns_for(kind: str, step_deg: float) -> np.ndarray:
+    """The turns about the tool axis a grasp of this kind may take: a suction cup's any (in
+    steps), the jaws' half a turn (the jaws are symmetric)."""
+    if kind == "suction":
+        return np.radians(np.arange(0.0, 360.0, step_deg))
+    return np.array([0.0, np.pi])

@@ -1,0 +1,191 @@
+"""The running cell: the loop against the simulated robot, the real robot's driver against a fake
+of ur_rtde's Python API, and the physics of a hold; each recovers a known answer."""
+
+from __future__ import annotations
+
+import json
+import threading
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from binpick.cell.robot import ARM_STOPPED, GRASP_LOST, NO_GRIP, RobotStopped, URRobot, execute_pick
+from binpick.errors import BinpickError
+from binpick.layout import Layout
+from binpick.params import load_params
+from binpick.picking.arm import ArmMotion
+from binpick.robot.trajectory import JointLimits
+
+PARAMS = load_params(ROOT / "params.yaml", "t_joint")
+PATH = ("pregrasp", "grasp", "lift", "place_above", "place")
+
+
+@pytest.fixture(scope="module")
+def models(t_joint):
+    # Registration over the whole scene (no network), grasps generated, the arm checked.
+    import dataclasses
+
+    from flows.bench.picking import bench_models
+
+    return dataclasses.replace(bench_models(t_joint, PARAMS, None), cell_params=PARAMS.cell)
+
+
+def test_the_cell_empties_a_simulated_bin_and_keeps_every_cycle(tmp_path, t_joint, models):
+    from flows.cell_run import run_cell, simulated_cell
+
+    sim, camera = simulated_cell(PARAMS, t_joint, 3, seed=4)
+    start = len(sim.part_poses()[1])
+    summary = run_cell(tmp_path, PARAMS, "t_joint", sim, camera, models, max_cycles=6)
+    left = int(sim.in_bin().sum())
+    sim.close()
+    cycles = sorted(p for p in summary.folder.iterdir() if p.is_dir())
+    states = [json.loads((c / "cycle.json").read_text())["state"] for c in cycles]
+    assert len(cycles) == summary.cycles and states.count("placed") == summary.placed
+    # Every part placed left the bin, and only those.
+    assert start == 3 and left == start - summary.placed and summary.placed >= 2
+    for c, state in zip(cycles, states, strict=True):
+        assert (c / "capture.zdf").is_file()
+        if state == "placed":
+            record = json.loads((c / "cycle.json").read_text())
+            pick = json.loads((c / "picks.json").read_text())["picks"][0]
+            assert record["path"] == pick["arm"]["path"] and record["joints_rad"]["grasp"] == pytest.approx(
+                pick["arm"]["joints_rad"]["grasp"], abs=1e-6
+            )
+    assert summary.ended in ("bin empty", "6 cycles done", "3 attempts in a row failed")
+
+
+def test_a_stop_request_ends_the_run_before_the_next_cycle(tmp_path, models):
+    from flows.cell_run import run_cell
+
+    class Untouched:
+        def grab(self):
+            raise AssertionError("no capture after a stop")
+
+    Layout(tmp_path).cell_stop.parent.mkdir(parents=True)
+    Layout(tmp_path).cell_stop.touch()
+    summary = run_cell(tmp_path, PARAMS, "t_joint", None, Untouched(), models)  # type: ignore[arg-type]
+    assert summary.cycles == 0 and summary.ended == "stop requested"
+    stop = threading.Event()
+    stop.set()
+    Layout(tmp_path).cell_stop.unlink()
+    assert run_cell(tmp_path, PARAMS, "t_joint", None, Untouched(), models, stop=stop).ended == "stop requested"  # type: ignore[arg-type]
+
+
+class FakeRTDE:
+    """ur_rtde's three interfaces, recording what they are sent."""
+
+    def __init__(self, vacuum: list[bool], move_ok: bool = True, protective: bool = False) -> None:
+        self.moves: list[list[list[float]]] = []
+        self.outputs: list[tuple[int, bool]] = []
+        fake = self
+
+        class Control:
+            def __init__(self, host):
+                fake.host = host
+
+            def moveJ(self, path, asynchronous=False):
+                fake.moves.append(path)
+                return move_ok
+
+            def stopScript(self):
+                pass
+
+            def disconnect(self):
+                fake.disconnected = True
+
+        class Receive:
+            def __init__(self, host):
+                pass
+
+            def getActualQ(self):
+                return [0.1] * 6
+
+            def getDigitalInState(self, pin):
+                return vacuum.pop(0)
+
+            def isEmergencyStopped(self):
+                return False
+
+            def isProtectiveStopped(self):
+                return protective
+
+        class IO:
+            def __init__(self, host):
+                pass
+
+            def setStandardDigitalOut(self, pin, value):
+                fake.outputs.append((pin, value))
+
+        self.modules = tuple(
+            type("m", (), {name: cls})
+            for name, cls in (
+                ("RTDEControlInterface", Control),
+                ("RTDEReceiveInterface", Receive),
+                ("RTDEIOInterface", IO),
+            )
+        )
+
+
+def _motion() -> ArmMotion:
+    q = {name: np.full(6, 0.1 * (k + 1)) for k, name in enumerate(PATH)}
+    return ArmMotion(q, 0.0, np.eye(4), 3.0, PATH)
+
+
+def _robot(fake: FakeRTDE, vacuum_in: int | None = 3) -> URRobot:
+    limits = JointLimits(np.array([3.1, 3.1, 3.1, 6.2, 6.2, 6.2]), np.full(6, 2.5)).scaled(0.5)
+    return URRobot("10.0.0.5", limits, 1, vacuum_in, 0.0, 0.0, fake.modules)
+
+
+def test_the_real_arm_is_sent_the_plan_and_its_vacuum_is_read():
+    fake = FakeRTDE(vacuum=[True, True])
+    robot = _robot(fake)
+    assert execute_pick(robot, _motion()) == "placed"
+    # To the grasp, then out and over to the place: each configuration at rest (blend 0), at the
+    # slowest joint's speed and acceleration times the scaling.
+    assert [[m[:6] for m in move] for move in fake.moves] == [
+        [[0.1] * 6, [0.2] * 6],
+        [[pytest.approx(0.3)] * 6, [0.4] * 6, [0.5] * 6],
+    ]
+    assert all(m[6:] == [pytest.approx(1.55), pytest.approx(0.625), 0.0] for move in fake.moves for m in move)
+    assert fake.outputs == [(1, True), (1, False)] and fake.host == "10.0.0.5"
+    assert robot.joints() == pytest.approx([0.1] * 6)
+
+
+def test_no_vacuum_at_the_grasp_and_a_lost_part_and_a_stop_are_named():
+    fake = FakeRTDE(vacuum=[False])
+    assert execute_pick(_robot(fake), _motion()) == NO_GRIP
+    # The vacuum is switched off again and the arm backs out along the approach.
+    assert fake.outputs == [(1, True), (1, False)] and [m[:6] for m in fake.moves[-1]] == [[0.1] * 6]
+    assert execute_pick(_robot(FakeRTDE(vacuum=[True, False])), _motion()) == GRASP_LOST
+    stopped = FakeRTDE(vacuum=[True], move_ok=False, protective=True)
+    assert execute_pick(_robot(stopped), _motion()) == ARM_STOPPED
+    with pytest.raises(RobotStopped, match="protective stop"):
+        _robot(stopped).move([np.zeros(6)])
+
+
+def test_without_ur_rtde_the_real_driver_says_what_to_install(monkeypatch):
+    monkeypatch.setitem(__import__("sys").modules, "rtde_control", None)
+    limits = JointLimits(np.full(6, 3.1), np.full(6, 2.5))
+    with pytest.raises(BinpickError, match=r"pip install -e \.\[robot\]"):
+        URRobot("10.0.0.5", limits, 0, None, 0.0, 0.0)
+
+
+def test_the_cup_lifts_a_part_within_its_holding_force_and_loses_a_heavier_one(t_joint, models):
+    from flows.cell_run import simulated_cell
+
+    outcomes = {}
+    for density in (2700.0, 2700.0 * 40):  # 0.05 kg, and 1.9 kg: 18 N on a 4.5 N cup
+        p = PARAMS.model_copy(
+            update={"parts": {"t_joint": PARAMS.parts["t_joint"].model_copy(update={"density_kg_m3": density})}}
+        )
+        sim, camera = simulated_cell(p, t_joint, 1, seed=2)
+        capture = camera.grab()
+        from binpick.scene.process import process
+        from binpick.seeding import SceneSeeds
+
+        plan = process(capture.xyz_m, None, capture.shape, models, SceneSeeds.of(0, "hold"), sim.joints()).picks
+        assert plan is not None and plan.picks and plan.picks[0].arm is not None
+        outcomes[density] = sim.execute(plan.picks[0].arm, sim.joints()).outcome
+        sim.close()
+    assert outcomes == {2700.0: "placed", 2700.0 * 40: "dropped"}
