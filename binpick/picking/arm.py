@@ -1,18 +1,22 @@
 """Picks the arm can execute: a grasp the gripper check kept (picking/plan.py) is given to the arm,
 turned about the suction cup's axis (or the jaws flipped) to the turn the arm reaches with the
 least motion, away from its joint limits and singularities, and kept only when the arm's links
-stay clear of what the camera measured from the lift above the bin, down along the approach, up
-out of the bin and over to the place, and the place is reachable holding the part by this grasp.
+stay clear of the table and of what the camera measured all the way from where the arm is, down
+along the approach, up out of the bin and over to the place (the gripper too, outside the
+approach), and the place is reachable holding the part by this grasp.
 
 Frames: base (the robot's), camera, tool (the tool centre point, z the approach), flange; a pose
 T_a_from_b maps b coordinates to a. Motion is in joint space along straight lines (robot/trajectory.py).
 
-The motion of one pick, through the named configurations:
-from (home or the last place) -> lift -> pregrasp -> grasp -> postgrasp -> lift -> place_above -> place
-where lift is the post-grasp pose raised by cell.lift_m along the base's vertical, and the
-approach comes down from it. The target part itself is not an obstacle of the links (the tool
-meets it; the gripper check has the tool), and the arm's base link is left out (it stands beside the
-bin and does not move). The held part is not checked against the bin on the way out.
+The motion of one pick, through the named configurations (ArmMotion.path, the first of these
+whose path is clear):
+from (home or the last place) -> pregrasp -> grasp -> [postgrasp ->] lift -> [place_above ->] place
+from -> lift -> pregrasp -> grasp -> [postgrasp ->] lift -> [place_above ->] place
+where lift is the post-grasp pose raised by cell.lift_m along the base's vertical; the post-grasp
+is left out when the approach is vertical (it lies on the way up), place_above at a drop zone (the
+part is let go from above). The target part itself is not an obstacle of the links (the tool meets
+it; the gripper check has the tool), and the arm's base link is left out (it stands beside the bin
+and does not move). The held part is not checked against the bin on the way out.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ from binpick.registration.visibility import DepthView
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.clearance import collides, near_planes, obstacle_view
 from binpick.robot.configuration import JOINT_LIMIT, SINGULAR, UNREACHABLE, choose_configuration, ur_singularity_margin
-from binpick.robot.trajectory import JointLimits, line_samples, path_duration_s
+from binpick.robot.trajectory import JointLimits, duration_s, line_samples, path_duration_s
 
 WAYPOINTS = ("lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
 # Reasons the arm refuses a grasp (beside robot.configuration's unreachable, joint limit, singular).
@@ -158,8 +162,16 @@ class ArmPlanner:
         self.tool_clearance_m = tool_clearance_m
 
     def configuration(self, T_base_from_tcp: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, str | None]:
-        """The arm's configuration (6,) with the tool at T_base_from_tcp nearest q_ref, or NaN and why not."""
+        """The arm's configuration (6,) with the tool at T_base_from_tcp nearest q_ref, or NaN and why
+        not; solutions that put a link below the table are not candidates (an elbow-down branch
+        where the elbow-up one reaches)."""
         solutions = self.arm.ik(T_base_from_tcp @ self.T_tcp_from_flange)
+        if len(solutions) and self.check_path:
+            points, link = self.arm.surface_points(solutions)
+            above = np.all(points[:, link > 0, 2] >= self.cell.table_z_m + self.cell.arm_clearance_m, axis=1)
+            if not above.any():
+                return np.full(6, np.nan), HITS_TABLE
+            solutions = solutions[above]
         choice = choose_configuration(
             solutions,
             q_ref,
@@ -185,15 +197,20 @@ class ArmPlanner:
         to the turn the arm reaches with the least motion from q_from whose place is reachable
         and whose path is clear; else why none is (the commonest reason)."""
         reasons: Counter[str] = Counter()
-        reachable: list[tuple[float, float, dict[str, np.ndarray]]] = []
+        # The turns ranked by the move to their grasp configuration; the rest of a turn's motion is
+        # worked out only when it comes up (most picks take the first).
+        reachable: list[tuple[float, float, np.ndarray]] = []
         for angle in turns_for(kind, self.cell.turn_step_deg) if self.check_path else np.zeros(1):
-            q = self._in_bin(T_cam_from_tool, float(angle), q_from)
+            q_grasp, why = self.configuration(self.T_base_from_cam @ turned(T_cam_from_tool, float(angle)), q_from)
+            if why:
+                reasons[why] += 1
+                continue
+            reachable.append((duration_s(q_from, q_grasp, self.limits), float(angle), q_grasp))
+        for _, angle, q_grasp in sorted(reachable, key=lambda c: c[0]):
+            q = self._in_bin(T_cam_from_tool, angle, q_grasp)
             if isinstance(q, str):
                 reasons[q] += 1
                 continue
-            seconds = path_duration_s([q_from, q["pregrasp"], q["grasp"]], self.limits)
-            reachable.append((seconds, float(angle), q))
-        for _, angle, q in sorted(reachable, key=lambda c: c[0]):
             placed = False
             for q_above, q_place, T_place in self._places(turned(T_model_from_tool, angle), centre_m, q["lift"]):
                 placed = True
@@ -218,24 +235,25 @@ class ArmPlanner:
             return [("pregrasp", "grasp", "postgrasp", "place_above", "place")]
         approach = (self.T_base_from_cam @ T_cam_from_tool)[:3, 2]
         out = ("lift",) if approach[2] <= -np.cos(np.radians(VERTICAL_DEG)) else ("postgrasp", "lift")
-        down = ("pregrasp", "grasp", *out, "place_above", "place")
+        # A drop zone takes the part from above: no coming down onto it.
+        place = ("place",) if self.cell.place.kind == "drop" else ("place_above", "place")
+        down = ("pregrasp", "grasp", *out, *place)
         return [down, ("lift", *down)]
 
-    def _in_bin(self, T_cam_from_tool: np.ndarray, angle: float, q_from: np.ndarray) -> dict[str, np.ndarray] | str:
-        """The configurations at the grasp, pre-grasp, post-grasp and lift with the tool turned by
-        angle, on one branch of the arm's solutions; or why there are none."""
+    def _in_bin(self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray) -> dict[str, np.ndarray] | str:
+        """The configurations at the pre-grasp, post-grasp and lift with the tool turned by angle, on
+        the branch of the grasp's (q_grasp), with it; or why there are none."""
         grasp = self.T_base_from_cam @ turned(T_cam_from_tool, angle)
         approach = grasp[:3, 2]
         poses = {"grasp": grasp, "pregrasp": _back(grasp, approach * self.pregrasp_m)}
         poses["postgrasp"] = _back(grasp, approach * self.retreat_m)
         poses["lift"] = raised(poses["postgrasp"], self.cell.lift_m)
-        q: dict[str, np.ndarray] = {}
-        for name, ref in (("grasp", None), ("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp")):
-            q_ref = q_from if ref is None else q[ref]
-            q[name], why = self.configuration(poses[name], q_ref)
+        q: dict[str, np.ndarray] = {"grasp": q_grasp}
+        for name, ref in (("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp")):
+            q[name], why = self.configuration(poses[name], q[ref])
             if why:
                 return why
-            if ref is not None and np.max(np.abs(q[name] - q_ref)) > MAX_SHORT_MOVE_RAD:
+            if np.max(np.abs(q[name] - q[ref])) > MAX_SHORT_MOVE_RAD:
                 return UNREACHABLE
         return q
 
