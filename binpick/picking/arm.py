@@ -21,6 +21,7 @@ and does not move). The held part is not checked against the bin on the way out.
 
 from __future__ import annotations
 
+import itertools
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -51,6 +52,8 @@ WALL_BAND_M = 0.03
 MAX_SHORT_MOVE_RAD = 1.0
 # An approach within this of straight down leaves the bin straight up (no separate retreat).
 VERTICAL_DEG = 1.0
+# Of a grasp's turns the least-motion ones whose paths are checked, and of the place's poses for each.
+MAX_TURNS_CHECKED, MAX_PLACES_CHECKED = 6, 4
 # Configurations whose links are checked in one pass.
 PATH_CHUNK = 64
 # Turns tried about the vertical at a conveyor and a drop zone.
@@ -206,39 +209,57 @@ class ArmPlanner:
                 reasons[why] += 1
                 continue
             reachable.append((duration_s(q_from, q_grasp, self.limits), float(angle), q_grasp))
-        for _, angle, q_grasp in sorted(reachable, key=lambda c: c[0]):
+        # The pick side (to the grasp and up to the lift) and the place side (from the lift on) are
+        # checked apart: a turn whose pick side is blocked is not tried again for every place.
+        for _, angle, q_grasp in sorted(reachable, key=lambda c: c[0])[:MAX_TURNS_CHECKED]:
             q = self._in_bin(T_cam_from_tool, angle, q_grasp)
             if isinstance(q, str):
                 reasons[q] += 1
                 continue
-            placed = False
-            for q_above, q_place, T_place in self._places(turned(T_model_from_tool, angle), centre_m, q["lift"]):
+            pick_side = self._clear_pick_side(T_cam_from_tool, q, q_from)
+            if isinstance(pick_side, str):
+                reasons[pick_side] += 1
+                continue
+            placed, hit = False, None
+            places = self._places(turned(T_model_from_tool, angle), centre_m, q["lift"])
+            for q_above, q_place, T_place in itertools.islice(places, MAX_PLACES_CHECKED):
                 placed = True
                 q.update(place_above=q_above, place=q_place)
-                for names in self._paths(T_cam_from_tool):
+                if self.check_path:
+                    # A drop zone takes the part from above: no coming down onto it.
+                    place_side = ("place",) if self.cell.place.kind == "drop" else ("place_above", "place")
+                    hit = self.path_hit([q[pick_side[-1]]] + [q[n] for n in place_side], [True] * len(place_side))
+                else:
+                    place_side, hit = ("place_above", "place"), None
+                if hit is None:
+                    names = pick_side + place_side
                     path = [q_from] + [q[name] for name in names]
-                    hit = self.path_hit(path, _tool_checked(names)) if self.check_path else None
-                    if hit is None:
-                        seconds = path_duration_s(path, self.limits)
-                        return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names)
-                    reasons[hit] += 1
+                    seconds = path_duration_s(path, self.limits)
+                    return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names)
             if not placed:
                 reasons[PLACE_UNREACHABLE] += 1
+            elif hit is not None:
+                reasons[hit] += 1
         return reasons.most_common(1)[0][0] if reasons else UNREACHABLE
 
-    def _paths(self, T_cam_from_tool: np.ndarray) -> list[tuple[str, ...]]:
-        """The waypoint orders to try, quickest first: straight to the pre-grasp, else down from
-        the lift; out of the bin straight up to the lift when the approach is vertical (the
-        post-grasp lies on that line), else back along the approach first. Unchecked (check_path
-        False): the pick as today's pick list hands it over, pre-grasp, grasp, post-grasp, place."""
+    def _clear_pick_side(
+        self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray
+    ) -> tuple[str, ...] | str:
+        """The waypoints from q_from down to the grasp and up out of the bin, the first order whose
+        path is clear (straight to the pre-grasp, else down from the lift; out straight up to the
+        lift when the approach is vertical, else back along it first); or why neither is.
+        Unchecked (check_path False): the pick as today's pick list hands it over."""
         if not self.check_path:
-            return [("pregrasp", "grasp", "postgrasp", "place_above", "place")]
+            return ("pregrasp", "grasp", "postgrasp")
         approach = (self.T_base_from_cam @ T_cam_from_tool)[:3, 2]
         out = ("lift",) if approach[2] <= -np.cos(np.radians(VERTICAL_DEG)) else ("postgrasp", "lift")
-        # A drop zone takes the part from above: no coming down onto it.
-        place = ("place",) if self.cell.place.kind == "drop" else ("place_above", "place")
-        down = ("pregrasp", "grasp", *out, *place)
-        return [down, ("lift", *down)]
+        hit = None
+        for names in (("pregrasp", "grasp", *out), ("lift", "pregrasp", "grasp", *out)):
+            hit = self.path_hit([q_from] + [q[name] for name in names], _tool_checked(names))
+            if hit is None:
+                return names
+        assert hit is not None
+        return hit
 
     def _in_bin(self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray) -> dict[str, np.ndarray] | str:
         """The configurations at the pre-grasp, post-grasp and lift with the tool turned by angle, on
