@@ -43,8 +43,9 @@ LIP_RAYS = 16
 # The planned contact lies within this of the part's true surface along the approach, or the
 # cup meets air (or presses in).
 CONTACT_TOLERANCE_M = 0.002
-# A held part this far from where the hold put it has torn off the cup (slipped out of the jaws).
-SLIP_M = 0.005
+# A held part this far from where the hold put it has torn off the cup (slipped out of the jaws);
+# so has one the hold pulls with its full force for this many contact checks in a row (50 ms).
+SLIP_M, OVERLOAD_CHECKS = 0.02, 3
 # Parts still faster than this after the pick are left to settle (at most SETTLE_S).
 REST_SPEED_M_S, SETTLE_S = 0.002, 1.5
 FRICTION = 0.6
@@ -69,6 +70,7 @@ class Execution:
     double: int = 0
     motion_s: float = 0.0
     out_of_view_s: float = 0.0
+    lost: str = ""  # a dropped part: what it touched as it tore off
 
 
 def in_view_of(camera: PinholeCamera, T_cam_from_bin: np.ndarray) -> Callable[[np.ndarray], bool]:
@@ -143,13 +145,15 @@ class SimulatedCell:
         self.tool = self._add_tool()
         self.hold: int | None = None
         self.aimed: int | None = None
+        # The hold's force limit (simulator units) and the checks in a row it pulled with all of it.
+        self.hold_force, self.overloaded = 0.0, 0
         # One pick's record: the simulated clock, what was touched, when the grip came and the arm
         # left the camera's view after it, the part held, whether it arrived, parts out with it.
         self.clock_s, self.touched = 0.0, set[str]()
         self.gripped_at_s: float | None = None
         self.out_of_view_s: float | None = None
         self.target: int | None = None
-        self.arrived, self.double = False, 0
+        self.arrived, self.double, self.lost = False, 0, ""
         self.q = np.asarray(cell.home_q_rad, dtype=float)
         self._pose_arm(self.q, np.zeros(6))
 
@@ -370,7 +374,7 @@ class SimulatedCell:
         left to settle: what it did, for the benchmark's judge."""
         assert np.allclose(q_from, self.q, atol=1e-6), "the arm is not where the plan starts"
         self.clock_s, self.touched, self.gripped_at_s, self.out_of_view_s = 0.0, set(), None, None
-        self.target, self.arrived, self.double = None, False, 0
+        self.target, self.arrived, self.double, self.lost = None, False, 0, ""
         state = execute_pick(self, plan, width_m)
         if state == "placed":
             outcome = "placed" if self.arrived else "misplaced"
@@ -386,6 +390,7 @@ class SimulatedCell:
             self.double,
             self.clock_s,
             self.out_of_view_s if self.out_of_view_s is not None else self.clock_s,
+            self.lost,
         )
 
     def _dwell(self, seconds: float) -> float:
@@ -465,18 +470,33 @@ class SimulatedCell:
         return bool(self.in_view(points))
 
     def _slipped(self) -> bool:
-        """Whether the held part has moved SLIP_M from where the hold keeps it in the tool frame."""
+        """Whether the hold tears: its constraint has pulled with the full holding force for
+        OVERLOAD_CHECKS checks in a row (the seal gives, the jaws slide), or the part has moved
+        SLIP_M from where the hold keeps it in the tool frame."""
         assert self.hold is not None
         body = self.parts[self.hold]
         assert body is not None
+        force = np.linalg.norm(self.pb.getConstraintState(self.constraint, physicsClientId=self.client)[:3])
+        self.overloaded = self.overloaded + 1 if force >= 0.99 * self.hold_force else 0
         T_tcp = self.tcp_pose(self.q_ahead)
-        return bool(
-            np.linalg.norm((invert_T(T_tcp) @ self._body_pose(body))[:3, 3] - self.T_tcp_from_body[:3, 3]) > SLIP_M
-        )
+        off = np.linalg.norm((invert_T(T_tcp) @ self._body_pose(body))[:3, 3] - self.T_tcp_from_body[:3, 3])
+        return bool(self.overloaded >= OVERLOAD_CHECKS or off > SLIP_M)
 
     def _let_go(self) -> None:
-        """The hold is lost: the part falls where it is, and collides again."""
+        """The hold is lost: the part falls where it is, and collides again; `lost` says what the
+        part touched as it tore off."""
         assert self.hold is not None
+        body = self.parts[self.hold]
+        part_index = {b: i for i, b in enumerate(self.parts) if b is not None}
+        touching = {
+            "another part" if c[2] in part_index else self.body_names.get(c[2], "the arm")
+            for c in self.pb.getContactPoints(bodyA=body, physicsClientId=self.client)
+        }
+        where = self.tcp_pose(self.q_now)[:3, 3]
+        self.lost = (f"touching {' and '.join(sorted(touching))}" if touching else "touching nothing") + (
+            f", {1000 * (self.clock_s - (self.gripped_at_s or 0.0)):.0f} ms after the grip, the tool at"
+            f" ({where[0]:.2f}, {where[1]:.2f}, {where[2]:.2f}) m in the bin frame"
+        )
         self.pb.removeConstraint(self.constraint, physicsClientId=self.client)
         self._collide(self.tool, self.hold, True)
         self._collide(self.robot, self.hold, True)
@@ -516,7 +536,8 @@ class SimulatedCell:
             else 2.0 * np.tan(np.radians(self.pick.jaw.friction_deg)) * self.pick.jaw.grip_force_n
         )
         # Forces in the scaled world: kg * (m * SCALE) / s^2.
-        pb.changeConstraint(self.constraint, maxForce=float(force) * SCALE, physicsClientId=c)
+        self.hold_force, self.overloaded = float(force) * SCALE, 0
+        pb.changeConstraint(self.constraint, maxForce=self.hold_force, physicsClientId=c)
         self.hold = held
         return held
 

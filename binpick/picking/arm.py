@@ -10,13 +10,14 @@ T_a_from_b maps b coordinates to a. Motion is in joint space along straight line
 
 The motion of one pick, through the named configurations (ArmMotion.path, the first of these
 whose path is clear):
-from (home or the last place) -> pregrasp -> grasp -> [postgrasp ->] lift -> [place_above ->] place
-from -> lift -> pregrasp -> grasp -> [postgrasp ->] lift -> [place_above ->] place
-where lift is the post-grasp pose raised by cell.lift_m along the base's vertical; the post-grasp
-is left out when the approach is vertical (it lies on the way up), place_above at a drop zone (the
-part is let go from above). The target part itself is not an obstacle of the links (the tool meets
-it; the gripper check has the tool), and the arm's base link is left out (it stands beside the bin
-and does not move). The held part is not checked against the bin on the way out.
+from (home or the last place) -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
+from -> lift -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
+where lift is the post-grasp pose raised by cell.lift_m along the base's vertical; place_above is
+left out at a drop zone (the part is let go from above). The target part itself is not an obstacle
+of the links (the tool meets it; the gripper check has the tool), and the arm's base link is left
+out (it stands beside the bin and does not move). The held part is checked (a sample about a
+centimetre apart) from the lift on, not on its way up out of the pile (a neighbour lying on it,
+which the camera may not show, is the physics cell's to find).
 """
 
 from __future__ import annotations
@@ -50,8 +51,6 @@ WALL_BAND_M = 0.03
 # Consecutive configurations of the short moves in the bin (5-20 cm) turn no joint further than this:
 # more means the solver jumped to another branch (near a singularity), not a move to make.
 MAX_SHORT_MOVE_RAD = 1.0
-# An approach within this of straight down leaves the bin straight up (no separate retreat).
-VERTICAL_DEG = 1.0
 # Of a grasp's turns the least-motion ones whose paths are checked, and of the place's poses for each.
 MAX_TURNS_CHECKED, MAX_PLACES_CHECKED = 6, 4
 # Configurations whose links are checked in one pass.
@@ -194,6 +193,7 @@ class ArmPlanner:
         kind: str,
         centre_m: np.ndarray,
         q_from: np.ndarray,
+        part_points_m: np.ndarray | None = None,
     ) -> ArmMotion | str:
         """The motion for the grasp of gripper `kind` at T_cam_from_tool (T_model_from_tool on the
         part, whose centre is centre_m, model frame), the tool turned about its axis (turns_for)
@@ -228,7 +228,16 @@ class ArmPlanner:
                 if self.check_path:
                     # A drop zone takes the part from above: no coming down onto it.
                     place_side = ("place",) if self.cell.place.kind == "drop" else ("place_above", "place")
-                    hit = self.path_hit([q[pick_side[-1]]] + [q[n] for n in place_side], [True] * len(place_side))
+                    # The part hangs from the tool from the lift on: it must clear the bin's walls too.
+                    carried = None
+                    if part_points_m is not None:
+                        T = np.asarray(self.cell.T_flange_from_tcp, dtype=float) @ invert_T(
+                            turned(T_model_from_tool, angle)
+                        )
+                        carried = part_points_m @ T[:3, :3].T + T[:3, 3]
+                    hit = self.path_hit(
+                        [q[pick_side[-1]]] + [q[n] for n in place_side], [True] * len(place_side), carried
+                    )
                 else:
                     place_side, hit = ("place_above", "place"), None
                 if hit is None:
@@ -246,13 +255,14 @@ class ArmPlanner:
         self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray
     ) -> tuple[str, ...] | str:
         """The waypoints from q_from down to the grasp and up out of the bin, the first order whose
-        path is clear (straight to the pre-grasp, else down from the lift; out straight up to the
-        lift when the approach is vertical, else back along it first); or why neither is.
+        path is clear (straight to the pre-grasp, else down from the lift; out back along the
+        approach to the post-grasp, then up to the lift); or why neither is.
         Unchecked (check_path False): the pick as today's pick list hands it over."""
         if not self.check_path:
             return ("pregrasp", "grasp", "postgrasp")
-        approach = (self.T_base_from_cam @ T_cam_from_tool)[:3, 2]
-        out = ("lift",) if approach[2] <= -np.cos(np.radians(VERTICAL_DEG)) else ("postgrasp", "lift")
+        # Out along the approach first, whatever its direction: a joint-space line straight from the
+        # grasp to the lift strays sideways by centimetres and drags the part along its neighbours.
+        out = ("postgrasp", "lift")
         hit = None
         for names in (("pregrasp", "grasp", *out), ("lift", "pregrasp", "grasp", *out)):
             hit = self.path_hit([q_from] + [q[name] for name in names], _tool_checked(names))
@@ -297,10 +307,12 @@ class ArmPlanner:
                 continue
             yield q_above, q_place, candidates[k]
 
-    def path_hit(self, waypoints: list[np.ndarray], with_tool: list[bool] | None = None) -> str | None:
+    def path_hit(
+        self, waypoints: list[np.ndarray], with_tool: list[bool] | None = None, carried: np.ndarray | None = None
+    ) -> str | None:
         """Why the straight joint-space path through the configurations is not clear (the links,
-        and the tool on the segments with_tool says, against the table and what the camera
-        measured), None when it is."""
+        and the tool on the segments with_tool says, with the part it carries there: carried (k, 3)
+        flange frame, against the table and what the camera measured), None when it is."""
         flags = with_tool or [False] * (len(waypoints) - 1)
         for tool in (False, True):
             segments = [
@@ -310,25 +322,28 @@ class ArmPlanner:
             ]
             samples = np.concatenate(segments) if segments else np.zeros((0, 6))
             for start in range(0, len(samples), PATH_CHUNK):
-                hit = self.configurations_hit(samples[start : start + PATH_CHUNK], tool)
+                hit = self.configurations_hit(samples[start : start + PATH_CHUNK], tool, carried if tool else None)
                 if hit:
                     return hit
             if not any(flags):
                 break
         return None
 
-    def configurations_hit(self, q: np.ndarray, with_tool: bool = False) -> str | None:
+    def configurations_hit(
+        self, q: np.ndarray, with_tool: bool = False, carried: np.ndarray | None = None
+    ) -> str | None:
         """Why the arm at any of the configurations q (N, 6) touches the table it stands on
         (HITS_TABLE: below cell.table_z_m, the camera need not see it) or what the camera measured
         (HITS_WALL near a wall plane of the capture, HITS_SCENE elsewhere), None when none does."""
         points, link = self.arm.surface_points(q)
         moving = points[:, link > 0].reshape(-1, 3)  # the base link stands still beside the bin
         clearance = np.full(len(moving), self.cell.arm_clearance_m)
-        if with_tool and len(self.tool_points_flange):
+        on_flange = self.tool_points_flange if with_tool else np.zeros((0, 3))
+        if carried is not None:
+            on_flange = np.concatenate([on_flange, carried])
+        if len(on_flange):
             flange = self.arm.flange_poses(q)
-            tool = (
-                np.matmul(self.tool_points_flange[None], flange[:, :3, :3].transpose(0, 2, 1)) + flange[:, None, :3, 3]
-            )
+            tool = np.matmul(on_flange[None], flange[:, :3, :3].transpose(0, 2, 1)) + flange[:, None, :3, 3]
             moving = np.concatenate([moving, tool.reshape(-1, 3)])
             clearance = np.concatenate([clearance, np.full(tool.shape[0] * tool.shape[1], self.tool_clearance_m)])
         if np.any(moving[:, 2] < self.cell.table_z_m + clearance):

@@ -70,6 +70,9 @@ OBSTACLE_GRID_M = 0.001
 # smallest primitive (a 5 mm cup) cannot slip between its points, whatever the part's size (a
 # fixed count of 1,500 left 7.7 mm between the points of the 0.44 m gear shaft).
 PART_OBSTACLE_GRID_M = 0.003
+# The held part's sample on the arm's way out spaced about this (the walls it must clear are
+# centimetres thick).
+CARRIED_GRID_M = 0.01
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
@@ -217,6 +220,8 @@ def plan_picks(
     # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
     model_sample = part_points[:: max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
     posed = [transform_points(T, model_sample) for T in T_cam_from_model]
+    # The part as the arm carries it out of the bin, about a centimetre between points.
+    carried_sample = part_points[:: max(1, int((CARRIED_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
     captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
     # Obstacle points with their source: -1 captured, -2 the given bin, k >= 0 detected part k.
     chunks = [captured] + ([bin_box.surface_points(grid * 2)] if bin_box is not None else []) + posed
@@ -291,7 +296,7 @@ def plan_picks(
                 continue
             motion = None
             if arm is not None and q_from is not None:
-                planned = arm.plan(T_tool, grasps.T_model_from_tool[g], grasps.kind, centre_m, q_from)
+                planned = arm.plan(T_tool, grasps.T_model_from_tool[g], grasps.kind, centre_m, q_from, carried_sample)
                 if isinstance(planned, str):
                     causes[planned] += 1
                     rejected.append(Rejected(i, grasps.ids[g], T_tool, planned))

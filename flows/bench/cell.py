@@ -260,11 +260,12 @@ def _judge(done: Execution, tally: Tally) -> bool:
         tally.failures["arm or tool touched " + " and ".join(sorted(done.touched))] += 1
     if done.outcome == "dropped":
         tally.dropped += 1
+        tally.failures[f"dropped, {done.lost}" if done.lost else "dropped"] += 1
     if done.double:
         tally.double += 1
         tally.failures["another part came out with it"] += 1
     good = done.outcome == "placed" and not done.touched and not done.double
-    if done.outcome != "placed":
+    if done.outcome not in ("placed", "dropped"):
         tally.failures[done.outcome] += 1
     elif good:
         tally.good += 1
