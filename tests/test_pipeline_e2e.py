@@ -201,6 +201,7 @@ def _completed_flow_runs(api_url):
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(1200)  # the test's own deadline for the scheduled run is 900 s
 def test_served_schedule_fires_and_trains_a_new_part_only(project):
     """`binpick serve` on a 5 s interval, against the local Prefect server it starts: a scheduled
     run picks up a newly dropped mesh and trains it; the parts already trained are not retrained;
