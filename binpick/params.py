@@ -577,6 +577,11 @@ class PickParams(_Strict):
     order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
     height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")
     max_candidates_per_part: int = Field(ge=1, description="grasps tried per part, best-ranked first")
+    pose_format: Literal["matrix", "ur", "abb", "kuka", "fanuc"] = Field(  # binpick.robot.pose_formats
+        "matrix",
+        description="picks.json and the service also give each pick's base-frame tool poses in this robot's "
+        "convention: matrix (only the 4 x 4 matrices in metres), ur, abb, kuka or fanuc (docs: robot poses)",
+    )
     T_base_from_cam: list[list[float]] | None = Field(
         description="eye-to-hand calibration (binpick hand-eye); null = not calibrated"
     )

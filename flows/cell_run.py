@@ -199,7 +199,9 @@ def run_cell(
             T_base = np.asarray(params.pick.T_base_from_cam) if params.pick.T_base_from_cam is not None else None
             write_picks_document(
                 here / "picks.json",
-                picks_document(f"{folder.name}/{here.name}", part, params.pick.gripper, plan, T_base),
+                picks_document(
+                    f"{folder.name}/{here.name}", part, params.pick.gripper, plan, T_base, params.pick.pose_format
+                ),
             )
         cycle += 1
         if refused is not None:

@@ -26,7 +26,9 @@ HTTP:
   POST /picks  {"part": P, "path": FILE, "unit": "mm"}   a capture file on this machine
   POST /picks  {"part": P, "camera": true}               a frame from the connected Zivid camera
 TCP: the same JSON objects, one per line ({"health": true}, {"reload": true}; an upload as
-  "data_b64" with "format"), each with "token" when one is required (HTTP: Authorization: Bearer).
+  "data_b64" with "format"), each with "token" when one is required (HTTP: Authorization: Bearer);
+  or, for a robot controller without JSON, `PICK <part> [ur|abb|kuka|fanuc] [<path>]` answered by
+  one line of numbers (_text_answer; clients/ur/binpick_pick.script).
 Errors: {"error": "..."} (HTTP 400 bad request, 401 token, 404 unknown part, 409 reload refused,
   413 too large, 429 rate, 503 busy).
 """
@@ -260,10 +262,11 @@ class PickService:
             path = Path(request.path)
             path = path if path.is_absolute() else self.root / path
             allowed = [self.root, *(Path(f) for f in self.settings.capture_folders)]
+            # The client's own words in an answer, never where the project lies on this machine.
             if not any(path.resolve().is_relative_to(a.resolve()) for a in allowed):
-                raise RequestError(400, f"{path}: outside the project and service.capture_folders")
+                raise RequestError(400, f"{request.path}: outside the project and service.capture_folders")
             if not path.is_file():
-                raise RequestError(400, f"{path}: capture file not found")
+                raise RequestError(400, f"{request.path}: capture file not found")
             return path
         if request.camera:
             from binpick.cell.zivid_camera import grab_to_file
@@ -276,6 +279,15 @@ class PickService:
             return path
         raise RequestError(400, 'a request names a capture: an upload (with its format), a "path" or "camera": true')
 
+    def _for_client(self, message: str, path: Path, shown: str) -> str:
+        """An error message with this machine's paths taken out: the capture named as the client
+        named it, any other file of the project relative to the project."""
+        for p in sorted({str(path), str(path.resolve())}, key=len, reverse=True):
+            message = message.replace(p, shown)
+        for root in sorted({str(self.root), str(self.root.resolve())}, key=len, reverse=True):
+            message = message.replace(root + os.sep, "").replace(root, ".")
+        return message
+
     def _answer(self, served: Served, request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
         part, unit = request.part, request.unit
         t0 = time.perf_counter()
@@ -284,11 +296,13 @@ class PickService:
         folder = self._keeper.folder(stamp, request_id)
         try:
             path = self._capture_file(request, payload, folder)
+            uploaded = f"the uploaded {path.suffix[1:]} capture"
+            shown = request.path or ("the camera's frame" if request.camera else uploaded)
             t_read = time.perf_counter()
             try:
                 frame = load_capture(path, ImportOptions(unit))
             except BinpickError as exc:
-                raise RequestError(400, str(exc)) from None
+                raise RequestError(400, self._for_client(str(exc), path, shown)) from None
             # Seeds from the capture's content, as the DVC stages take them: the same capture
             # gets the same answer here and when `binpick requests --add` runs it through them.
             seeds = SceneSeeds.of_capture(served.params.seed, frame.xyz_m, frame.rgb)
@@ -296,13 +310,20 @@ class PickService:
             try:
                 result = process(frame.xyz_m, frame.rgb, frame.shape, served.models, seeds)
             except BinpickError as exc:
-                raise RequestError(400, f"{path.name}: {exc}") from None
+                raise RequestError(400, self._for_client(f"{path}: {exc}", path, shown)) from None
         except RequestError:
             shutil.rmtree(folder, ignore_errors=True)
             raise
         t2 = time.perf_counter()
         assert result.picks is not None
-        doc = picks_document(request_id, part, served.params.pick.gripper, result.picks, served.T_base_from_cam)
+        doc = picks_document(
+            request_id,
+            part,
+            served.params.pick.gripper,
+            result.picks,
+            served.T_base_from_cam,
+            request.pose_format or served.params.pick.pose_format,
+        )
         timings = {"read_s": t1 - t_read, **result.timings_s, "pipeline_s": t2 - t1, "total_s": t2 - t0}
         doc["request_id"] = request_id
         doc["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
@@ -438,7 +459,9 @@ def _picks_request(fields: dict[str, Any]) -> PicksRequest:
 
 
 async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-    """One connection of the line protocol: a JSON request per line, a JSON answer per line."""
+    """One connection of the line protocol: a request per line, an answer per line (JSON for
+    JSON, numbers for a text command: see _text_answer)."""
+    connection: dict[str, str | None] = {"token": None}  # `TOKEN <t>` authorises the text commands that follow
     try:
         while True:
             try:
@@ -453,7 +476,10 @@ async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer:
                 break
             if not line:
                 break
-            writer.write(json.dumps(await _tcp_answer(service, line)).encode() + b"\n")
+            if line.lstrip()[:1] in (b"{", b"["):
+                writer.write(json.dumps(await _tcp_answer(service, line)).encode() + b"\n")
+            else:
+                writer.write((await _text_answer(service, line, connection)).encode() + b"\n")
             await writer.drain()
     except (ConnectionError, asyncio.IncompleteReadError):
         pass
@@ -483,6 +509,57 @@ async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
         return await service.answer(request, payload)
     except RequestError as exc:
         return {"error": str(exc), "status": exc.status}
+
+
+# The text commands' answer: a status, then the first pick's pregrasp, grasp, postgrasp and place
+# poses, as URScript's socket_read_ascii_float reads them: "(n1,n2,...)", at most 30 numbers.
+TEXT_WAYPOINTS = ("pregrasp", "grasp", "postgrasp", "place")
+
+
+async def _text_answer(service: PickService, line: bytes, connection: dict[str, str | None]) -> str:
+    """A robot controller's request, in words it can send without a JSON library:
+
+        TOKEN <token>                      authorises this connection's later commands
+        PICK <part> [<format>] [<path>]    the best pick of a camera frame (or of a capture file)
+
+    <format> is ur (the default), abb, kuka or fanuc. The answer is one line of numbers in
+    parentheses: status (1 a pick, 0 no part to pick, minus the HTTP status of a refusal, e.g.
+    -404 for an unknown part) and four poses in that format (pregrasp, grasp, postgrasp, place;
+    zeros when there is no pick, or no place planned): 25 numbers (29 for abb)."""
+    from binpick.robot.pose_formats import FIELDS
+
+    words = line.decode(errors="replace").split()
+    fmt = "ur"
+    try:
+        if not words:
+            raise RequestError(400, "empty command")
+        command = words[0].upper()
+        if command == "TOKEN" and len(words) == 2:
+            connection["token"] = words[1]
+            service.check_token(words[1])
+            return _floats([1.0])
+        if command != "PICK" or len(words) < 2:
+            raise RequestError(400, "a text command is PICK <part> [<format>] [<path>] or TOKEN <token>")
+        service.check_token(connection["token"])
+        service.check_rate()
+        rest = words[2:]
+        if rest and rest[0].lower() in FIELDS:
+            fmt = rest.pop(0).lower()
+        fields: dict[str, Any] = {"part": words[1], "pose_format": fmt}
+        fields.update({"path": " ".join(rest)} if rest else {"camera": True})
+        answer = await service.answer(_picks_request(fields))
+    except RequestError as exc:
+        log.info("text command refused (%d): %s", exc.status, exc)
+        return _floats([-float(exc.status)] + [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS))
+    numbers = [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS)
+    if answer["picks"]:
+        robot = answer["picks"][0]["robot"]
+        numbers = [x for w in TEXT_WAYPOINTS for x in (robot.get(w) or [0.0] * len(FIELDS[fmt]))]
+    return _floats([1.0 if answer["picks"] else 0.0, *numbers])
+
+
+def _floats(values: list[float]) -> str:
+    return "(" + ",".join(f"{v:.6f}" for v in values) + ")"
 
 
 def run_service(

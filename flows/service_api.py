@@ -10,6 +10,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from binpick.io.mesh import METRES_PER_UNIT
+from binpick.robot.pose_formats import PoseFormat
 
 Matrix4 = list[list[float]]
 
@@ -28,6 +29,12 @@ class PicksRequest(BaseModel):
     camera: bool = Field(False, description="grab a frame from the connected Zivid camera")
     unit: str = Field("mm", description="unit of the capture's coordinates: mm, m or in")
     format: str | None = Field(None, description="an upload's file format: ply, pcd, zdf, csv, xyz, png")
+    pose_format: PoseFormat | None = Field(
+        None,
+        description="also give each pick's base-frame tool poses as this robot wants them (`robot` in each pick): "
+        "ur p[x, y, z, rx, ry, rz] in m and rad; abb [x, y, z, q1..q4] in mm, quaternion w first; kuka X Y Z A B C "
+        "in mm and deg; fanuc X Y Z W P R in mm and deg; matrix: only the 4 x 4 matrices. Default: pick.pose_format",
+    )
     data_b64: str | None = Field(None, description="line protocol: the uploaded capture, base64")
     token: str | None = Field(
         None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)"
@@ -69,6 +76,13 @@ class ArmOfPick(BaseModel):
     path: list[str] = Field(description="the waypoints in the order the arm moves through them from where it starts")
 
 
+class RobotPoses(BaseModel):
+    pregrasp: list[float]
+    grasp: list[float]
+    postgrasp: list[float]
+    place: list[float] | None = Field(None, description="the place pose, when the arm's motion was planned")
+
+
 class Pick(BaseModel):
     rank: int = Field(description="0 = pick this first")
     pose_index: int = Field(description="index into `poses`")
@@ -81,6 +95,9 @@ class Pick(BaseModel):
     camera: PosesOfPick = Field(description="T_cam_from_tool of the pre-grasp, grasp and post-grasp poses (metres)")
     base: PosesOfPick = Field(description="the same in the robot base frame (T_base_from_cam applied)")
     arm: ArmOfPick | None = Field(None, description="the arm's motion, when cell.arm is set and the camera calibrated")
+    robot: RobotPoses | None = Field(
+        None, description="the base-frame tool poses in the requested robot convention (`pose_fields` says the numbers)"
+    )
 
 
 class Unpicked(BaseModel):
@@ -104,6 +121,8 @@ class PicksAnswer(BaseModel):
     calibrated: bool = Field(description="T_base_from_cam is the hand-eye calibration (false: identity)")
     T_base_from_cam: Matrix4
     up_cam: list[float] = Field(description="the bin's up axis in the camera frame")
+    pose_format: str = Field(description="matrix, ur, abb, kuka or fanuc (see PicksRequest.pose_format)")
+    pose_fields: list[str] | None = Field(None, description="what each number of a pick's `robot` poses is")
     picks: list[Pick]
     unpicked: list[Unpicked]
     counts: dict[str, float]

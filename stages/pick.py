@@ -55,7 +55,7 @@ def run(
     metrics = {"pick_s": pick_s, **plan.counts()}
     T_base = np.asarray(params.pick.T_base_from_cam) if params.pick.T_base_from_cam is not None else None
     with atomic_paths(out, rrd_path, metrics_path) as (tmp_out, tmp_rrd, tmp_metrics):
-        save_picks(tmp_out, name, part.name, kind, plan, T_base)
+        save_picks(tmp_out, name, part.name, kind, plan, T_base, params.pick.pose_format)
         if tmp_rrd is not None:
             write_pick_recording(tmp_rrd, name, cloud, part, poses, plan, kind, params.pick)
         if tmp_metrics is not None:

@@ -169,9 +169,14 @@ def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
             "not JSON",
         ),
     ]
+    cases.append(
+        (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "pose_format": "staubli"}), 400, "ur")
+    )
     for response, status, words in cases:
         assert response.status_code == status, response.text
         assert words in response.json()["error"]
+        # An answer names the client's own words, never where the service's project lies.
+        assert str(root) not in response.text and str(root.resolve()) not in response.text
     limits = service.settings
     service.settings = limits.model_copy(update={"max_request_mb": 0.001})
     try:
@@ -200,7 +205,89 @@ def test_the_line_protocol_answers_one_json_line_per_request(server, project, t_
         answer = ask({"part": "t_joint", "data_b64": base64.b64encode(capture.read_bytes()).decode(), "format": "zdf"})
         assert answer["picks"], answer
         _check_poses(answer, scene, t_joint)
-        assert ask({"part": "t_joint", "path": str(capture)})["picks"][0]["grasp_id"] == answer["picks"][0]["grasp_id"]
+        named = ask({"part": "t_joint", "path": str(capture), "pose_format": "ur"})
+        assert named["picks"][0]["grasp_id"] == answer["picks"][0]["grasp_id"]
+        # The UR's p[x, y, z, rx, ry, rz] of each pose is the base-frame matrix's.
+        assert named["pose_format"] == "ur" and named["pose_fields"][3] == "rx_rad"
+        from binpick.robot.pose_formats import from_robot
+
+        for pick in named["picks"]:
+            for waypoint in ("pregrasp", "grasp", "postgrasp"):
+                assert np.allclose(from_robot(pick["robot"][waypoint], "ur"), pick["base"][waypoint], atol=1e-6)
+            assert np.allclose(from_robot(pick["robot"]["place"], "ur"), pick["arm"]["place_tcp_base"], atol=1e-6)
+        assert "robot" not in answer["picks"][0] and answer["pose_format"] == "matrix"
+
+
+def test_a_robot_controller_asks_in_words_and_reads_numbers(server, project):
+    """The text command the UR script (clients/ur/binpick_pick.script) sends, answered in the
+    "(n1,...,n25)" form URScript's socket_read_ascii_float reads."""
+    from binpick.robot.pose_formats import from_robot
+
+    service, url = server
+    root, _, capture = project
+    relative = str(capture.relative_to(root))
+    with socket.create_connection(("127.0.0.1", service.settings.tcp_port), timeout=120) as s:
+        stream = s.makefile("rwb")
+
+        def ask(line: str) -> list[float]:
+            stream.write(line.encode() + b"\n")
+            stream.flush()
+            text = stream.readline().decode().strip()
+            assert text.startswith("(") and text.endswith(")"), text
+            return [float(x) for x in text[1:-1].split(",")]
+
+        ur = ask(f"PICK t_joint ur {relative}")
+        kuka = ask(f"pick t_joint kuka {relative}")
+        assert len(ur) == 25 and ur[0] == 1.0
+        assert ask(f"PICK gizmo {relative}")[0] == -404.0
+        assert ask("HELLO")[0] == -400.0
+        service.token = "s3cret"
+        try:
+            assert ask(f"PICK t_joint {relative}")[0] == -401.0
+            assert ask("TOKEN s3cret") == [1.0]
+            assert ask(f"PICK t_joint {relative}")[:7] == ur[:7]  # ur is the default
+        finally:
+            service.token = None
+    json_answer = httpx.post(f"{url}/picks", json={"part": "t_joint", "path": relative}, timeout=120).json()
+    first = json_answer["picks"][0]
+    for k, waypoint in enumerate(("pregrasp", "grasp", "postgrasp")):
+        assert np.allclose(from_robot(ur[1 + 6 * k : 7 + 6 * k], "ur"), first["base"][waypoint], atol=1e-5)
+        assert np.allclose(from_robot(kuka[1 + 6 * k : 7 + 6 * k], "kuka"), first["base"][waypoint], atol=1e-5)
+    assert np.allclose(from_robot(ur[19:25], "ur"), first["arm"]["place_tcp_base"], atol=1e-5)
+
+
+def test_the_ur_script_speaks_the_service_and_cell_settings():
+    """The URScript client's settings are the project's defaults and it reads what the service sends."""
+    import re
+
+    script = (ROOT / "clients" / "ur" / "binpick_pick.script").read_text()
+    p = load_params(ROOT / "params.yaml")
+    assert f"BINPICK_PORT = {p.service.tcp_port}" in script
+    tcp = [float(x) for x in re.search(r"TCP = p\[([^\]]*)\]", script).group(1).split(",")]
+    assert np.allclose(tcp[:3], np.asarray(p.cell.T_flange_from_tcp)[:3, 3]) and np.allclose(tcp[3:], 0)
+    assert np.allclose(np.asarray(p.cell.T_flange_from_tcp)[:3, :3], np.eye(3))
+    home = [float(x) for x in re.search(r"HOME = \[([^\]]*)\]", script).group(1).split(",")]
+    assert np.allclose(home, p.cell.home_q_rad)
+    assert "socket_read_ascii_float(25" in script and '" ur"' in script
+    assert max(int(i) for i in re.findall(r"r\[(\d+)\]", script)) == 25
+
+
+def test_the_python_client_gets_picks_and_reads_refusals(server, project):
+    from binpick.client import PickClient, PickServiceError
+    from binpick.robot.pose_formats import from_robot
+
+    service, url = server
+    root, _, capture = project
+    client = PickClient(url)
+    assert client.health()["parts"] == ["t_joint"]
+    answer = client.picks_from_file("t_joint", capture, pose_format="fanuc")
+    assert answer["pose_fields"][3:] == ["W_deg", "P_deg", "R_deg"]
+    first = answer["picks"][0]
+    assert np.allclose(from_robot(first["robot"]["grasp"], "fanuc"), first["base"]["grasp"], atol=1e-5)
+    assert client.picks_at("t_joint", str(capture.relative_to(root)))["picks"][0]["grasp_id"] == first["grasp_id"]
+    with pytest.raises(PickServiceError) as refused:
+        client.picks_at("t_joint", "data/none.ply")
+    assert refused.value.status == 400 and "not found" in refused.value.message
 
 
 def test_a_token_is_required_once_set(server):

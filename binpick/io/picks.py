@@ -12,6 +12,7 @@ from binpick.errors import InputError
 from binpick.io.atomic import write_text
 from binpick.picking.arm import WAYPOINTS, ArmMotion
 from binpick.picking.plan import PickPlan
+from binpick.robot.pose_formats import FIELDS, rounded, to_robot
 
 FORMAT = "binpick-picks"
 VERSION = 1
@@ -21,9 +22,25 @@ def _T(T: np.ndarray) -> list[list[float]]:
     return np.asarray(T, dtype=float).round(9).tolist()
 
 
-def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None) -> dict:
-    """The picks.json content (the service answers with the same)."""
+def picks_document(
+    capture: str,
+    part: str,
+    gripper: str,
+    plan: PickPlan,
+    T_base_from_cam: np.ndarray | None,
+    pose_format: str = "matrix",
+) -> dict:
+    """The picks.json content (the service answers with the same). With a robot pose_format (ur,
+    abb, kuka, fanuc: binpick/robot/pose_formats.py) each pick also has `robot`: its base-frame
+    tool poses in that controller's convention and units."""
     T_base = np.eye(4) if T_base_from_cam is None else np.asarray(T_base_from_cam, dtype=float)
+
+    def robot(p) -> dict:
+        tool = {"pregrasp": p.T_cam_from_pregrasp, "grasp": p.T_cam_from_grasp, "postgrasp": p.T_cam_from_postgrasp}
+        out = {k: rounded(to_robot(T_base @ v, pose_format), pose_format) for k, v in tool.items()}
+        if p.arm is not None:
+            out["place"] = rounded(to_robot(p.arm.T_base_from_place_tcp, pose_format), pose_format)
+        return out
 
     def poses(p) -> dict:
         cam = {"pregrasp": p.T_cam_from_pregrasp, "grasp": p.T_cam_from_grasp, "postgrasp": p.T_cam_from_postgrasp}
@@ -50,6 +67,8 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
         "calibrated": T_base_from_cam is not None,
         "T_base_from_cam": _T(T_base),
         "up_cam": [round(float(x), 9) for x in plan.up_cam],
+        "pose_format": pose_format,
+        **({"pose_fields": list(FIELDS[pose_format])} if pose_format != "matrix" else {}),
         "picks": [
             {
                 "rank": k,
@@ -62,6 +81,7 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
                 **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}),
                 **poses(p),
                 **({"arm": arm(p.arm)} if p.arm is not None else {}),
+                **({"robot": robot(p)} if pose_format != "matrix" else {}),
             }
             for k, p in enumerate(plan.picks)
         ],
@@ -71,9 +91,15 @@ def picks_document(capture: str, part: str, gripper: str, plan: PickPlan, T_base
 
 
 def save_picks(
-    path: str | Path, capture: str, part: str, gripper: str, plan: PickPlan, T_base_from_cam: np.ndarray | None
+    path: str | Path,
+    capture: str,
+    part: str,
+    gripper: str,
+    plan: PickPlan,
+    T_base_from_cam: np.ndarray | None,
+    pose_format: str = "matrix",
 ) -> None:
-    write_picks_document(path, picks_document(capture, part, gripper, plan, T_base_from_cam))
+    write_picks_document(path, picks_document(capture, part, gripper, plan, T_base_from_cam, pose_format))
 
 
 def write_picks_document(path: str | Path, doc: dict) -> None:
