@@ -13,11 +13,16 @@ SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
 setup: sysdeps $(STAMP)
 
-# The open3d 0.20 wheel links against libusb-1.0 but does not ship it.
+# The open3d 0.20 wheel links against libusb-1.0 but does not ship it. The operator page's test
+# drives Debian's Chromium (a browser a pip package downloads is not installable here); without
+# apt the test says why it skips.
 sysdeps:
 	@ldconfig -p | grep -q 'libusb-1.0.so.0' || { \
 	  echo "installing libusb-1.0-0 (needed by open3d)"; \
 	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq libusb-1.0-0 >/dev/null; }
+	@command -v chromedriver >/dev/null || ! command -v apt-get >/dev/null || { \
+	  echo "installing chromium and chromium-driver (the operator page's browser test)"; \
+	  $(SUDO) apt-get update -qq && $(SUDO) apt-get install -y -qq chromium chromium-driver >/dev/null; }
 
 $(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)

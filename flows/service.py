@@ -41,6 +41,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import shutil
 import threading
 import time
@@ -53,7 +54,7 @@ from typing import Any
 
 import numpy as np
 from fastapi import FastAPI, Request
-from fastapi.responses import JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from pydantic import ValidationError
 from starlette.concurrency import run_in_threadpool
 
@@ -67,12 +68,17 @@ from binpick.params import Params, ServiceParams, load_params
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from flows.learn import served_checkpoint
+from flows.operator import OperatorLog, operator_state, render_page
 from flows.service_api import ErrorAnswer, Health, PicksAnswer, PicksRequest, validation_message
-from flows.service_keeper import Keeper
+from flows.service_keeper import Keeper, list_requests
 
 log = logging.getLogger("binpick.service")
 
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+# A kept request's id (`<UTC stamp>-<part>`) and the files of it the operator page links to.
+KEPT_ID = re.compile(r"\d{8}T\d{12}-[A-Za-z0-9_.-]+")
+VIEWABLE = {"overlay.png": "image/png", "scene.rrd": "application/octet-stream", "picks.json": "application/json"}
 
 
 class RequestError(Exception):
@@ -179,6 +185,7 @@ class PickService:
         self._waiting = 0
         self._count = threading.Lock()
         self._recent: deque[float] = deque()
+        self.operator = OperatorLog()
         self._keeper = Keeper(
             self.root / self.settings.keep_dir,
             self.settings.keep_requests,
@@ -332,8 +339,22 @@ class PickService:
             for p in result.poses
         ]
         self.answered += 1
-        self._keeper.keep(folder, path, doc, result, served, unit)
+        self.operator.answered(doc)
+        self._keeper.keep(folder, path, doc, result, served, unit, frame)
         return doc
+
+    def kept_files(self) -> dict[str, list[str]]:
+        """The kept requests, newest first: request id -> the names of its files."""
+        return {p.name: sorted(f.name for f in p.iterdir()) for p in list_requests(self._keeper.requests)}
+
+    def kept_file(self, request_id: str, name: str) -> Path:
+        """A file of a kept request a browser may fetch (not request.json: it names this machine's paths)."""
+        if name not in VIEWABLE or not KEPT_ID.fullmatch(request_id):
+            raise RequestError(404, "no such file")
+        path = self._keeper.requests / f"{request_id[:4]}-{request_id[4:6]}-{request_id[6:8]}" / request_id / name
+        if not path.is_file():
+            raise RequestError(404, f"{request_id}/{name} is not kept (service.keep_requests keeps the newest)")
+        return path
 
     def close(self) -> None:
         self._worker.shutdown(wait=True)
@@ -376,7 +397,36 @@ def http_app(service: PickService):
 
     @app.exception_handler(RequestError)
     async def refused(request: Request, exc: RequestError) -> JSONResponse:
+        if request.url.path == "/picks":
+            service.operator.refused(exc.status, str(exc), request.query_params.get("part"))
         return JSONResponse({"error": str(exc)}, status_code=exc.status)
+
+    def state() -> dict[str, Any]:
+        return operator_state(service.health(), service.operator.recent(), service.kept_files())
+
+    @app.get("/", response_class=HTMLResponse, summary="The operator page (read-only; ?token= offers the reload)")
+    async def operator_page(request: Request):
+        given = request.query_params.get("token")
+        controls = service.token is None or given == service.token
+        page = render_page(await run_in_threadpool(state), controls, given if controls else None)
+        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
+
+    @app.get("/operator/state", summary="The operator page's figures as JSON")
+    async def operator_figures():
+        return await run_in_threadpool(state)
+
+    @app.get("/requests/{request_id}/{name}", summary="A kept request's image, recording or pick list")
+    async def kept(request_id: str, name: str):
+        return FileResponse(service.kept_file(request_id, name), media_type=VIEWABLE.get(name))
+
+    @app.post("/operator/reload", include_in_schema=False)
+    async def operator_reload(request: Request):
+        from urllib.parse import parse_qs
+
+        given = parse_qs((await request.body()).decode(errors="replace")).get("token", [None])[0]
+        service.check_token(given)
+        await run_in_threadpool(service.reload)
+        return RedirectResponse("/" + (f"?token={given}" if given else ""), status_code=303)
 
     def authorised(request: Request) -> None:
         value = request.headers.get("authorization", "")
@@ -491,6 +541,7 @@ async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer:
 
 async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
     """{"health": true} and {"reload": true} (with "token" when one is set) or a PicksRequest."""
+    fields: Any = None
     try:
         fields = _json_object(line)
         service.check_token(fields.get("token"))
@@ -508,6 +559,7 @@ async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
                 raise RequestError(400, f"data_b64 is not base64: {exc}") from None
         return await service.answer(request, payload)
     except RequestError as exc:
+        service.operator.refused(exc.status, str(exc), fields.get("part") if isinstance(fields, dict) else None)
         return {"error": str(exc), "status": exc.status}
 
 
@@ -550,6 +602,7 @@ async def _text_answer(service: PickService, line: bytes, connection: dict[str, 
         answer = await service.answer(_picks_request(fields))
     except RequestError as exc:
         log.info("text command refused (%d): %s", exc.status, exc)
+        service.operator.refused(exc.status, str(exc), words[1] if len(words) > 1 else None)
         return _floats([-float(exc.status)] + [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS))
     numbers = [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS)
     if answer["picks"]:

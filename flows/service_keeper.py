@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from binpick.io.atomic import atomic_path
 from binpick.io.picks import write_picks_document
 from binpick.io.poses import save_poses
 from stages.common.pick_recording import write_pick_recording
@@ -48,8 +49,9 @@ class Keeper:
         path.mkdir(parents=True, exist_ok=True)
         return path
 
-    def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
-        self._jobs.put((folder, capture, doc, result, served, unit))
+    def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str, frame) -> None:
+        """Keep one answered request (frame: the capture as loaded, binpick.io.capture)."""
+        self._jobs.put((folder, capture, doc, result, served, unit, frame))
 
     def close(self) -> None:
         self._jobs.put(None)
@@ -64,7 +66,7 @@ class Keeper:
             finally:
                 self._jobs.task_done()
 
-    def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str) -> None:
+    def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str, frame) -> None:
         from stages.common import mlflow_run
 
         if capture.parent != folder:  # a named file: keep a copy (a link where the disk allows)
@@ -78,6 +80,8 @@ class Keeper:
             folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")}
         )
         save_poses(folder / "poses.json", part.name, result.poses)
+        if frame.shape is not None:  # an image to draw on: the operator page shows it
+            write_overlay(folder / OVERLAY, frame, part, result)
         (folder / "request.json").write_text(
             json.dumps(
                 {
@@ -128,6 +132,30 @@ class Keeper:
             shutil.rmtree(old, ignore_errors=True)
             with contextlib.suppress(OSError):
                 old.parent.rmdir()  # the day's folder, once empty
+
+
+OVERLAY = "overlay.png"
+
+
+def write_overlay(path: Path, frame, part, result) -> None:
+    """The capture's image with the poses and the chosen pick drawn (binpick.scene.overlay)."""
+    from PIL import Image
+
+    from binpick.scene.overlay import pick_overlay
+
+    first = result.picks.picks[0] if result.picks is not None and result.picks.picks else None
+    image = pick_overlay(
+        frame.xyz_m,
+        frame.rgb,
+        frame.shape,
+        part.points_m.astype(np.float64),
+        np.array([p.T_cam_from_model for p in result.poses]).reshape(-1, 4, 4),
+        [p.score for p in result.poses],
+        first.T_cam_from_pregrasp if first is not None else None,
+        first.T_cam_from_grasp if first is not None else None,
+    )
+    with atomic_path(path) as tmp:
+        Image.fromarray(image).save(tmp, format="PNG")
 
 
 def list_requests(requests: Path) -> list[Path]:

@@ -290,6 +290,89 @@ def test_the_python_client_gets_picks_and_reads_refusals(server, project):
     assert refused.value.status == 400 and "not found" in refused.value.message
 
 
+def _browser():
+    """Headless Chromium driven by its own chromedriver (Debian's chromium and chromium-driver)."""
+    import shutil
+
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed (make setup)")
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser") or shutil.which("google-chrome")
+    driver = shutil.which("chromedriver")
+    if chromium is None or driver is None:
+        pytest.skip("no Chromium with chromedriver on this machine (Debian: apt-get install chromium chromium-driver)")
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium
+    flags = ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1280,1600")
+    for flag in flags:
+        options.add_argument(flag)
+    return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
+
+
+def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browser(server, project):
+    service, url = server
+    root, _, capture = project
+    relative = str(capture.relative_to(root))
+    assert httpx.post(f"{url}/picks", json={"part": "t_joint", "path": relative}, timeout=120).status_code == 200
+    assert httpx.post(f"{url}/picks", json={"part": "gizmo", "path": relative}, timeout=120).status_code == 404
+    deadline = time.time() + 60
+    while service._keeper._jobs.unfinished_tasks and time.time() < deadline:  # the image is drawn after the answer
+        time.sleep(0.1)
+    browser = _browser()
+    try:
+        from selenium.webdriver.common.by import By
+
+        browser.get(url + "/")
+        image = browser.find_element(By.ID, "latest")
+        for _ in range(100):
+            if browser.execute_script("return arguments[0].complete && arguments[0].naturalWidth", image):
+                break
+            time.sleep(0.1)
+        assert browser.execute_script("return arguments[0].naturalWidth", image) > 100
+        rows = browser.find_elements(By.CSS_SELECTOR, "#requests tbody tr")
+        assert rows and "refused" in rows[0].text and "pick" in rows[1].text
+        assert browser.find_element(By.ID, "parts").text == "t_joint"
+        assert "404 unknown part" in browser.page_source
+        recordings = browser.find_elements(By.LINK_TEXT, "scene.rrd")
+        assert recordings
+        assert httpx.get(recordings[0].get_attribute("href")).content[:4] == b"RRF2"
+        # Read-only without the token once the service has one.
+        assert browser.find_elements(By.TAG_NAME, "button")  # no token: the reload is offered
+        service.token = "s3cret"
+        try:
+            browser.get(url + "/")
+            assert not browser.find_elements(By.TAG_NAME, "button")
+            browser.get(url + "/?token=s3cret")
+            browser.find_element(By.TAG_NAME, "button").click()
+            assert browser.find_element(By.ID, "parts").text == "t_joint"
+        finally:
+            service.token = None
+        page = browser.page_source
+    finally:
+        browser.quit()
+    assert str(root) not in page and str(root.resolve()) not in page
+    state = httpx.get(f"{url}/operator/state").json()
+    assert state["refusals"]["404 unknown part"] >= 1 and state["picks_per_hour"] > 0
+    assert httpx.get(f"{url}/requests/..%2F..%2Fparams.yaml/picks.json").status_code == 404
+    kept = state["requests"][1]["request_id"]
+    assert httpx.get(f"{url}/requests/{kept}/request.json").status_code == 404  # it names this machine's paths
+
+
+def test_the_operator_figures_count_the_last_hour():
+    from flows.operator import Outcome, summarise
+
+    now = 10_000.0
+    items = [
+        Outcome(now - 1800, "a", "p", 200, 3, 1, 0.5),
+        Outcome(now - 1200, "b", "p", 200, 2, 0, 0.7, "too far tilted", ("too far tilted",)),
+        Outcome(now - 600, None, "p", 503, why="busy"),
+        Outcome(now - 60, "c", "p", 200, 4, 1, 0.6, "", ("arm hits the bin wall",)),
+    ]
+    figures = summarise(items, now)
+    assert figures["picks_per_hour"] == 4.0  # 2 picks over the 30 minutes since the first request
+    assert figures["failure_rate"] == 0.5 and figures["total_s_median"] == 0.6
+    assert figures["refusals"] == {"503 busy": 1}
+    assert figures["unpicked"] == {"too far tilted": 1, "arm hits the bin wall": 1}
+
+
 def test_a_token_is_required_once_set(server):
     service, url = server
     service.token = "s3cret"

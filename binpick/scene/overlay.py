@@ -72,6 +72,45 @@ def label_poses(image: np.ndarray, K: np.ndarray, T_cam_from_model: np.ndarray, 
     return np.asarray(img)
 
 
+def capture_image(xyz_m: np.ndarray, rgb: np.ndarray | None, shape: tuple[int, int]) -> np.ndarray:
+    """An organized capture as an image (H, W, 3) uint8: its colours, or its depth shaded (near
+    bright, far dark, no measurement black) when it has none.
+
+    xyz_m : (H * W, 3) camera frame, metres, NaN where nothing was measured; rgb : (H * W, 3) or None.
+    """
+    H, W = shape
+    if rgb is not None and np.any(rgb):
+        return np.asarray(rgb, dtype=np.uint8).reshape(H, W, 3)
+    z = np.asarray(xyz_m, dtype=np.float64).reshape(H, W, 3)[..., 2]
+    ok = np.isfinite(z)
+    lo, hi = (float(np.nanmin(z)), float(np.nanmax(z))) if ok.any() else (0.0, 1.0)
+    grey = np.where(ok, 230 - 180 * (np.nan_to_num(z, nan=hi) - lo) / max(hi - lo, 1e-9), 0).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=-1)
+
+
+def draw_pick(image: np.ndarray, K: np.ndarray, T_cam_from_pregrasp: np.ndarray, T_cam_from_grasp: np.ndarray):
+    """The image (H, W, 3) uint8 with a pick drawn: a ring at the grasp's tool centre point and
+    the approach from the pre-grasp's, in white over black so it shows on any part's tint.
+    K : (3, 3) pinhole; the poses (4, 4), camera frame, metres. Returns a new array."""
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(image)
+    draw = ImageDraw.Draw(img)
+    ends = []
+    for T in (T_cam_from_pregrasp, T_cam_from_grasp):
+        p = np.asarray(T, dtype=float)[:3, 3]
+        if p[2] <= 0:
+            return np.asarray(img)
+        uvw = K @ p
+        ends.append((float(uvw[0] / uvw[2]), float(uvw[1] / uvw[2])))
+    (x0, y0), (x1, y1) = ends
+    r = max(4.0, 0.012 * max(image.shape[:2]))
+    for colour, width in (((0, 0, 0), 5), ((255, 255, 255), 2)):
+        draw.line([(x0, y0), (x1, y1)], fill=colour, width=width)
+        draw.ellipse([x1 - r, y1 - r, x1 + r, y1 + r], outline=colour, width=width)
+    return np.asarray(img)
+
+
 def overlay_capture(capture_path, options, poses_path, part_model_path, image_path=None) -> np.ndarray:
     """The overlay image (H, W, 3) uint8 of a processed capture: its colour image (or `image_path`,
     or depth shading when it has no colour) with its poses drawn. The capture must be organized."""
@@ -101,17 +140,47 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
             raise InputError(image_path, f"not a readable image ({exc})") from None
         if image.shape[:2] != (H, W):
             raise InputError(image_path, f"is {image.shape[1]} x {image.shape[0]}, the capture {W} x {H}")
-    elif capture.rgb is not None and np.any(capture.rgb):
-        image = np.asarray(capture.rgb, dtype=np.uint8).reshape(H, W, 3)
     else:
-        z = xyz[:, 2].reshape(H, W)
-        ok = np.isfinite(z)
-        lo, hi = (np.nanmin(z), np.nanmax(z)) if ok.any() else (0.0, 1.0)
-        grey = np.where(ok, 230 - 180 * (z - lo) / max(hi - lo, 1e-9), 0).astype(np.uint8)
-        image = np.repeat(grey[..., None], 3, axis=-1)
+        image = capture_image(xyz, capture.rgb, (H, W))
     _, poses = load_poses(poses_path)
     part = load_part_model(part_model_path)
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = [p.score for p in poses]
     drawn = draw_poses(image, K, xyz[:, 2].reshape(H, W), part.points_m.astype(np.float64), T, scores)
     return label_poses(drawn, K, T, scores)
+
+
+def pick_overlay(
+    xyz_m: np.ndarray,
+    rgb: np.ndarray | None,
+    shape: tuple[int, int],
+    model_points_m: np.ndarray,
+    T_cam_from_model: np.ndarray,
+    scores: list[float],
+    T_cam_from_pregrasp: np.ndarray | None,
+    T_cam_from_grasp: np.ndarray | None,
+    max_width_px: int = 1024,
+) -> np.ndarray:
+    """One answered capture for the operator: its image (colour, or shaded depth) with the poses
+    tinted and labelled and the chosen pick drawn, at most max_width_px wide (H', W', 3) uint8.
+
+    xyz_m : (H * W, 3) organized capture, camera frame, metres; model_points_m : (n, 3) model frame;
+    T_cam_from_model : (k, 4, 4); the pick's poses (4, 4) camera frame, or None when nothing was picked.
+    """
+    from PIL import Image
+
+    from binpick.registration.visibility import fit_intrinsics
+
+    H, W = shape
+    xyz = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
+    K = fit_intrinsics(xyz, (H, W)).K
+    T = np.asarray(T_cam_from_model, dtype=float).reshape(-1, 4, 4)
+    drawn = draw_poses(capture_image(xyz, rgb, shape), K, xyz[:, 2].reshape(H, W), model_points_m, T, scores)
+    drawn = label_poses(drawn, K, T, scores)
+    if T_cam_from_grasp is not None and T_cam_from_pregrasp is not None:
+        drawn = draw_pick(drawn, K, T_cam_from_pregrasp, T_cam_from_grasp)
+    if W > max_width_px:
+        drawn = np.asarray(
+            Image.fromarray(drawn).resize((max_width_px, round(H * max_width_px / W)), Image.Resampling.BILINEAR)
+        )
+    return drawn
