@@ -189,3 +189,58 @@ def test_scene_bench_bins_hold_twenty_long_parts(t_joint):
     assert min(held(shaft, eight)) < 20
     assert held(shaft, scene_generate_settings(shaft, p)) == [20, 20, 20]
     assert held(t_joint, scene_generate_settings(t_joint, picking_settings(PARAMS, t_joint))) == [20, 20, 20]
+
+
+def test_the_report_plots_the_figures_of_a_folder_of_benchmark_files(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from flows.bench.report import ALL_PARTS, collect, report
+
+    machine = {"cpu_model": "Test CPU", "cores_usable": 2, "cuda": None}
+    (tmp_path / "scene.json").write_text(
+        json.dumps(
+            {
+                "machine": machine,
+                "pose_precision": 0.9,
+                "parts": {
+                    "t_joint": {"pose_precision": 1.0, "pose_recall": 0.75, "register_s_median": 0.4, "ok": True},
+                    "nut": {"pose_precision": 0.5, "pose_recall": 0.25, "register_s_median": 0.2},
+                },
+            }
+        )
+    )
+    (tmp_path / "cell.json").write_text(
+        json.dumps(
+            {
+                "machine": machine,
+                "parts": {
+                    "t_joint": {"cycle_s": [1.0, 2.0, 3.0], "picks_per_hour": 480.0, "baseline_picks_per_hour": 0}
+                },
+            }
+        )
+    )
+    figures, machines = collect(tmp_path)
+    got = {(f.bench, f.part, f.key): f.value for f in figures}
+    assert got[("scene", "nut", "pose_recall")] == 0.25
+    assert got[("scene", ALL_PARTS, "pose_precision")] == 0.9
+    assert got[("cell", "t_joint", "cycle_s")] == [1.0, 2.0, 3.0]
+    assert ("scene", "t_joint", "ok") not in got  # a flag is not a figure
+    assert set(machines) == {"scene", "cell"}
+    written = report(tmp_path, tmp_path / "report")
+    names = {p.name for p in written}
+    assert names == {"precision_recall.png", "cycle_times.png", "step_timings.png", "picks_per_hour.png"}
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written)
+    page = (tmp_path / "report" / "index.html").read_text()
+    assert all(f'src="{n}"' in page for n in names) and "Test CPU" in page
+    assert all(f"({n})" in (tmp_path / "report" / "plots.md").read_text() for n in names)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    proc = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "bench", "report", str(empty)], capture_output=True, text=True
+    )
+    assert proc.returncode == 2 and proc.stderr.strip().endswith(
+        "has no benchmark JSON files (binpick bench ... --out writes them)"
+    )
+    assert "Traceback" not in proc.stderr

@@ -272,7 +272,7 @@ def _judge(done: Execution, tally: Tally) -> bool:
     return good
 
 
-def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:
+def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float | list[float]]:
     return {
         "executed_pick_success_rate": t.good / t.executed if t.executed else 0.0,
         "clearance_rate": t.removed / t.settled if t.settled else 0.0,
@@ -282,6 +282,7 @@ def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:
         "unreachable_plans_sent": float(t.unreachable_sent),
         "picks_per_hour": 3600.0 * t.good / t.wall_s if t.wall_s > 0 else 0.0,
         "cycle_s_median": float(np.median(cycles)) if cycles else 0.0,
+        "cycle_s": [round(float(c), 4) for c in cycles],  # each cycle, for `binpick bench report`
         "motion_s_median": float(np.median(t.motion_s)) if t.motion_s else 0.0,
         "n_bins": float(n_bins),
         "n_attempts": float(t.attempts),

@@ -37,6 +37,7 @@ from flows.bench import BENCH_PARTS, machine
 
 log = logging.getLogger(__name__)
 Group = TypeVar("Group")
+Figures = TypeVar("Figures")
 
 CUP = "icbin_coffee_cup"
 DEFAULT_PARTS = (*BENCH_PARTS, CUP)
@@ -267,6 +268,6 @@ def tilt_band(tilt_deg: float) -> str:
     return f"{lo}-{lo + int(TILT_BAND_DEG)}"
 
 
-def per_band(groups: dict[str, Group], summarise: Callable[[Group], dict[str, float]]) -> dict[str, dict[str, float]]:
+def per_band(groups: dict[str, Group], summarise: Callable[[Group], Figures]) -> dict[str, Figures]:
     """Each band's figures (summarise of its group), the bands in order of tilt."""
     return {band: summarise(group) for band, group in sorted(groups.items(), key=lambda kv: int(kv[0].split("-")[0]))}

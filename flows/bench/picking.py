@@ -337,7 +337,7 @@ def bench_picking(
 
     parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
     kind = gripper or settings.pick.gripper
-    per_part: dict[str, dict[str, float]] = {}
+    per_part: dict[str, dict[str, float | list[float]]] = {}
     out: dict[str, object] = {
         "machine": machine(),
         "gripper": kind,
@@ -400,7 +400,7 @@ def bench_picking(
     return out
 
 
-def _band_keys(bins: list[tuple[Tally, list[float]]]) -> dict[str, float]:
+def _band_keys(bins: list[tuple[Tally, list[float]]]) -> dict[str, float | list[float]]:
     """The keys over the bins of one band of tilt."""
     total = Tally()
     for one, _ in bins:
@@ -408,13 +408,14 @@ def _band_keys(bins: list[tuple[Tally, list[float]]]) -> dict[str, float]:
     return _keys(total, [c for _, cycles in bins for c in cycles], len(bins))
 
 
-def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float]:
+def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float | list[float]]:
     return {
         "pick_success_rate": t.good / t.attempts if t.attempts else 0.0,
         "clearance_rate": t.removed / t.settled if t.settled else 0.0,
         "wrong_part_picks": float(t.wrong_part),
         "collisions": float(t.collisions),
         "cycle_s_median": float(np.median(cycles)) if cycles else 0.0,
+        "cycle_s": [round(float(c), 4) for c in cycles],  # each cycle, for `binpick bench report`
         "n_bins": float(n_bins),
         "n_attempts": float(t.attempts),
         "attempts_without_a_pick": float(t.no_pick),

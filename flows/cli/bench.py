@@ -294,3 +294,17 @@ def bench_ppf_cmd(
     except ValueError as exc:
         fail(str(exc))
     write_json(out, result)
+
+
+@bench_app.command("report")
+def bench_report_cmd(
+    folder: Path = typer.Argument(..., help="a folder of benchmark JSON files (binpick bench ... --out)"),
+    out: Path = typer.Option(None, help="where the plots and index.html go; default FOLDER/report"),
+) -> None:
+    """The benchmark files of a folder as a page of plots: precision / recall per part, cycle time
+    distributions, timings per step, picks per hour (index.html and plots.md beside the PNGs)."""
+    from flows.bench.report import report
+
+    target = out or folder / "report"
+    written = report(folder, target)
+    typer.echo(f"wrote {len(written)} plots and {target / 'index.html'}")
