@@ -9,7 +9,7 @@ STAMP := $(VENV)/.installed
 LOCK := .ci/requirements.lock
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: setup sysdeps demo test test-slow lint lock repro clean-runs
+.PHONY: setup sysdeps demo test test-slow lint docs docs-build lock repro clean-runs
 
 setup: sysdeps $(STAMP)
 
@@ -26,7 +26,7 @@ sysdeps:
 
 $(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q -c $(LOCK) -e '.[dev,bench]'
+	$(BIN)/python -m pip install -q -c $(LOCK) -e '.[dev,bench,docs]'
 	@touch $(STAMP)
 
 demo: setup
@@ -34,7 +34,7 @@ demo: setup
 
 # The suite without the end-to-end runs (marker `slow`: Prefect flows driving DVC stage processes,
 # served schedules; about 12 minutes on 2 CPU cores), which test-slow runs and CI runs after it.
-test: lint
+test: lint docs-build
 	$(BIN)/python -m pytest -q -m "not slow"
 
 test-slow: setup
@@ -46,6 +46,15 @@ lint: setup
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+
+# The documentation site: served on http://127.0.0.1:8000 (rebuilt on every edit), or built into
+# site/ in strict mode (a broken link, a page missing from the navigation or a reference page
+# that cannot be generated fails the build).
+docs: setup
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs serve -a 127.0.0.1:8000
+
+docs-build: setup
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --quiet
 
 lock: setup
 	@{ echo "# Exact versions the project's results were measured with (pip constraints; \`make lock\` rewrites it)."; \

@@ -45,6 +45,7 @@ import re
 import shutil
 import threading
 import time
+import typing
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -612,7 +613,7 @@ async def _text_answer(service: PickService, line: bytes, connection: dict[str, 
 
 
 def _floats(values: list[float]) -> str:
-    return "(" + ",".join(f"{v:.6f}" for v in values) + ")"
+    return "(" + ",".join(f"{round(v, 6) + 0.0:.6f}" for v in values) + ")"  # + 0.0: no "-0.000000"
 
 
 def run_service(
@@ -640,3 +641,9 @@ def run_service(
         ).run()
     finally:
         service.close()
+
+
+def openapi_schema() -> dict[str, Any]:
+    """The service's OpenAPI schema without loading a project (for the documentation): the routes
+    touch the service only when they answer, so none is given."""
+    return http_app(typing.cast(PickService, None)).openapi()

@@ -66,7 +66,7 @@ def to_robot(T_base_from_tcp: np.ndarray, fmt: str) -> list[float] | list[list[f
     # warns and sets the last angle to zero, one of the right answers (the module's docstring).
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        a, b, c = np.degrees(rotation.as_euler("ZYX"))
+        a, b, c = np.degrees(rotation.as_euler("ZYX")).tolist()
     return [*t_mm, a, b, c] if fmt == "kuka" else [*t_mm, c, b, a]
 
 
@@ -98,4 +98,4 @@ def rounded(values: list, fmt: str) -> list:
     if fmt == "matrix":
         return np.round(np.asarray(values, dtype=float), 9).tolist()
     digits = [6 if f.endswith(("_mm", "_deg")) else 9 for f in FIELDS[fmt]]
-    return [round(float(x), d) for x, d in zip(values, digits, strict=True)]
+    return [round(float(x), d) + 0.0 for x, d in zip(values, digits, strict=True)]  # + 0.0: no "-0.0"

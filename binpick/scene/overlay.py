@@ -90,7 +90,7 @@ def capture_image(xyz_m: np.ndarray, rgb: np.ndarray | None, shape: tuple[int, i
 
 def draw_pick(image: np.ndarray, K: np.ndarray, T_cam_from_pregrasp: np.ndarray, T_cam_from_grasp: np.ndarray):
     """The image (H, W, 3) uint8 with a pick drawn: a ring at the grasp's tool centre point and
-    the approach from the pre-grasp's, in white over black so it shows on any part's tint.
+    the approach from the pre-grasp's, in yellow over black so it shows on any part's tint.
     K : (3, 3) pinhole; the poses (4, 4), camera frame, metres. Returns a new array."""
     from PIL import Image, ImageDraw
 
@@ -104,16 +104,19 @@ def draw_pick(image: np.ndarray, K: np.ndarray, T_cam_from_pregrasp: np.ndarray,
         uvw = K @ p
         ends.append((float(uvw[0] / uvw[2]), float(uvw[1] / uvw[2])))
     (x0, y0), (x1, y1) = ends
-    r = max(4.0, 0.012 * max(image.shape[:2]))
-    for colour, width in (((0, 0, 0), 5), ((255, 255, 255), 2)):
+    r = max(5.0, 0.015 * max(image.shape[:2]))
+    for colour, width in (((0, 0, 0), 7), ((255, 220, 0), 3)):
         draw.line([(x0, y0), (x1, y1)], fill=colour, width=width)
         draw.ellipse([x1 - r, y1 - r, x1 + r, y1 + r], outline=colour, width=width)
     return np.asarray(img)
 
 
-def overlay_capture(capture_path, options, poses_path, part_model_path, image_path=None) -> np.ndarray:
+def overlay_capture(
+    capture_path, options, poses_path, part_model_path, image_path=None, picks_path=None
+) -> np.ndarray:
     """The overlay image (H, W, 3) uint8 of a processed capture: its colour image (or `image_path`,
-    or depth shading when it has no colour) with its poses drawn. The capture must be organized."""
+    or depth shading when it has no colour) with its poses drawn, and the first pick of
+    `picks_path` (a picks.json) when given. The capture must be organized."""
     from pathlib import Path
 
     from PIL import Image
@@ -147,7 +150,15 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = [p.score for p in poses]
     drawn = draw_poses(image, K, xyz[:, 2].reshape(H, W), part.points_m.astype(np.float64), T, scores)
-    return label_poses(drawn, K, T, scores)
+    drawn = label_poses(drawn, K, T, scores)
+    if picks_path is not None:
+        from binpick.io.picks import load_picks
+
+        picks = load_picks(picks_path)["picks"]
+        if picks:
+            camera = picks[0]["camera"]
+            drawn = draw_pick(drawn, K, np.asarray(camera["pregrasp"]), np.asarray(camera["grasp"]))
+    return drawn
 
 
 def pick_overlay(

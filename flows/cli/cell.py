@@ -319,7 +319,8 @@ def overlay(
     params: Path = PARAMS,
 ) -> None:
     """Draw a capture's poses over its colour image (each pose's visible model surface, tinted, with
-    its index and score), for a look by eye beside the rerun recording."""
+    its index and score) and its first pick (a ring at the grasp, a line along the approach), for a
+    look by eye beside the rerun recording."""
     from PIL import Image
 
     from binpick.io.atomic import atomic_path
@@ -329,7 +330,15 @@ def overlay(
     root = project_root()
     entry, options = listed_capture(load_params(params), params, capture, root)
     layout = Layout(root)
-    drawn = overlay_capture(root / entry.file, options, layout.poses(capture), layout.part_model(entry.part), image)
+    picks = layout.picks(capture)
+    drawn = overlay_capture(
+        root / entry.file,
+        options,
+        layout.poses(capture),
+        layout.part_model(entry.part),
+        image,
+        picks if picks.is_file() else None,
+    )
     target = out or layout.overlay(capture)
     with atomic_path(target) as tmp:
         Image.fromarray(drawn).save(tmp)
