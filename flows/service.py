@@ -288,10 +288,14 @@ class PickService:
         raise RequestError(400, 'a request names a capture: an upload (with its format), a "path" or "camera": true')
 
     def _for_client(self, message: str, path: Path, shown: str) -> str:
-        """An error message with this machine's paths taken out: the capture named as the client
-        named it, any other file of the project relative to the project."""
+        """An error message with the capture named as the client named it (see public)."""
         for p in sorted({str(path), str(path.resolve())}, key=len, reverse=True):
             message = message.replace(p, shown)
+        return self.public(message)
+
+    def public(self, message: str) -> str:
+        """A message for a client: any file of the project named relative to the project, never
+        where the project lies on this machine."""
         for root in sorted({str(self.root), str(self.root.resolve())}, key=len, reverse=True):
             message = message.replace(root + os.sep, "").replace(root, ".")
         return message
@@ -399,8 +403,8 @@ def http_app(service: PickService):
     @app.exception_handler(RequestError)
     async def refused(request: Request, exc: RequestError) -> JSONResponse:
         if request.url.path == "/picks":
-            service.operator.refused(exc.status, str(exc), request.query_params.get("part"))
-        return JSONResponse({"error": str(exc)}, status_code=exc.status)
+            service.operator.refused(exc.status, service.public(str(exc)), request.query_params.get("part"))
+        return JSONResponse({"error": service.public(str(exc))}, status_code=exc.status)
 
     def state() -> dict[str, Any]:
         return operator_state(service.health(), service.operator.recent(), service.kept_files())
@@ -560,8 +564,9 @@ async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
                 raise RequestError(400, f"data_b64 is not base64: {exc}") from None
         return await service.answer(request, payload)
     except RequestError as exc:
-        service.operator.refused(exc.status, str(exc), fields.get("part") if isinstance(fields, dict) else None)
-        return {"error": str(exc), "status": exc.status}
+        message = service.public(str(exc))
+        service.operator.refused(exc.status, message, fields.get("part") if isinstance(fields, dict) else None)
+        return {"error": message, "status": exc.status}
 
 
 # The text commands' answer: a status, then the first pick's pregrasp, grasp, postgrasp and place
@@ -603,7 +608,7 @@ async def _text_answer(service: PickService, line: bytes, connection: dict[str, 
         answer = await service.answer(_picks_request(fields))
     except RequestError as exc:
         log.info("text command refused (%d): %s", exc.status, exc)
-        service.operator.refused(exc.status, str(exc), words[1] if len(words) > 1 else None)
+        service.operator.refused(exc.status, service.public(str(exc)), words[1] if len(words) > 1 else None)
         return _floats([-float(exc.status)] + [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS))
     numbers = [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS)
     if answer["picks"]:

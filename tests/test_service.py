@@ -177,6 +177,8 @@ def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
         assert words in response.json()["error"]
         # An answer names the client's own words, never where the service's project lies.
         assert str(root) not in response.text and str(root.resolve()) not in response.text
+    # Messages from deeper down (a reload refused names params.yaml) are made relative to the project.
+    assert service.public(f"no part of {root / 'params.yaml'} can be served") == "no part of params.yaml can be served"
     limits = service.settings
     service.settings = limits.model_copy(update={"max_request_mb": 0.001})
     try:

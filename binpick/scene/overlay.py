@@ -111,9 +111,7 @@ def draw_pick(image: np.ndarray, K: np.ndarray, T_cam_from_pregrasp: np.ndarray,
     return np.asarray(img)
 
 
-def overlay_capture(
-    capture_path, options, poses_path, part_model_path, image_path=None, picks_path=None
-) -> np.ndarray:
+def overlay_capture(capture_path, options, poses_path, part_model_path, image_path=None, picks_path=None) -> np.ndarray:
     """The overlay image (H, W, 3) uint8 of a processed capture: its colour image (or `image_path`,
     or depth shading when it has no colour) with its poses drawn, and the first pick of
     `picks_path` (a picks.json) when given. The capture must be organized."""

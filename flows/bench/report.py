@@ -141,8 +141,9 @@ def report(folder: Path, out: Path) -> list[Path]:
     cycles = _select(figures, lambda k: k.endswith("cycle_s"), lists=True)
     if cycles:
         fig, ax = plt.subplots(figsize=(9, 0.5 * len(cycles) + 1.5))
-        ax.boxplot([f.value for f in cycles], vert=False)
-        ax.set_yticks(range(1, len(cycles) + 1), [f"{f.bench}: {f.part}" for f in cycles])
+        ax.boxplot([f.value for f in cycles], orientation="horizontal")
+        labels = [f"{f.bench}: {f.part}" + ("" if f.key == "cycle_s" else f" ({f.key})") for f in cycles]
+        ax.set_yticks(range(1, len(cycles) + 1), labels)
         ax.set_xlabel("seconds per cycle")
         save(fig, "cycle_times.png", "Cycle time distributions")
 

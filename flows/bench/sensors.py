@@ -21,7 +21,7 @@ the B test bins and today's; `gap_closed_<key>` is the share of the gap between 
 randomised@B (a network that saw B) that fine-tuning closed.
 
 All figures are on our renderer with our sensor models: the effects those models leave out
-(README "Sensor models") are not measured here.
+(docs/guide/captures.md, "Training for your sensor") are not measured here.
 """
 
 from __future__ import annotations

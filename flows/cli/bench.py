@@ -1,4 +1,4 @@
-"""`binpick bench ...`: each benchmark writes its measurements as JSON (README, "Benchmarks")."""
+"""`binpick bench ...`: each benchmark writes its measurements as JSON (docs/benchmarks.md)."""
 
 from __future__ import annotations
 
@@ -156,7 +156,7 @@ def bench_sensors_cmd(
 ) -> None:
     """Networks trained on today's camera, on the randomised sensor models and without each
     preset, tested on every preset; then the today network fine-tuned on captures it labelled
-    itself. Figures from our renderer (README "Sensor models" says what it leaves out)."""
+    itself. Figures from our renderer (docs/guide/captures.md, "Training for your sensor", says what it leaves out)."""
     from binpick.params import load_params
     from flows.bench.sensors import bench_sensors
 

@@ -24,7 +24,7 @@ def service(
     params: Path = PARAMS,
 ) -> None:
     """The pick service: loads every trained part once, then answers "picks for this capture"
-    over HTTP/JSON and a JSON line protocol until stopped (see README, "The pick service")."""
+    over HTTP/JSON and a JSON line protocol until stopped (docs/guide/service.md)."""
     import socket
 
     from binpick.params import load_params
