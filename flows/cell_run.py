@@ -107,11 +107,12 @@ def simulated_cell(params: Params, part: PartModel, n_parts: int, seed: int) -> 
     """A physics cell of n_parts of the part settled in the project's bin (params resolved for it),
     the arm where pick.T_base_from_cam puts it with the camera straight above the bin floor at
     camera.distance_m; and that camera."""
-    from binpick.cell.simulation import SimulatedCell, in_view_of
+    from binpick.cell.simulation import SimulatedCell
     from binpick.generation.bin import T_bin_from_cam, bin_meshes
     from binpick.generation.camera import camera_of
     from binpick.generation.placement import place_objects
     from binpick.generation.scene import settle_in_bin
+    from binpick.geometry.camera import in_view_of
     from binpick.geometry.transforms import invert_T
 
     if params.pick.T_base_from_cam is None:

@@ -162,7 +162,7 @@ def cli_reference() -> str:
 
 def openapi_reference() -> str:
     """Markdown: the pick service's endpoints and the full OpenAPI schema (JSON)."""
-    from flows.service import openapi_schema
+    from flows.service_http import openapi_schema
 
     schema = openapi_schema()
     rows = ["| method | path | what |", "|---|---|---|"]

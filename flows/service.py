@@ -28,16 +28,19 @@ HTTP:
 TCP: the same JSON objects, one per line ({"health": true}, {"reload": true}; an upload as
   "data_b64" with "format"), each with "token" when one is required (HTTP: Authorization: Bearer);
   or, for a robot controller without JSON, `PICK <part> [ur|abb|kuka|fanuc] [<path>]` answered by
-  one line of numbers (_text_answer; clients/ur/binpick_pick.script).
+  one line of numbers (flows/service_lines.py; clients/ur/binpick_pick.script).
+  GET  /                          the operator page (flows/operator.py); /operator/state its figures
 Errors: {"error": "..."} (HTTP 400 bad request, 401 token, 404 unknown part, 409 reload refused,
   413 too large, 429 rate, 503 busy).
+
+This module holds the service's state and its answering (PickService); flows/service_http.py the
+HTTP application and `run_service`, flows/service_lines.py the line protocol, flows/service_api.py
+the request and answer types, flows/service_keeper.py the keeping of requests.
 """
 
 from __future__ import annotations
 
 import asyncio
-import base64
-import contextlib
 import json
 import logging
 import os
@@ -45,7 +48,6 @@ import re
 import shutil
 import threading
 import time
-import typing
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -54,23 +56,19 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from fastapi import FastAPI, Request
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, RedirectResponse
 from pydantic import ValidationError
-from starlette.concurrency import run_in_threadpool
 
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
 from binpick.io.digest import file_sha256
-from binpick.io.picks import VERSION as PICKS_VERSION
 from binpick.io.picks import picks_document
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from flows.learn import served_checkpoint
-from flows.operator import OperatorLog, operator_state, render_page
-from flows.service_api import ErrorAnswer, Health, PicksAnswer, PicksRequest, validation_message
+from flows.operator import OperatorLog
+from flows.service_api import PicksRequest, validation_message
 from flows.service_keeper import Keeper, list_requests
 
 log = logging.getLogger("binpick.service")
@@ -366,137 +364,7 @@ class PickService:
         self._keeper.close()
 
 
-# -- HTTP ----------------------------------------------------------------------------------------
-
-
-def http_app(service: PickService):
-    """The FastAPI application (and the TCP server, started with it)."""
-
-    @contextlib.asynccontextmanager
-    async def lifespan(app):
-        server = None
-        if service.settings.tcp_port:
-            server = await asyncio.start_server(
-                lambda r, w: tcp_client(service, r, w),
-                service.settings.host,
-                service.settings.tcp_port,
-                limit=service.max_bytes * 2,
-            )
-        try:
-            yield
-        finally:
-            if server is not None:
-                server.close()
-                await server.wait_closed()
-
-    app = FastAPI(
-        title="binpick pick service",
-        version=str(PICKS_VERSION),
-        lifespan=lifespan,
-        description="Picks for a capture of a bin: the poses of the parts and a collision-free grasp per part, ranked. "
-        "Send `Authorization: Bearer <token>` when the service was started with a token.",
-    )
-    errors: dict[int | str, dict[str, Any]] = {
-        code: {"model": ErrorAnswer} for code in (400, 401, 404, 409, 413, 429, 503)
-    }
-
-    @app.exception_handler(RequestError)
-    async def refused(request: Request, exc: RequestError) -> JSONResponse:
-        if request.url.path == "/picks":
-            service.operator.refused(exc.status, service.public(str(exc)), request.query_params.get("part"))
-        return JSONResponse({"error": service.public(str(exc))}, status_code=exc.status)
-
-    def state() -> dict[str, Any]:
-        return operator_state(service.health(), service.operator.recent(), service.kept_files())
-
-    @app.get("/", response_class=HTMLResponse, summary="The operator page (read-only; ?token= offers the reload)")
-    async def operator_page(request: Request):
-        given = request.query_params.get("token")
-        controls = service.token is None or given == service.token
-        page = render_page(await run_in_threadpool(state), controls, given if controls else None)
-        return HTMLResponse(page, headers={"Cache-Control": "no-store"})
-
-    @app.get("/operator/state", summary="The operator page's figures as JSON")
-    async def operator_figures():
-        return await run_in_threadpool(state)
-
-    @app.get("/requests/{request_id}/{name}", summary="A kept request's image, recording or pick list")
-    async def kept(request_id: str, name: str):
-        return FileResponse(service.kept_file(request_id, name), media_type=VIEWABLE.get(name))
-
-    @app.post("/operator/reload", include_in_schema=False)
-    async def operator_reload(request: Request):
-        from urllib.parse import parse_qs
-
-        given = parse_qs((await request.body()).decode(errors="replace")).get("token", [None])[0]
-        service.check_token(given)
-        await run_in_threadpool(service.reload)
-        return RedirectResponse("/" + (f"?token={given}" if given else ""), status_code=303)
-
-    def authorised(request: Request) -> None:
-        value = request.headers.get("authorization", "")
-        service.check_token(value[7:] if value.lower().startswith("bearer ") else None)
-
-    @app.get("/health", response_model=Health, responses=errors)
-    async def health(request: Request):
-        authorised(request)
-        return service.health()
-
-    @app.post(
-        "/reload",
-        response_model=Health,
-        responses=errors,
-        summary="Load the project's parts again (a part trained or fine-tuned since the service started)",
-    )
-    async def reload(request: Request):
-        authorised(request)
-        return await run_in_threadpool(service.reload)
-
-    upload_schema = {
-        "requestBody": {
-            "content": {
-                "application/json": {"schema": PicksRequest.model_json_schema()},
-                "application/octet-stream": {
-                    "schema": {"type": "string", "format": "binary"},
-                    "description": "the capture file; part, format and unit as query parameters",
-                },
-            }
-        }
-    }
-
-    @app.post(
-        "/picks",
-        response_model=PicksAnswer,
-        response_model_exclude_unset=True,
-        responses=errors,
-        openapi_extra=upload_schema,
-        summary="Picks for one capture: JSON naming a file or the camera, or the capture file as the body",
-    )
-    async def picks(request: Request):
-        authorised(request)
-        service.check_rate()
-        declared = request.headers.get("content-length")
-        if declared is not None and int(declared) > service.max_bytes:
-            raise RequestError(
-                413,
-                f"request of {int(declared) / 2**20:.1f} MB is over service.max_request_mb "
-                f"{service.settings.max_request_mb:g}",
-            )
-        body = bytearray()
-        async for chunk in request.stream():
-            body += chunk
-            if len(body) > service.max_bytes:
-                raise RequestError(413, f"request is over service.max_request_mb {service.settings.max_request_mb:g}")
-        if request.headers.get("content-type", "").startswith("application/json"):
-            fields, payload = _json_object(bytes(body)), None
-        else:
-            fields, payload = dict(request.query_params), bytes(body) if body else None
-        return await service.answer(_picks_request(fields), payload)
-
-    return app
-
-
-def _json_object(text: bytes) -> dict[str, Any]:
+def json_object(text: bytes) -> dict[str, Any]:
     try:
         fields = json.loads(text)
     except ValueError as exc:
@@ -506,149 +374,8 @@ def _json_object(text: bytes) -> dict[str, Any]:
     return fields
 
 
-def _picks_request(fields: dict[str, Any]) -> PicksRequest:
+def picks_request(fields: dict[str, Any]) -> PicksRequest:
     try:
         return PicksRequest.model_validate(fields)
     except ValidationError as exc:
         raise RequestError(400, validation_message(exc)) from None
-
-
-async def tcp_client(service: PickService, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-    """One connection of the line protocol: a request per line, an answer per line (JSON for
-    JSON, numbers for a text command: see _text_answer)."""
-    connection: dict[str, str | None] = {"token": None}  # `TOKEN <t>` authorises the text commands that follow
-    try:
-        while True:
-            try:
-                line = await reader.readline()
-            except (asyncio.LimitOverrunError, ValueError):
-                writer.write(
-                    json.dumps(
-                        {"error": f"request line is over service.max_request_mb {service.settings.max_request_mb:g}"}
-                    ).encode()
-                    + b"\n"
-                )
-                break
-            if not line:
-                break
-            if line.lstrip()[:1] in (b"{", b"["):
-                writer.write(json.dumps(await _tcp_answer(service, line)).encode() + b"\n")
-            else:
-                writer.write((await _text_answer(service, line, connection)).encode() + b"\n")
-            await writer.drain()
-    except (ConnectionError, asyncio.IncompleteReadError):
-        pass
-    finally:
-        with contextlib.suppress(Exception):
-            writer.close()
-            await writer.wait_closed()
-
-
-async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
-    """{"health": true} and {"reload": true} (with "token" when one is set) or a PicksRequest."""
-    fields: Any = None
-    try:
-        fields = _json_object(line)
-        service.check_token(fields.get("token"))
-        if fields.get("health"):
-            return service.health()
-        if fields.get("reload"):
-            return await asyncio.get_running_loop().run_in_executor(None, service.reload)
-        service.check_rate()
-        request = _picks_request(fields)
-        payload = None
-        if request.data_b64 is not None:
-            try:
-                payload = base64.b64decode(request.data_b64, validate=True)
-            except (ValueError, TypeError) as exc:
-                raise RequestError(400, f"data_b64 is not base64: {exc}") from None
-        return await service.answer(request, payload)
-    except RequestError as exc:
-        message = service.public(str(exc))
-        service.operator.refused(exc.status, message, fields.get("part") if isinstance(fields, dict) else None)
-        return {"error": message, "status": exc.status}
-
-
-# The text commands' answer: a status, then the first pick's pregrasp, grasp, postgrasp and place
-# poses, as URScript's socket_read_ascii_float reads them: "(n1,n2,...)", at most 30 numbers.
-TEXT_WAYPOINTS = ("pregrasp", "grasp", "postgrasp", "place")
-
-
-async def _text_answer(service: PickService, line: bytes, connection: dict[str, str | None]) -> str:
-    """A robot controller's request, in words it can send without a JSON library:
-
-        TOKEN <token>                      authorises this connection's later commands
-        PICK <part> [<format>] [<path>]    the best pick of a camera frame (or of a capture file)
-
-    <format> is ur (the default), abb, kuka or fanuc. The answer is one line of numbers in
-    parentheses: status (1 a pick, 0 no part to pick, minus the HTTP status of a refusal, e.g.
-    -404 for an unknown part) and four poses in that format (pregrasp, grasp, postgrasp, place;
-    zeros when there is no pick, or no place planned): 25 numbers (29 for abb)."""
-    from binpick.robot.pose_formats import FIELDS
-
-    words = line.decode(errors="replace").split()
-    fmt = "ur"
-    try:
-        if not words:
-            raise RequestError(400, "empty command")
-        command = words[0].upper()
-        if command == "TOKEN" and len(words) == 2:
-            connection["token"] = words[1]
-            service.check_token(words[1])
-            return _floats([1.0])
-        if command != "PICK" or len(words) < 2:
-            raise RequestError(400, "a text command is PICK <part> [<format>] [<path>] or TOKEN <token>")
-        service.check_token(connection["token"])
-        service.check_rate()
-        rest = words[2:]
-        if rest and rest[0].lower() in FIELDS:
-            fmt = rest.pop(0).lower()
-        fields: dict[str, Any] = {"part": words[1], "pose_format": fmt}
-        fields.update({"path": " ".join(rest)} if rest else {"camera": True})
-        answer = await service.answer(_picks_request(fields))
-    except RequestError as exc:
-        log.info("text command refused (%d): %s", exc.status, exc)
-        service.operator.refused(exc.status, service.public(str(exc)), words[1] if len(words) > 1 else None)
-        return _floats([-float(exc.status)] + [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS))
-    numbers = [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS)
-    if answer["picks"]:
-        robot = answer["picks"][0]["robot"]
-        numbers = [x for w in TEXT_WAYPOINTS for x in (robot.get(w) or [0.0] * len(FIELDS[fmt]))]
-    return _floats([1.0 if answer["picks"] else 0.0, *numbers])
-
-
-def _floats(values: list[float]) -> str:
-    return "(" + ",".join(f"{round(v, 6) + 0.0:.6f}" for v in values) + ")"  # + 0.0: no "-0.000000"
-
-
-def run_service(
-    root: Path, params_path: Path, host: str | None = None, http_port: int | None = None, tcp_port: int | None = None
-) -> None:
-    """Load the parts, then serve until interrupted."""
-    import uvicorn
-
-    s = load_params(params_path).service
-    s = s.model_copy(
-        update={k: v for k, v in {"host": host, "http_port": http_port, "tcp_port": tcp_port}.items() if v is not None}
-    )
-    if s.host not in LOOPBACK and not os.environ.get(s.token_env):
-        raise BinpickError(
-            f"binding to {s.host} (beyond this machine) needs a token: set the {s.token_env} environment variable"
-        )
-    service = PickService(root, params_path)
-    service.settings = s
-    log.info(
-        "answering on http://%s:%d%s", s.host, s.http_port, f" and tcp://{s.host}:{s.tcp_port}" if s.tcp_port else ""
-    )
-    try:
-        uvicorn.Server(
-            uvicorn.Config(http_app(service), host=s.host, port=s.http_port, log_level="warning", access_log=False)
-        ).run()
-    finally:
-        service.close()
-
-
-def openapi_schema() -> dict[str, Any]:
-    """The service's OpenAPI schema without loading a project (for the documentation): the routes
-    touch the service only when they answer, so none is given."""
-    return http_app(typing.cast(PickService, None)).openapi()

@@ -73,7 +73,8 @@ def server(project):
     """The service on free loopback ports, in this process; stopped after the module."""
     import uvicorn
 
-    from flows.service import PickService, http_app
+    from flows.service import PickService
+    from flows.service_http import http_app
 
     root, _, _ = project
     service = PickService(root, root / "params.yaml", keep_mlflow=False)

@@ -11,6 +11,7 @@ input (cell.robot.vacuum_out / vacuum_in; no sensor: the hold is assumed). Not t
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from types import ModuleType
 from typing import Protocol
 
@@ -52,6 +53,28 @@ class Robot(Protocol):
         ...
 
     def close(self) -> None: ...
+
+
+@dataclass
+class Execution:
+    """What one pick did in the simulated cell.
+
+    outcome: "placed" (the part arrived within tolerance), "misplaced" (arrived outside it),
+    "no seal" / "no hold" (the cup did not seal / the jaws did not close on a part), "dropped"
+    (held, then lost on the way); target: the body index of the part grasped (None: none);
+    touched: what the arm or tool touched on the way ("bin", "part"); double: other parts that
+    left the bin with it; motion_s: the arm's motion time including the dwell at the grasp and
+    the place; out_of_view_s: when the arm left the camera's view after the grasp (seconds from
+    the motion's start; the next capture may be taken from then).
+    """
+
+    outcome: str
+    target: int | None
+    touched: set[str] = field(default_factory=set)
+    double: int = 0
+    motion_s: float = 0.0
+    out_of_view_s: float = 0.0
+    lost: str = ""  # a dropped part: what it touched as it tore off
 
 
 def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:

@@ -15,21 +15,19 @@ and the parts: any within CONTACT_M is a touch.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from binpick.cell.robot import NO_GRIP, execute_pick
+from binpick.cell.robot import NO_GRIP, Execution, execute_pick
+from binpick.cell.sim_contact import CONTACT_TOLERANCE_M, arrived, cup_seal, jaws_touch
+from binpick.cell.sim_world import add_arm, add_boxes, add_part, add_tool
 from binpick.generation.physics import SCALE, TIME_STEP_S, convex_parts_obj, quaternion_xyzw
-from binpick.geometry.camera import PinholeCamera
 from binpick.geometry.transforms import invert_T, make_T, transform_points
 from binpick.io.part_model import PartModel
-from binpick.native import stdout_silenced
 from binpick.params import CellParams, PickParams
 from binpick.picking.arm import ArmMotion
-from binpick.picking.gripper import Box, Cylinder, gripper_primitives, surface_points
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.trajectory import JointLimits, motion
 
@@ -38,50 +36,11 @@ CONTACT_M = 0.0005
 # Steps between two contact queries while the arm moves (at 240 Hz: every 17 ms; a link at the
 # arm's 1.5 m/s moves 2.5 cm in that time, a touch that short would pass unseen).
 CONTACT_EVERY = 4
-# Rays around the cup's lip that test its seal on the true mesh.
-LIP_RAYS = 16
-# The planned contact lies within this of the part's true surface along the approach, or the
-# cup meets air (or presses in).
-CONTACT_TOLERANCE_M = 0.002
 # A held part this far from where the hold put it has torn off the cup (slipped out of the jaws):
 # about what a bellows cup gives.
 SLIP_M = 0.01
 # Parts still faster than this after the pick are left to settle (at most SETTLE_S).
 REST_SPEED_M_S, SETTLE_S = 0.002, 1.5
-FRICTION = 0.6
-
-
-@dataclass
-class Execution:
-    """What one pick did in the simulated cell.
-
-    outcome: "placed" (the part arrived within tolerance), "misplaced" (arrived outside it),
-    "no seal" / "no hold" (the cup did not seal / the jaws did not close on a part), "dropped"
-    (held, then lost on the way); target: the body index of the part grasped (None: none);
-    touched: what the arm or tool touched on the way ("bin", "part"); double: other parts that
-    left the bin with it; motion_s: the arm's motion time including the dwell at the grasp and
-    the place; out_of_view_s: when the arm left the camera's view after the grasp (seconds from
-    the motion's start; the next capture may be taken from then).
-    """
-
-    outcome: str
-    target: int | None
-    touched: set[str] = field(default_factory=set)
-    double: int = 0
-    motion_s: float = 0.0
-    out_of_view_s: float = 0.0
-    lost: str = ""  # a dropped part: what it touched as it tore off
-
-
-def in_view_of(camera: PinholeCamera, T_cam_from_bin: np.ndarray) -> Callable[[np.ndarray], bool]:
-    """Whether any of some points (n, 3), bin frame, lies in the camera's image (in front of it)."""
-
-    def in_view(points_bin: np.ndarray) -> bool:
-        uv = camera.project(points_bin @ T_cam_from_bin[:3, :3].T + T_cam_from_bin[:3, 3])
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
-        return bool(np.any(inside))
-
-    return in_view
 
 
 class SimulatedCell:
@@ -116,18 +75,7 @@ class SimulatedCell:
         pb.setTimeStep(TIME_STEP_S, physicsClientId=c)
         pb.setPhysicsEngineParameter(numSolverIterations=50, deterministicOverlappingPairs=1, physicsClientId=c)
         # A table under the bin and the arm (the bin's ground reaches only just beyond its walls).
-        ground_top = min(float(hi[2]) for _, hi in bin_boxes) if bin_boxes else 0.0
-        table = (np.array([-3.0, -3.0, ground_top - 0.05]), np.array([3.0, 3.0, ground_top]))
-        self.bin_bodies = []
-        self.body_names: dict[int, str] = {}
-        for lo, hi in [table, *bin_boxes]:
-            half = (np.asarray(hi) - np.asarray(lo)) / 2.0 * SCALE
-            middle = (np.asarray(hi) + np.asarray(lo)) / 2.0 * SCALE
-            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=c)
-            body = pb.createMultiBody(0.0, shape, basePosition=middle.tolist(), physicsClientId=c)
-            pb.changeDynamics(body, -1, lateralFriction=FRICTION, physicsClientId=c)
-            self.bin_bodies.append(body)
-            self.body_names[body] = "table" if float(hi[2]) <= ground_top else "bin"
+        self.bin_bodies, self.body_names = add_boxes(pb, c, bin_boxes)
         # Part bodies live in a frame at the centre of the part's box (as generation.physics).
         vertices = part.mesh_vertices_m
         self.centre_m = (vertices.min(axis=0) + vertices.max(axis=0)) / 2.0
@@ -141,8 +89,8 @@ class SimulatedCell:
         self.parts: list[int | None] = []
         for T in np.asarray(T_bin_from_parts, dtype=float):
             self.parts.append(self._add_part(T))
-        self.robot = self._add_arm()
-        self.tool = self._add_tool()
+        self.robot, self.joint_index, self.link_of_sample = add_arm(pb, c, arm, self.T_bin_from_base)
+        self.tool, self.tool_points = add_tool(pb, c, pick, kind)
         self.hold: int | None = None
         self.aimed: int | None = None
         self.hold_force = 0.0  # the hold's force limit, simulator units
@@ -156,91 +104,8 @@ class SimulatedCell:
         self.q = np.asarray(cell.home_q_rad, dtype=float)
         self._pose_arm(self.q, np.zeros(6))
 
-    # -- building the world
-
     def _add_part(self, T_bin_from_model: np.ndarray) -> int:
-        pb, c = self.pb, self.client
-        T = T_bin_from_model @ self.T_model_from_body
-        body = pb.createMultiBody(
-            self.mass_kg,
-            self.part_shape,
-            basePosition=(T[:3, 3] * SCALE).tolist(),
-            baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
-            physicsClientId=c,
-        )
-        pb.changeDynamics(
-            body,
-            -1,
-            lateralFriction=FRICTION,
-            restitution=0.0,
-            linearDamping=0.1,
-            angularDamping=0.1,
-            physicsClientId=c,
-        )
-        return int(body)
-
-    def _add_arm(self) -> int:
-        pb, c = self.pb, self.client
-        # pybullet's root is the URDF's base_link, the controller's base turned half a turn about z.
-        T = self.T_bin_from_base @ make_T(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))
-        # pybullet notes every URDF link without inertia on stdout.
-        with stdout_silenced():
-            body = pb.loadURDF(
-                str(self.arm.urdf_path),
-                basePosition=(T[:3, 3] * SCALE).tolist(),
-                baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
-                useFixedBase=True,
-                globalScaling=SCALE,
-                physicsClientId=c,
-            )
-        names = {
-            pb.getJointInfo(body, j, physicsClientId=c)[1].decode(): j
-            for j in range(pb.getNumJoints(body, physicsClientId=c))
-        }
-        self.joint_index = [names[name] for name in self.arm.joint_names]
-        # The links that move (the base and its cable connector stand beside the bin): the arm
-        # model's link k is the simulator's link (joint) j.
-        child = {
-            pb.getJointInfo(body, j, physicsClientId=c)[12].decode(): j
-            for j in range(pb.getNumJoints(body, physicsClientId=c))
-        }
-        self.link_of_sample = {k: child[name] for k, name in enumerate(self.arm.link_names) if k > 0 and name in child}
-        return int(body)
-
-    def _add_tool(self) -> int:
-        """The gripper's primitives (picking/gripper.py) as one body in the tool frame."""
-        pb, c = self.pb, self.client
-        shapes, positions = [], []
-        for prim in gripper_primitives(self.pick, self.kind, self.pick.jaw.opening_max_m):
-            if isinstance(prim, Cylinder):
-                length = prim.z1 - prim.z0
-                shapes.append(
-                    pb.createCollisionShape(
-                        pb.GEOM_CYLINDER, radius=prim.radius * SCALE, height=length * SCALE, physicsClientId=c
-                    )
-                )
-                positions.append([0.0, 0.0, (prim.z0 + prim.z1) / 2.0 * SCALE])
-            elif isinstance(prim, Box):
-                half = (prim.hi - prim.lo) / 2.0 * SCALE
-                shapes.append(pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=c))
-                positions.append(((prim.hi + prim.lo) / 2.0 * SCALE).tolist())
-        body = pb.createMultiBody(
-            0.0,
-            -1,
-            linkMasses=[0.0] * len(shapes),
-            linkCollisionShapeIndices=shapes,
-            linkVisualShapeIndices=[-1] * len(shapes),
-            linkPositions=positions,
-            linkOrientations=[[0, 0, 0, 1]] * len(shapes),
-            linkInertialFramePositions=[[0, 0, 0]] * len(shapes),
-            linkInertialFrameOrientations=[[0, 0, 0, 1]] * len(shapes),
-            linkParentIndices=[0] * len(shapes),
-            linkJointTypes=[pb.JOINT_FIXED] * len(shapes),
-            linkJointAxis=[[0, 0, 1]] * len(shapes),
-            physicsClientId=c,
-        )
-        self.tool_points = surface_points(gripper_primitives(self.pick, self.kind, self.pick.jaw.opening_max_m), 0.01)
-        return int(body)
+        return add_part(self.pb, self.client, self.part_shape, self.mass_kg, T_bin_from_model @ self.T_model_from_body)
 
     # -- state
 
@@ -539,50 +404,28 @@ class SimulatedCell:
         self.hold = held
         return held
 
+    def _model_pose(self, body: int) -> np.ndarray:
+        """T_bin_from_model of a part's body."""
+        return self._body_pose(body) @ invert_T(self.T_model_from_body)
+
     def _sealed_part(self, T_bin_from_tcp: np.ndarray) -> int | None:
-        """The part whose true mesh the cup's lip seals on at this tool pose: rays along the approach
-        from the lip's circle and its centre all meet that part's surface within the cup's
-        tolerance (flat within max_deviation_m, normal within max_normal_deg of the axis), the
-        centre within CONTACT_TOLERANCE_M of the tool centre point."""
-        s = self.pick.suction
-        angles = 2.0 * np.pi * np.arange(LIP_RAYS) / LIP_RAYS
-        lip = np.column_stack([s.cup_radius_m * np.cos(angles), s.cup_radius_m * np.sin(angles), np.zeros(LIP_RAYS)])
-        starts_tool = np.vstack([[0.0, 0.0, 0.0], lip]) - np.array([0.0, 0.0, 0.02])
+        """The part whose true mesh the cup's lip seals on at this tool pose (sim_contact.cup_seal)."""
         for i, body in enumerate(self.parts):
-            if body is None:
-                continue
-            T_model_from_tool = invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)) @ T_bin_from_tcp
-            origins = transform_points(T_model_from_tool, starts_tool)
-            direction = np.broadcast_to(T_model_from_tool[:3, 2], origins.shape)
-            hits, rays, _ = self.rays.intersects_location(origins, direction, multiple_hits=False)
-            if len(rays) == 0 or 0 not in rays:
-                continue
-            depth = np.full(LIP_RAYS + 1, np.nan)
-            depth[rays] = (hits - origins[rays]) @ T_model_from_tool[:3, 2] - 0.02
-            if abs(depth[0]) > CONTACT_TOLERANCE_M:
-                continue
-            if len(rays) < LIP_RAYS + 1:
-                return None  # the lip hangs over an edge: no seal
-            lip_hits = transform_points(invert_T(T_model_from_tool), hits[np.argsort(rays)][1:])
-            centre = lip_hits.mean(axis=0)
-            _, sv, vt = np.linalg.svd(lip_hits - centre)
-            normal = vt[2] * np.sign(vt[2, 2] or 1.0)
-            flat = np.max(np.abs((lip_hits - centre) @ vt[2])) <= s.max_deviation_m
-            facing = np.degrees(np.arccos(min(1.0, abs(normal[2])))) <= s.max_normal_deg
-            return i if flat and facing else None
+            if body is not None:
+                sealed = cup_seal(self.rays, invert_T(self._model_pose(body)) @ T_bin_from_tcp, self.pick.suction)
+                if sealed is not None:
+                    return i if sealed else None
         return None
 
     def _jawed_part(self, T_bin_from_tcp: np.ndarray, width_m: float) -> int | None:
-        """The part both jaw pads touch (their centres, width_m apart along the closing axis,
-        within CONTACT_TOLERANCE_M of its true surface) when the jaws close at this tool pose."""
+        """The part both jaw pads touch (their centres, width_m apart along the closing axis) when
+        the jaws close at this tool pose."""
         half = T_bin_from_tcp[:3, 0] * width_m / 2.0
         pads = np.stack([T_bin_from_tcp[:3, 3] - half, T_bin_from_tcp[:3, 3] + half])
         for i, body in enumerate(self.parts):
-            if body is None:
-                continue
-            local = transform_points(invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)), pads)
-            _, distance, _ = trimesh.proximity.closest_point(self.rays.mesh, local)
-            if np.all(distance <= CONTACT_TOLERANCE_M):
+            if body is not None and jaws_touch(
+                self.rays.mesh, transform_points(invert_T(self._model_pose(body)), pads)
+            ):
                 return i
         return None
 
@@ -591,21 +434,7 @@ class SimulatedCell:
         assert self.hold is not None
         body = self.parts[self.hold]
         assert body is not None
-        place = self.cell.place
-        T = self._body_pose(body) @ invert_T(self.T_model_from_body)
-        T_target = np.asarray(place.T_base_from_part, dtype=float)
-        T_base = invert_T(self.T_bin_from_base) @ T
-        if place.kind == "drop":
-            centre = T_base[:3, :3] @ self.centre_m + T_base[:3, 3]
-            return bool(np.linalg.norm(centre - T_target[:3, 3]) <= place.tolerance_m)
-        if np.linalg.norm(T_base[:3, 3] - T_target[:3, 3]) > place.tolerance_m:
-            return False
-        if place.kind == "conveyor":
-            tilt = np.degrees(np.arccos(np.clip(T_base[:3, 2] @ T_target[:3, 2], -1.0, 1.0)))
-            return bool(tilt <= place.tolerance_deg)
-        R = T_base[:3, :3].T @ T_target[:3, :3]
-        angle = np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
-        return bool(angle <= place.tolerance_deg)
+        return arrived(invert_T(self.T_bin_from_base) @ self._model_pose(body), self.centre_m, self.cell.place)
 
     def _release(self) -> None:
         """Let go at the place and take the part out of the world (the next machine has it)."""

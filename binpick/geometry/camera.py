@@ -7,6 +7,7 @@ v = fy y / z + cy.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,3 +94,14 @@ class PinholeCamera:
         distance along one is the depth."""
         u, v = np.meshgrid(np.arange(self.width, dtype=np.float32), np.arange(self.height, dtype=np.float32))
         return np.stack([(u - self.cx) / self.fx, (v - self.cy) / self.fy, np.ones_like(u)], axis=-1)
+
+
+def in_view_of(camera: PinholeCamera, T_cam_from_bin: np.ndarray) -> Callable[[np.ndarray], bool]:
+    """Whether any of some points (n, 3), bin frame, lies in the camera's image (in front of it)."""
+
+    def in_view(points_bin: np.ndarray) -> bool:
+        uv = camera.project(points_bin @ T_cam_from_bin[:3, :3].T + T_cam_from_bin[:3, 3])
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < camera.height)
+        return bool(np.any(inside))
+
+    return in_view

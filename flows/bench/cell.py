@@ -35,12 +35,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from binpick.cell.simulation import Execution, SimulatedCell, in_view_of
+from binpick.cell.robot import Execution
+from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import camera_of
 from binpick.generation.placement import place_objects
 from binpick.generation.scene import render_scene, settle_in_bin
+from binpick.geometry.camera import in_view_of
 from binpick.geometry.transforms import invert_T, make_T
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel

@@ -18,27 +18,18 @@ whether every capture got the same answer every time (same picks, poses within 1
 
 from __future__ import annotations
 
-import json
 import logging
-import os
-import shutil
-import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import IO, Any
 
 import numpy as np
 
 from binpick.errors import BinpickError
 from binpick.generation.scene import generate_scene
 from binpick.io.capture import ImportOptions, load_capture
-from binpick.io.grasps import save_grasps
-from binpick.io.part_model import PartModel, save_part_model
-from binpick.io.ppf_model import save_ppf_model
+from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
@@ -47,8 +38,9 @@ from binpick.params import GenerateParams, Params
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
-from flows.bench import BENCH_PARTS, free_port, machine
+from flows.bench import BENCH_PARTS, machine
 from flows.bench.picking import bench_models, picking_settings
+from flows.bench.service_project import LineClient, ServiceProject, bench_overrides
 
 log = logging.getLogger(__name__)
 
@@ -57,153 +49,11 @@ BIN_SIZES = (8, 20)
 CAPTURES_PER_CASE = 3
 REPEATS = 3
 REQUEST_GAP_S = 1.0
-START_TIMEOUT_S = 300.0
 # The picking benchmark's bins (32 drops a part) stop filling when the lowest drop rests above 0.6
 # of the part's size: a gear-shaft bin then held 20 in 6 of 6 bins, a synthetic shaft of its
 # proportions 19 in one of 5. Heaped up to 0.8 of the part's size, every bin holds the 20 this
 # benchmark asks for (bins that were not full are drawn as before).
 PILE_HEIGHT_REL = 0.8
-
-
-def _overrides(p: Params) -> dict:
-    """A part entry's overrides that make the project's settings the benchmark's for that part."""
-    imp = p.import_capture
-    return {
-        "import_capture": {
-            k: getattr(imp, k)
-            for k in ("voxel_size_m", "normal_radius_m", "plane_threshold_m", "keep_above_plane_m", "max_range_m")
-        }
-    }
-
-
-class ServiceProject:
-    """A temporary project folder holding the benchmark parts' models, and a `binpick service`
-    process answering for it."""
-
-    def __init__(
-        self,
-        root: Path,
-        settings_text: str,
-        entries: dict[str, dict],
-        models: dict[str, PartModels],
-        checkpoints: dict[str, Path],
-    ):
-        from binpick.params import _edit
-
-        self.root = root
-        (root / "params.yaml").write_text(settings_text)
-        (root / "dvc.yaml").write_text("stages: {}\n")
-
-        def add_parts(doc) -> None:
-            for name, entry in entries.items():
-                if name in doc["parts"]:
-                    doc["parts"][name].update({k: v for k, v in entry.items() if k not in ("mesh", "unit")})
-                else:
-                    doc["parts"][name] = entry
-
-        _edit(root / "params.yaml", add_parts)
-        layout = Layout(root)
-        for name, m in models.items():
-            layout.part_folder(name).mkdir(parents=True, exist_ok=True)
-            save_part_model(layout.part_model(name), m.part)
-            save_ppf_model(layout.ppf_model(name), m.ppf)
-            assert m.grasps is not None
-            save_grasps(layout.grasps(name), name, {m.grasps.kind: m.grasps}, "generated")
-            if name in checkpoints and checkpoints[name].is_file():
-                layout.network_folder(name).mkdir(parents=True, exist_ok=True)
-                shutil.copyfile(checkpoints[name], layout.checkpoint(name))
-                if Layout.verification_of(checkpoints[name]).is_file():
-                    shutil.copyfile(Layout.verification_of(checkpoints[name]), layout.verification(name))
-        self.http_port, self.tcp_port = free_port(), free_port()
-        self.process: subprocess.Popen | None = None
-        self.log_file: IO[str] | None = None
-        self._client: Any = None  # httpx.Client, made on the first request
-
-    def start(self) -> float:
-        """Start the service; returns the moment it was started (time.perf_counter())."""
-        env = {**os.environ, "BINPICK_TOKEN": ""}
-        # Its log goes to a file: a pipe nobody reads fills up and stops the service at a log line.
-        self.log_file = open(self.root / "service.log", "w")  # noqa: SIM115 - closed in stop()
-        t0 = time.perf_counter()
-        self.process = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "flows.cli",
-                "service",
-                "--http-port",
-                str(self.http_port),
-                "--tcp-port",
-                str(self.tcp_port),
-            ],
-            cwd=self.root,
-            env=env,
-            stdout=self.log_file,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        return t0
-
-    def wait_until_up(self) -> None:
-        import httpx
-
-        deadline = time.perf_counter() + START_TIMEOUT_S
-        while time.perf_counter() < deadline:
-            assert self.process is not None
-            if self.process.poll() is not None:
-                last = (self.root / "service.log").read_text().strip().splitlines()[-1:]
-                raise BinpickError(f"the service exited: {' '.join(last) or 'no message'}")
-            try:
-                httpx.get(f"http://127.0.0.1:{self.http_port}/health", timeout=1.0)
-                return
-            except httpx.HTTPError:
-                time.sleep(0.05)
-        raise BinpickError(f"the service did not answer within {START_TIMEOUT_S:.0f} s")
-
-    def http(self, part: str, capture: Path) -> dict:
-        import httpx
-
-        # One client kept open, as a cell's controller keeps its connection (and as the line
-        # protocol's client does): a client per request spent 30 ms building its TLS context
-        # and opened a new connection each time.
-        if self._client is None:
-            self._client = httpx.Client(timeout=600)
-        return self._client.post(
-            f"http://127.0.0.1:{self.http_port}/picks", json={"part": part, "path": str(capture)}
-        ).json()
-
-    def rss_mb(self) -> float:
-        assert self.process is not None
-        import psutil
-
-        return psutil.Process(self.process.pid).memory_info().rss / 2**20
-
-    def stop(self) -> None:
-        if self._client is not None:
-            self._client.close()
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
-            try:
-                self.process.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                self.process.kill()
-        if self.log_file is not None:
-            self.log_file.close()
-
-
-class LineClient:
-    def __init__(self, port: int):
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=600)
-        self.stream = self.sock.makefile("rwb")
-
-    def ask(self, request: dict) -> dict:
-        self.stream.write(json.dumps(request).encode() + b"\n")
-        self.stream.flush()
-        return json.loads(self.stream.readline())
-
-    def close(self) -> None:
-        self.stream.close()
-        self.sock.close()
 
 
 def scene_generate_settings(part: PartModel, p: Params) -> GenerateParams:
@@ -281,7 +131,7 @@ def bench_scene(
         for part in parts:
             p = picking_settings(settings, part)
             models[part.name] = bench_models(part, p, checkpoints.get(part.name))
-            entries[part.name] = {"mesh": f"data/parts/{part.name}.stl", "unit": "m", **_overrides(p)}
+            entries[part.name] = {"mesh": f"data/parts/{part.name}.stl", "unit": "m", **bench_overrides(p)}
             for n in BIN_SIZES:
                 cases[(part.name, n)] = _captures(part, p, n, CAPTURES_PER_CASE, captures_folder, seed)
             for n in BIN_SIZES:
@@ -392,7 +242,11 @@ def bench_soak(
         captures = [path for path, _ in _captures(part, p, 8, n_captures, captures_folder, seed)]
         text = settings_text.replace("keep_requests: 500", "keep_requests: 50")
         service = ServiceProject(
-            root, text, {"t_joint": _overrides(p)}, {"t_joint": models}, {"t_joint": checkpoint} if checkpoint else {}
+            root,
+            text,
+            {"t_joint": bench_overrides(p)},
+            {"t_joint": models},
+            {"t_joint": checkpoint} if checkpoint else {},
         )
         failures: list[str] = []
         first: dict[str, tuple[list, np.ndarray]] = {}

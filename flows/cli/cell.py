@@ -28,7 +28,7 @@ def service(
     import socket
 
     from binpick.params import load_params
-    from flows.service import run_service
+    from flows.service_http import run_service
 
     root = project_root()
     s = load_params(params).service
