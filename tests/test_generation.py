@@ -32,6 +32,41 @@ def test_drop_placement_has_no_interpenetration_and_stays_in_the_bin(t_joint):
         assert np.all(np.abs(p[:, 1]) <= bin_params.inner_y_m / 2 + 1e-9)
 
 
+def test_a_mixed_bin_drops_each_kind_where_it_fits_without_touching_the_others(t_joint):
+    from conftest import box_part_model
+
+    box = box_part_model(np.array([0.05, 0.03, 0.02]))
+    kinds = [0, 1] * 5
+    placed = place_objects(
+        [t_joint.points_m, box.points_m],
+        10,
+        PARAMS.generate.bin,
+        PARAMS.generate.placement,
+        np.random.default_rng(4),
+        kinds,
+    )
+    assert placed.kinds.tolist() == kinds[: len(placed.T_bin_from_model)] and len(placed.T_bin_from_model) == 10
+    # No object more than a millimetre inside another (as the one-part placement promises).
+    import trimesh
+
+    parts = [t_joint, box]
+    meshes = []
+    for T, k in zip(placed.T_bin_from_model, kinds, strict=True):
+        mesh = trimesh.Trimesh(parts[k].mesh_vertices_m, parts[k].mesh_faces, process=False)
+        meshes.append(mesh.apply_transform(T))
+    for i in range(10):
+        points = transform_points(placed.T_bin_from_model[i], parts[kinds[i]].points_m[::10])
+        for j in range(10):
+            if j != i:
+                assert trimesh.proximity.signed_distance(meshes[j], points).max() <= 0.001, (i, j)
+    # One part given as a list is the one-part placement, draw for draw.
+    one = place_objects(t_joint.points_m, 6, PARAMS.generate.bin, PARAMS.generate.placement, np.random.default_rng(5))
+    listed = place_objects(
+        [t_joint.points_m], 6, PARAMS.generate.bin, PARAMS.generate.placement, np.random.default_rng(5)
+    )
+    assert np.array_equal(one.T_bin_from_model, listed.T_bin_from_model)
+
+
 def test_a_full_bin_keeps_the_objects_that_fit(t_joint):
     small = changed(PARAMS.generate.bin, inner_x_m=0.1, inner_y_m=0.1)
     placed = place_objects(

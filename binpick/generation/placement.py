@@ -25,10 +25,12 @@ MOSTLY_LYING_TILT_SIGMA_RAD = np.pi / 8
 
 @dataclass(frozen=True)
 class Placement:
-    """T_bin_from_model : (k, 4, 4) float64, poses of the placed objects, bin frame, metres."""
+    """T_bin_from_model : (k, 4, 4) float64, poses of the placed objects, bin frame, metres;
+    kinds : (k,) int, which kind of part each is (index into the point sets; all 0 for one part)."""
 
     T_bin_from_model: np.ndarray
     n_requested: int
+    kinds: np.ndarray | None = None
 
 
 def sample_orientation(rng: np.random.Generator, mode: str) -> np.ndarray:
@@ -114,21 +116,31 @@ def _update_support(support: np.ndarray, top: np.ndarray, p: np.ndarray, ox: flo
 
 
 def place_objects(
-    model_points_m: np.ndarray,
+    model_points_m: np.ndarray | list[np.ndarray],
     n_objects: int,
     bin_params: BinParams,
     placement: PlacementParams,
     rng: np.random.Generator,
+    kinds: list[int] | None = None,
 ) -> Placement:
     """Drop `n_objects` copies of a part into the bin, one after the other.
 
-    model_points_m : (n, 3) float, dense surface sample of the part, model frame, metres. Its
-                     spacing should be below `placement.heightmap_cell_m`.
+    model_points_m : (n, 3) float, dense surface sample of the part, model frame, metres; or a
+                     list of such, one per kind of part in a mixed bin. Their spacing should be
+                     below `placement.heightmap_cell_m`.
+    kinds          : the kind of each object dropped, in order (a mixed bin); default all 0.
     Returns the poses of the objects that fit; fewer than requested when the bin is full (logged).
     """
-    pts = np.asarray(model_points_m, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"expected model points (n, 3), got {pts.shape}")
+    sets = [
+        np.asarray(m, dtype=np.float64)
+        for m in (model_points_m if isinstance(model_points_m, list) else [model_points_m])
+    ]
+    for pts in sets:
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"expected model points (n, 3), got {pts.shape}")
+    kinds = [0] * n_objects if kinds is None else list(kinds)
+    if len(kinds) != n_objects or not all(0 <= k < len(sets) for k in kinds):
+        raise ValueError(f"expected {n_objects} kinds, each below {len(sets)}, got {kinds}")
     cell = placement.heightmap_cell_m
     X, Y = bin_params.inner_x_m, bin_params.inner_y_m
     shape = (int(np.ceil(X / cell)), int(np.ceil(Y / cell)))
@@ -137,7 +149,8 @@ def place_objects(
     # object, so that a large bin costs no more per object than a small one.
     support = top.copy()
     poses: list[np.ndarray] = []
-    for _ in range(n_objects):
+    for kind in kinds:
+        pts = sets[kind]
         floor_gap = start_height(rng, placement, bin_params)
         # Of several random candidates, the one that comes to rest lowest: piles stay flat and
         # dense like a settled bin instead of growing towers on single contact points.
@@ -163,4 +176,4 @@ def place_objects(
         _update_support(support, top, p, pose[0, 3] + X / 2, pose[1, 3] + Y / 2, cell)
         poses.append(pose)
     T = np.stack(poses) if poses else np.zeros((0, 4, 4))
-    return Placement(T_bin_from_model=T, n_requested=n_objects)
+    return Placement(T_bin_from_model=T, n_requested=n_objects, kinds=np.asarray(kinds[: len(poses)], dtype=np.int64))

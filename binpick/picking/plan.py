@@ -340,7 +340,7 @@ def plan_picks(
                     + (f"; {n_out} outside the approach cone" if n_out else ""),
                 )
             )
-    picks.sort(key=lambda p: _rank_key(p, params))
+    picks.sort(key=lambda p: rank_key(p, params))
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
 
@@ -354,7 +354,8 @@ def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return out
 
 
-def _rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
+def rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
+    """A pick's place in the order to take them (smaller first): trusted first, then pick.order."""
     keys = []
     for k in params.order:
         if k == "height":

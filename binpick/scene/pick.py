@@ -29,12 +29,15 @@ def pick(
     import_params: ImportCaptureParams,
     cell: CellParams | None = None,
     q_from: np.ndarray | None = None,
+    extra_obstacles_m: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
     when params give it, and the other parts at their poses. With a cell whose arm is set and
     the camera's place in the base frame (pick.T_base_from_cam), each pick is checked for the
-    whole arm (binpick/picking/arm.py), starting from q_from (default: the cell's home)."""
+    whole arm (binpick/picking/arm.py), starting from q_from (default: the cell's home).
+    extra_obstacles_m (k, 3), camera frame: more obstacles (another kind of part's posed body in
+    a mixed bin, binpick/scene/mixed.py)."""
     seen = DepthView(cloud.seen_depth_m, cloud.seen_K)
     planner = None
     if cell is not None and cell.arm is not None and params.T_base_from_cam is not None:
@@ -53,6 +56,8 @@ def pick(
     captured = seen.points_m()
     if len(captured) == 0:
         captured = cloud.points_m
+    if extra_obstacles_m is not None and len(extra_obstacles_m):
+        captured = np.concatenate([np.asarray(captured, dtype=np.float64), np.asarray(extra_obstacles_m, float)])
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
     shares = np.array([np.nan if p.seen_through is None else p.seen_through for p in poses], dtype=np.float64)

@@ -44,15 +44,26 @@ def bench_clutter_cmd(
     tilt_deg_max: float = typer.Option(
         45.0, min=0.0, max=59.0, help="the camera's largest tilt from the bin's up axis, degrees"
     ),
+    mix: str = typer.Option(
+        None,
+        help="instead: bins mixing these parts (comma separated, e.g. t_joint,zju_three_way_pipe) through the "
+        "mixed scene path: per part precision / recall and wrong_part_poses",
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Pose precision/recall and wrong poses outside the bin on bins with distractors and tilted
     views (per band of tilt too), through the real scene path, against the scoring without bin
-    crop and verification."""
+    crop and verification. With --mix: bins of several kinds of part (flows/bench/mix.py)."""
     from binpick.params import load_params
     from flows.bench.clutter import DEFAULT_PARTS, bench_clutter
 
     root = project_root()
+    if mix:
+        from flows.bench.mix import bench_mix
+
+        mixed = [n.strip() for n in mix.split(",") if n.strip()]
+        write_json(out, bench_mix(load_params(params), mixed, scenes, checkpoints(root, mixed)))
+        return
     names = part or list(DEFAULT_PARTS)
     try:
         result = bench_clutter(load_params(params), names, scenes, checkpoints(root, names), tilt_deg_max=tilt_deg_max)

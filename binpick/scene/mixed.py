@@ -1,0 +1,204 @@
+"""The scene path for a bin of several kinds of part: one capture cleaned once, each part's
+segmentation and registration on the shared cleaned cloud, conflicts between parts resolved by
+the verification the poses carry, and one ordered pick list across the parts.
+
+A region of the capture gets at most one part: two poses of different parts that claim the same
+measured points (more than CONFLICT_SHARE of the smaller claim) are a conflict, and the pose
+with the better verification (score x visible support x (1 - seen-through share)) keeps the
+points. Each part's picks see the other parts' kept poses as obstacles (their unseen sides too).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from binpick.geometry.transforms import transform_points
+from binpick.io.cloud import CleanCloud
+from binpick.io.poses import PartPose
+from binpick.picking.plan import Pick, rank_key
+from binpick.scene.clean import clean
+from binpick.scene.pick import pick
+from binpick.scene.process import PartModels
+from binpick.scene.register import register
+from binpick.scene.segment import segment
+from binpick.seeding import SceneSeeds
+
+# Two poses of different parts conflict when they share more than this of the smaller one's
+# measured points.
+CONFLICT_SHARE = 0.3
+# Every k-th model surface point stands for a part's body among the other parts' obstacles, and
+# for its surface when the measured points it claims are counted (the dense sample is 20,000).
+OBSTACLE_STRIDE = 4
+CLAIM_STRIDE = 5
+
+
+def pose_quality(pose: PartPose) -> float:
+    """What a conflict is decided by: score x visible support x (1 - seen-through share); an
+    unmeasured check counts as passed."""
+    support = 1.0 if pose.visible_support is None else float(pose.visible_support)
+    through = 0.0 if pose.seen_through is None else float(pose.seen_through)
+    return float(pose.score) * support * (1.0 - through)
+
+
+def claimed_points(
+    points_m: np.ndarray, model_points_m: np.ndarray, T_cam_from_model: np.ndarray, inlier_m: float, tree=None
+) -> np.ndarray:
+    """Indices (k,) of the measured points (n, 3), camera frame, within inlier_m of the posed model
+    surface (model_points_m (m, 3), model frame; T_cam_from_model (4, 4)), sorted."""
+    tree = tree or cKDTree(np.asarray(points_m, dtype=np.float64))
+    posed = transform_points(np.asarray(T_cam_from_model, dtype=np.float64), model_points_m)
+    hits = tree.query_ball_point(posed, inlier_m)
+    return np.unique(np.concatenate([np.asarray(h, dtype=np.int64) for h in hits])) if len(hits) else np.zeros(0, int)
+
+
+def resolve_conflicts(
+    claims: list[np.ndarray], quality: list[float], kinds: list[str], share: float = CONFLICT_SHARE
+) -> tuple[list[bool], list[tuple[int, int]]]:
+    """Which poses of several parts keep their region: claims (per pose, the indices of the
+    measured points it explains), quality (per pose, higher is better), kinds (per pose, its
+    part's name). A pose is kept unless a better pose of another part, kept already, shares more
+    than `share` of the smaller of their claims. Returns the keep flags and, for each pose
+    dropped, (dropped, kept by) indices."""
+    order = sorted(range(len(claims)), key=lambda i: -quality[i])
+    keep = [False] * len(claims)
+    lost: list[tuple[int, int]] = []
+    kept: list[int] = []
+    for i in order:
+        rival = None
+        for j in kept:
+            if kinds[j] == kinds[i]:
+                continue  # the same part's poses were told apart by its own registration
+            shared = len(np.intersect1d(claims[i], claims[j], assume_unique=True))
+            if shared > share * max(1, min(len(claims[i]), len(claims[j]))):
+                rival = j
+                break
+        if rival is None:
+            keep[i] = True
+            kept.append(i)
+        else:
+            lost.append((i, rival))
+    return keep, lost
+
+
+@dataclass(frozen=True)
+class MixedPick:
+    """One pick of a mixed bin: the part's name and its pick (pose_index into that part's poses)."""
+
+    part: str
+    pick: Pick
+
+
+@dataclass
+class MixedResult:
+    """A mixed capture's answer: the cleaned cloud, each part's kept poses, the poses dropped as
+    another part's region (part, pose, the part that kept it), one ordered pick list, each part's
+    unpicked (pose_index, reason), timings per step (summed over the parts)."""
+
+    cloud: CleanCloud
+    poses: dict[str, list[PartPose]]
+    conflicts: list[tuple[str, PartPose, str]]
+    picks: list[MixedPick]
+    unpicked: dict[str, list[tuple[int, str]]]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def process_mixed(
+    xyz_m: np.ndarray,
+    rgb: np.ndarray | None,
+    frame_shape: tuple[int, int] | None,
+    models: dict[str, PartModels],
+    seeds: SceneSeeds,
+    priority: list[str] | None = None,
+    q_from: np.ndarray | None = None,
+) -> MixedResult:
+    """The scene path on a capture of several kinds of part (the module's docstring). models:
+    each part's models, in the order given (the first part's import settings clean the capture);
+    priority: parts picked before the others, in that order (the rest by pick.order whatever the
+    part; None or []: all by pick.order)."""
+    names = list(models)
+    if not names:
+        raise ValueError("a mixed capture needs at least one part")
+    t0 = time.perf_counter()
+    cloud = clean(xyz_m, rgb, frame_shape, models[names[0]].import_params, seeds.clean)
+    t1 = time.perf_counter()
+    found: dict[str, list[PartPose]] = {}
+    segment_s = 0.0
+    for name in names:
+        m = models[name]
+        s0 = time.perf_counter()
+        labels = segment(cloud, m.segmenter, seeds.segment) if m.segmenter is not None else None
+        segment_s += time.perf_counter() - s0
+        found[name] = register(cloud, labels, m.ppf, m.register_params, seeds.register).poses
+    t2 = time.perf_counter()
+    flat = [(name, p) for name in names for p in found[name]]
+    tree = cKDTree(np.asarray(cloud.points_m, dtype=np.float64)) if len(cloud.points_m) else None
+    claims = [
+        claimed_points(
+            cloud.points_m, models[n].part.points_m[::CLAIM_STRIDE], p.T_cam_from_model, _inlier_m(models[n]), tree
+        )
+        if tree is not None
+        else np.zeros(0, int)
+        for n, p in flat
+    ]
+    keep, lost = resolve_conflicts(claims, [pose_quality(p) for _, p in flat], [n for n, _ in flat])
+    poses: dict[str, list[PartPose]] = {n: [] for n in names}
+    for (name, pose), kept in zip(flat, keep, strict=True):
+        if kept:
+            poses[name].append(pose)
+    conflicts = [(flat[i][0], flat[i][1], flat[j][0]) for i, j in lost]
+    t3 = time.perf_counter()
+    picks, unpicked = _picks(cloud, poses, models, priority or [], q_from)
+    t4 = time.perf_counter()
+    timings = {"clean_s": t1 - t0, "segment_s": segment_s, "register_s": t2 - t1 - segment_s, "resolve_s": t3 - t2}
+    if picks or unpicked:
+        timings["pick_s"] = t4 - t3
+    return MixedResult(cloud, poses, conflicts, picks, unpicked, timings)
+
+
+def _inlier_m(m: PartModels) -> float:
+    return m.register_params.score_inlier_rel * m.part.diameter_m
+
+
+def _picks(
+    cloud: CleanCloud,
+    poses: dict[str, list[PartPose]],
+    models: dict[str, PartModels],
+    priority: list[str],
+    q_from: np.ndarray | None,
+) -> tuple[list[MixedPick], dict[str, list[tuple[int, str]]]]:
+    """Each part's picks with the other parts' posed bodies as obstacles, merged into one list:
+    the priority's parts first in its order, then by each part's own ranking (trusted first, then
+    pick.order), ties by part name."""
+    merged: list[tuple[tuple, MixedPick]] = []
+    unpicked: dict[str, list[tuple[int, str]]] = {}
+    for name, m in models.items():
+        if m.grasps is None or m.pick_params is None or not poses[name]:
+            continue
+        others = [
+            transform_points(p.T_cam_from_model, models[other].part.points_m[::OBSTACLE_STRIDE])
+            for other in models
+            if other != name
+            for p in poses[other]
+        ]
+        obstacles = np.concatenate(others) if others else None
+        plan = pick(
+            cloud,
+            poses[name],
+            m.part,
+            m.grasps,
+            m.pick_params,
+            m.import_params,
+            m.cell_params,
+            q_from,
+            extra_obstacles_m=obstacles,
+        )
+        unpicked[name] = list(plan.unpicked)
+        rank = priority.index(name) if name in priority else len(priority)
+        for p in plan.picks:
+            merged.append(((rank, *rank_key(p, m.pick_params), name), MixedPick(name, p)))
+    merged.sort(key=lambda kp: kp[0])
+    return [mp for _, mp in merged], unpicked
