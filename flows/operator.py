@@ -73,7 +73,7 @@ class OperatorLog:
             Outcome(
                 time.time(),
                 doc["request_id"],
-                doc["part"],
+                doc.get("part") or ",".join(doc.get("parts", [])),
                 200,
                 len(doc.get("poses", [])),
                 len(doc["picks"]),
@@ -135,8 +135,9 @@ def _e(x: Any) -> str:
     return html.escape(str(x), quote=True)
 
 
-def render_page(state: dict[str, Any], controls: bool, token: str | None) -> str:
-    """The operator page (HTML) of operator_state's figures; controls: offer the reload button."""
+def render_page(state: dict[str, Any], controls: bool, token: str | None, refresh_s: int = REFRESH_S) -> str:
+    """The operator page (HTML) of operator_state's figures; controls: offer the reload button;
+    refresh_s: the page reloads itself this often (0: never)."""
     not_served = "".join(f"<li>{_e(p)}: {_e(why)}</li>" for p, why in state["not_served"].items())
 
     def counted(counts: dict[str, int]) -> str:
@@ -179,8 +180,9 @@ def render_page(state: dict[str, Any], controls: bool, token: str | None) -> str
         else "<p>Read-only: open this page with ?token=… to reload the parts.</p>"
     )
     median = state["total_s_median"]
+    refresh = f'<meta http-equiv="refresh" content="{refresh_s}">' if refresh_s > 0 else ""
     return f"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><meta http-equiv="refresh" content="{REFRESH_S}">
+<html lang="en"><head><meta charset="utf-8">{refresh}
 <title>binpick: cell</title>
 <style>
 body {{ font-family: system-ui, sans-serif; margin: 1.5em; color: #222; }}

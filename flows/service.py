@@ -61,9 +61,10 @@ from pydantic import ValidationError
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
 from binpick.io.digest import file_sha256
-from binpick.io.picks import picks_document
+from binpick.io.picks import mixed_picks_document, picks_document
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
+from binpick.scene.mixed import process_mixed
 from binpick.scene.process import PartModels, process
 from binpick.seeding import SceneSeeds
 from flows.learn import served_checkpoint
@@ -238,9 +239,11 @@ class PickService:
     async def answer(self, request: PicksRequest, payload: bytes | None = None) -> dict[str, Any]:
         """The picks for one request (see the module's docstring); raises RequestError. Called
         on the event loop: the work goes straight to the one answering thread."""
-        served = self.parts.get(request.part)
-        if served is None:
-            raise RequestError(404, f"unknown part {request.part!r} (serving: {', '.join(sorted(self.parts))})")
+        names = request.parts or [request.part or ""]
+        unknown = [n for n in names if n not in self.parts]
+        if unknown:
+            raise RequestError(404, f"unknown part {unknown[0]!r} (serving: {', '.join(sorted(self.parts))})")
+        served = [self.parts[n] for n in names]
         with self._count:
             if self._waiting >= self.settings.max_queue + 1:
                 raise RequestError(503, f"busy: {self._waiting} requests in progress or waiting")
@@ -298,11 +301,14 @@ class PickService:
             message = message.replace(root + os.sep, "").replace(root, ".")
         return message
 
-    def _answer(self, served: Served, request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
-        part, unit = request.part, request.unit
+    def _answer(self, served: list[Served], request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
+        """One request answered (one part, or several: request.parts, binpick/scene/mixed.py)."""
+        unit, first = request.unit, served[0]
+        mixed = request.parts is not None
+        names = request.parts or [request.part or first.models.part.name]  # as the project names them
         t0 = time.perf_counter()
         stamp = datetime.now(UTC)
-        request_id = f"{stamp:%Y%m%dT%H%M%S%f}-{part}"
+        request_id = f"{stamp:%Y%m%dT%H%M%S%f}-{'-'.join(names)}"
         folder = self._keeper.folder(stamp, request_id)
         try:
             path = self._capture_file(request, payload, folder)
@@ -315,35 +321,59 @@ class PickService:
                 raise RequestError(400, self._for_client(str(exc), path, shown)) from None
             # Seeds from the capture's content, as the DVC stages take them: the same capture
             # gets the same answer here and when `binpick requests --add` runs it through them.
-            seeds = SceneSeeds.of_capture(served.params.seed, frame.xyz_m, frame.rgb)
+            seeds = SceneSeeds.of_capture(first.params.seed, frame.xyz_m, frame.rgb)
             t1 = time.perf_counter()
             try:
-                result = process(frame.xyz_m, frame.rgb, frame.shape, served.models, seeds)
+                if mixed:
+                    models = {name: s.models for name, s in zip(names, served, strict=True)}
+                    result: Any = process_mixed(frame.xyz_m, frame.rgb, frame.shape, models, seeds, request.priority)
+                else:
+                    result = process(frame.xyz_m, frame.rgb, frame.shape, first.models, seeds)
             except BinpickError as exc:
                 raise RequestError(400, self._for_client(f"{path}: {exc}", path, shown)) from None
         except RequestError:
             shutil.rmtree(folder, ignore_errors=True)
             raise
         t2 = time.perf_counter()
-        assert result.picks is not None
-        doc = picks_document(
-            request_id,
-            part,
-            served.params.pick.gripper,
-            result.picks,
-            served.T_base_from_cam,
-            request.pose_format or served.params.pick.pose_format,
-        )
+        pose_format = request.pose_format or first.params.pick.pose_format
+        if mixed:
+            doc = mixed_picks_document(
+                request_id,
+                {name: s.params.pick.gripper for name, s in zip(names, served, strict=True)},
+                {name: len(found) for name, found in result.poses.items()},
+                [(mp.part, mp.pick) for mp in result.picks],
+                result.unpicked,
+                [(lost, kept) for lost, _, kept in result.conflicts],
+                result.up_cam,
+                first.T_base_from_cam,
+                pose_format,
+            )
+            posed = [(name, p) for name, found in result.poses.items() for p in found]
+        else:
+            assert result.picks is not None
+            doc = picks_document(
+                request_id,
+                names[0],
+                first.params.pick.gripper,
+                result.picks,
+                first.T_base_from_cam,
+                pose_format,
+            )
+            posed = [(None, p) for p in result.poses]
         timings = {"read_s": t1 - t_read, **result.timings_s, "pipeline_s": t2 - t1, "total_s": t2 - t0}
         doc["request_id"] = request_id
         doc["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
         doc["poses"] = [
-            {"T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(), "score": round(p.score, 6)}
-            for p in result.poses
+            {
+                **({"part": name} if name is not None else {}),
+                "T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(),
+                "score": round(p.score, 6),
+            }
+            for name, p in posed
         ]
         self.answered += 1
         self.operator.answered(doc)
-        self._keeper.keep(folder, path, doc, result, served, unit, frame)
+        self._keeper.keep(folder, path, doc, None if mixed else result, first, unit, frame)
         return doc
 
     def kept_files(self) -> dict[str, list[str]]:

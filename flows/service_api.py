@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from binpick.io.mesh import METRES_PER_UNIT
 from binpick.robot.pose_formats import PoseFormat
@@ -22,7 +22,16 @@ class PicksRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    part: str = Field(description="a part the service serves (GET /health lists them)")
+    part: str | None = Field(None, description="a part the service serves (GET /health lists them)")
+    parts: list[str] | None = Field(
+        None,
+        description="instead of part: several parts in one bin (a mixed bin): each part's poses, conflicts between "
+        "them resolved by verification, one pick list naming each pick's part; a comma-separated list as a query "
+        "parameter",
+    )
+    priority: list[str] | None = Field(
+        None, description="a mixed bin: these parts are picked first, in this order (the rest by pick.order)"
+    )
     path: str | None = Field(
         None, description="capture file on the service's machine, absolute or relative to the project"
     )
@@ -39,6 +48,19 @@ class PicksRequest(BaseModel):
     token: str | None = Field(
         None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)"
     )
+
+    @field_validator("parts", "priority", mode="before")
+    @classmethod
+    def _listed(cls, value: object) -> object:
+        return [v.strip() for v in value.split(",") if v.strip()] if isinstance(value, str) else value
+
+    @model_validator(mode="after")
+    def _one_or_several(self) -> PicksRequest:
+        if (self.part is None) == (self.parts is None):
+            raise ValueError('a request names its "part", or its "parts" for a mixed bin (not both)')
+        if self.parts is not None and not self.parts:
+            raise ValueError('"parts" names at least one part')
+        return self
 
     @field_validator("unit")
     @classmethod
@@ -84,6 +106,7 @@ class RobotPoses(BaseModel):
 
 
 class Pick(BaseModel):
+    part: str | None = Field(None, description="a mixed bin: the part this pick takes")
     rank: int = Field(description="0 = pick this first")
     pose_index: int = Field(description="index into `poses`")
     grasp_id: str
@@ -101,11 +124,18 @@ class Pick(BaseModel):
 
 
 class Unpicked(BaseModel):
+    part: str | None = None
     pose_index: int
     reason: str
 
 
+class Conflict(BaseModel):
+    part: str = Field(description="the part whose pose lost the region")
+    kept_by: str = Field(description="the part whose pose kept it")
+
+
 class PoseOut(BaseModel):
+    part: str | None = None
     T_cam_from_model: Matrix4
     score: float
 
@@ -114,7 +144,8 @@ class PicksAnswer(BaseModel):
     format: Literal["binpick-picks"]
     version: int
     capture: str = Field(description="the request's id")
-    part: str
+    part: str | None = None
+    parts: list[str] | None = Field(None, description="a mixed bin: its parts (pose_index counts their poses in order)")
     gripper: str
     unit: Literal["m"]
     tool_frame: str
@@ -126,6 +157,9 @@ class PicksAnswer(BaseModel):
     picks: list[Pick]
     unpicked: list[Unpicked]
     counts: dict[str, float]
+    conflicts: list[Conflict] | None = Field(
+        None, description="a mixed bin: each pose that lost its region to a better-verified pose of another part"
+    )
     request_id: str
     timings_s: dict[str, float]
     poses: list[PoseOut]

@@ -18,7 +18,7 @@ from starlette.concurrency import run_in_threadpool
 from binpick.errors import BinpickError
 from binpick.io.picks import VERSION as PICKS_VERSION
 from binpick.params import load_params
-from flows.operator import operator_state, render_page
+from flows.operator import REFRESH_S, operator_state, render_page
 from flows.service import LOOPBACK, VIEWABLE, PickService, RequestError, json_object, log, picks_request
 from flows.service_api import ErrorAnswer, Health, PicksAnswer, PicksRequest
 from flows.service_lines import tcp_client
@@ -68,7 +68,11 @@ def http_app(service: PickService):
     async def operator_page(request: Request):
         given = request.query_params.get("token")
         controls = service.token is None or given == service.token
-        page = render_page(await run_in_threadpool(state), controls, given if controls else None)
+        try:  # ?refresh=0 holds the page still (for a screenshot or a slow look)
+            refresh_s = min(max(int(request.query_params.get("refresh", REFRESH_S)), 0), 3600)
+        except ValueError:
+            refresh_s = REFRESH_S
+        page = render_page(await run_in_threadpool(state), controls, given if controls else None, refresh_s)
         return HTMLResponse(page, headers={"Cache-Control": "no-store"})
 
     @app.get("/operator/state", summary="The operator page's figures as JSON")

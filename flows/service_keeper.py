@@ -50,7 +50,8 @@ class Keeper:
         return path
 
     def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str, frame) -> None:
-        """Keep one answered request (frame: the capture as loaded, binpick.io.capture)."""
+        """Keep one answered request (frame: the capture as loaded, binpick.io.capture; result:
+        the scene path's, None for a mixed bin, whose poses, recording and image are not kept)."""
         self._jobs.put((folder, capture, doc, result, served, unit, frame))
 
     def close(self) -> None:
@@ -67,8 +68,6 @@ class Keeper:
                 self._jobs.task_done()
 
     def _keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str, frame) -> None:
-        from stages.common import mlflow_run
-
         if capture.parent != folder:  # a named file: keep a copy (a link where the disk allows)
             target = folder / f"capture{capture.suffix}"
             try:
@@ -79,52 +78,52 @@ class Keeper:
         write_picks_document(
             folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")}
         )
-        save_poses(folder / "poses.json", part.name, result.poses)
-        if frame.shape is not None:  # an image to draw on: the operator page shows it
-            write_overlay(folder / OVERLAY, frame, part, result)
-        (folder / "request.json").write_text(
-            json.dumps(
-                {
-                    "request_id": doc["request_id"],
-                    "part": part.name,
-                    "timings_s": doc["timings_s"],
-                    "counts": doc["counts"],
-                    "source": str(capture),
-                    "unit": unit,
-                },
-                indent=1,
+        names = doc.get("parts") or [part.name]
+        self._write_request(folder, doc, names, capture, unit)
+        if result is not None:  # one part: its poses, the image and the recording (not for a mixed bin)
+            save_poses(folder / "poses.json", part.name, result.poses)
+            if frame.shape is not None:  # an image to draw on: the operator page shows it
+                write_overlay(folder / OVERLAY, frame, part, result)
+            if self._stream is None:
+                import rerun as rr
+
+                self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
+            write_pick_recording(
+                folder / "scene.rrd",
+                doc["request_id"],
+                result.cloud,
+                part,
+                result.poses,
+                result.picks,
+                served.params.pick.gripper,
+                served.params.pick,
+                self._stream,
             )
-            + "\n"
-        )
-        if self._stream is None:
-            import rerun as rr
-
-            self._stream = rr.RecordingStream("binpick", recording_id="binpick-service")
-        write_pick_recording(
-            folder / "scene.rrd",
-            doc["request_id"],
-            result.cloud,
-            part,
-            result.poses,
-            result.picks,
-            served.params.pick.gripper,
-            served.params.pick,
-            self._stream,
-        )
-        if self.log_mlflow:
-            with mlflow_run(
-                "service", doc["request_id"], self.mlflow_uri, {"part": part.name, "request_id": doc["request_id"]}
-            ):
-                import mlflow
-
-                mlflow.log_metrics(
-                    {
-                        **doc["timings_s"],
-                        **doc["counts"],
-                        "score_mean": float(np.mean([p.score for p in result.poses])) if result.poses else 0.0,
-                    }
-                )
+        scores = [p["score"] for p in doc.get("poses", [])]
+        self._log(doc, names, float(np.mean(scores)) if scores else 0.0)
         self._prune()
+
+    def _write_request(self, folder: Path, doc: dict, names: list[str], capture: Path, unit: str) -> None:
+        record = {
+            "request_id": doc["request_id"],
+            **({"part": names[0]} if len(names) == 1 and "parts" not in doc else {"parts": names}),
+            "timings_s": doc["timings_s"],
+            "counts": doc["counts"],
+            "source": str(capture),
+            "unit": unit,
+        }
+        (folder / "request.json").write_text(json.dumps(record, indent=1) + "\n")
+
+    def _log(self, doc: dict, names: list[str], score_mean: float) -> None:
+        if not self.log_mlflow:
+            return
+        from stages.common import mlflow_run
+
+        tags = {"part": ",".join(names), "request_id": doc["request_id"]}
+        with mlflow_run("service", doc["request_id"], self.mlflow_uri, tags):
+            import mlflow
+
+            mlflow.log_metrics({**doc["timings_s"], **doc["counts"], "score_mean": score_mean})
 
     def _prune(self) -> None:
         kept = list_requests(self.requests)

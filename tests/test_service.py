@@ -323,7 +323,7 @@ def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browse
     try:
         from selenium.webdriver.common.by import By
 
-        browser.get(url + "/")
+        browser.get(url + "/?refresh=0")  # held still: a reload between two looks would stale the elements
         image = browser.find_element(By.ID, "latest")
         for _ in range(100):
             if browser.execute_script("return arguments[0].complete && arguments[0].naturalWidth", image):
@@ -341,9 +341,9 @@ def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browse
         assert browser.find_elements(By.TAG_NAME, "button")  # no token: the reload is offered
         service.token = "s3cret"
         try:
-            browser.get(url + "/")
+            browser.get(url + "/?refresh=0")
             assert not browser.find_elements(By.TAG_NAME, "button")
-            browser.get(url + "/?token=s3cret")
+            browser.get(url + "/?token=s3cret&refresh=0")
             browser.find_element(By.TAG_NAME, "button").click()
             assert browser.find_element(By.ID, "parts").text == "t_joint"
         finally:
@@ -521,6 +521,30 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     assert health["parts"] == ["t_joint"] and "not been evaluated since" in health["not_served"]["t_joint_b"]
     network.unlink()
     assert httpx.post(f"{url}/reload", timeout=120).json()["parts"] == ["t_joint", "t_joint_b"]
+
+    # A mixed request: two parts of the same shape claim every instance; each region goes to one.
+    single = httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).json()
+    mixed = httpx.post(
+        f"{url}/picks",
+        params={"parts": "t_joint,t_joint_b", "priority": "t_joint_b", "format": "zdf", "pose_format": "ur"},
+        content=capture.read_bytes(),
+        headers={"content-type": "application/octet-stream"},
+        timeout=120,
+    )
+    assert mixed.status_code == 200, mixed.text
+    answer = mixed.json()
+    assert answer["parts"] == ["t_joint", "t_joint_b"] and "part" not in answer
+    assert len(answer["poses"]) == len(single["poses"]) and len(answer["conflicts"]) == len(single["poses"])
+    assert {p["part"] for p in answer["poses"]} <= {"t_joint", "t_joint_b"}
+    named = [p["part"] for p in answer["picks"]]
+    assert named == sorted(named, key=lambda n: n != "t_joint_b")  # the priority's part first
+    for pick in answer["picks"]:
+        assert answer["poses"][pick["pose_index"]]["part"] == pick["part"] and len(pick["robot"]["grasp"]) == 6
+    refused = [
+        httpx.post(f"{url}/picks", json={"parts": ["t_joint", "gizmo"], "path": str(capture)}),
+        httpx.post(f"{url}/picks", json={"part": "t_joint", "parts": ["t_joint"], "path": str(capture)}),
+    ]
+    assert [r.status_code for r in refused] == [404, 400] and "not both" in refused[1].json()["error"]
 
 
 def test_a_network_is_served_only_when_evaluate_judged_these_bytes(tmp_path):

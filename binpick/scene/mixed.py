@@ -11,11 +11,12 @@ points. Each part's picks see the other parts' kept poses as obstacles (their un
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.poses import PartPose
@@ -103,6 +104,7 @@ class MixedResult:
     conflicts: list[tuple[str, PartPose, str]]
     picks: list[MixedPick]
     unpicked: dict[str, list[tuple[int, str]]]
+    up_cam: np.ndarray  # (3,) the bin's up axis, camera frame (the picks' approach cone's)
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
@@ -116,23 +118,29 @@ def process_mixed(
     q_from: np.ndarray | None = None,
 ) -> MixedResult:
     """The scene path on a capture of several kinds of part (the module's docstring). models:
-    each part's models, in the order given (the first part's import settings clean the capture);
+    each part's models (the import settings with the finest voxel grid clean the capture, and each
+    part segments and registers it thinned to its own grid);
     priority: parts picked before the others, in that order (the rest by pick.order whatever the
     part; None or []: all by pick.order)."""
     names = list(models)
     if not names:
         raise ValueError("a mixed capture needs at least one part")
     t0 = time.perf_counter()
-    cloud = clean(xyz_m, rgb, frame_shape, models[names[0]].import_params, seeds.clean)
+    finest = min(names, key=lambda n: models[n].import_params.voxel_size_m)
+    cloud = clean(xyz_m, rgb, frame_shape, models[finest].import_params, seeds.clean)
     t1 = time.perf_counter()
     found: dict[str, list[PartPose]] = {}
+    clouds: dict[str, CleanCloud] = {}
     segment_s = 0.0
     for name in names:
         m = models[name]
+        # Each part sees the cloud at its own grid, the density its network and matcher expect.
+        voxel_m = m.import_params.voxel_size_m
+        clouds[name] = cloud if voxel_m <= models[finest].import_params.voxel_size_m else at_grid(cloud, voxel_m)
         s0 = time.perf_counter()
-        labels = segment(cloud, m.segmenter, seeds.segment) if m.segmenter is not None else None
+        labels = segment(clouds[name], m.segmenter, seeds.segment) if m.segmenter is not None else None
         segment_s += time.perf_counter() - s0
-        found[name] = register(cloud, labels, m.ppf, m.register_params, seeds.register).poses
+        found[name] = register(clouds[name], labels, m.ppf, m.register_params, seeds.register).poses
     t2 = time.perf_counter()
     flat = [(name, p) for name in names for p in found[name]]
     tree = cKDTree(np.asarray(cloud.points_m, dtype=np.float64)) if len(cloud.points_m) else None
@@ -151,12 +159,26 @@ def process_mixed(
             poses[name].append(pose)
     conflicts = [(flat[i][0], flat[i][1], flat[j][0]) for i, j in lost]
     t3 = time.perf_counter()
-    picks, unpicked = _picks(cloud, poses, models, priority or [], q_from)
+    picks, unpicked, up_cam = _picks(clouds, poses, models, priority or [], q_from)
     t4 = time.perf_counter()
     timings = {"clean_s": t1 - t0, "segment_s": segment_s, "register_s": t2 - t1 - segment_s, "resolve_s": t3 - t2}
     if picks or unpicked:
         timings["pick_s"] = t4 - t3
-    return MixedResult(cloud, poses, conflicts, picks, unpicked, timings)
+    return MixedResult(cloud, poses, conflicts, picks, unpicked, up_cam, timings)
+
+
+def at_grid(cloud: CleanCloud, voxel_m: float) -> CleanCloud:
+    """The cleaned cloud thinned to one point per voxel_m cell (itself when no cell holds two)."""
+    keep = voxel_downsample_indices(np.asarray(cloud.points_m, dtype=np.float64), voxel_m)
+    if len(keep) == len(cloud.points_m):
+        return cloud
+    return replace(
+        cloud,
+        points_m=cloud.points_m[keep],
+        normals=cloud.normals[keep],
+        rgb=cloud.rgb[keep],
+        pixel_index=cloud.pixel_index[keep],
+    )
 
 
 def _inlier_m(m: PartModels) -> float:
@@ -164,17 +186,18 @@ def _inlier_m(m: PartModels) -> float:
 
 
 def _picks(
-    cloud: CleanCloud,
+    clouds: dict[str, CleanCloud],
     poses: dict[str, list[PartPose]],
     models: dict[str, PartModels],
     priority: list[str],
     q_from: np.ndarray | None,
-) -> tuple[list[MixedPick], dict[str, list[tuple[int, str]]]]:
+) -> tuple[list[MixedPick], dict[str, list[tuple[int, str]]], np.ndarray]:
     """Each part's picks with the other parts' posed bodies as obstacles, merged into one list:
     the priority's parts first in its order, then by each part's own ranking (trusted first, then
     pick.order), ties by part name."""
     merged: list[tuple[tuple, MixedPick]] = []
     unpicked: dict[str, list[tuple[int, str]]] = {}
+    up_cam = np.array([0.0, 0.0, -1.0])  # the camera looking down, until a plan says where up is
     for name, m in models.items():
         if m.grasps is None or m.pick_params is None or not poses[name]:
             continue
@@ -186,7 +209,7 @@ def _picks(
         ]
         obstacles = np.concatenate(others) if others else None
         plan = pick(
-            cloud,
+            clouds[name],
             poses[name],
             m.part,
             m.grasps,
@@ -197,8 +220,9 @@ def _picks(
             extra_obstacles_m=obstacles,
         )
         unpicked[name] = list(plan.unpicked)
+        up_cam = plan.up_cam
         rank = priority.index(name) if name in priority else len(priority)
         for p in plan.picks:
             merged.append(((rank, *rank_key(p, m.pick_params), name), MixedPick(name, p)))
     merged.sort(key=lambda kp: kp[0])
-    return [mp for _, mp in merged], unpicked
+    return [mp for _, mp in merged], unpicked, up_cam

@@ -1,5 +1,6 @@
 """Mixed-bin benchmark (`binpick bench clutter --mix a,b[,c]`): bins holding several kinds of part,
-dropped together, rendered at the first part's bin, camera and grids, and run through the mixed
+dropped together, rendered in the first part's bin and camera (name the largest part first),
+each part with its own models and grids, and run through the mixed
 scene path (binpick/scene/mixed.py: one cleaning, each part's segmentation and registration,
 conflicts resolved, one pick list).
 
@@ -56,7 +57,11 @@ def bench_mix(
     parts.sort(key=lambda p: names.index(p.name))
     p = picking_settings(settings, parts[0])
     g = p.generate.model_copy(update={"placement": p.generate.placement.model_copy(update={"mode": "drop"})})
-    models = {part.name: bench_models(part, p, checkpoints.get(part.name)) for part in parts}
+    # Each part's own models and settings (its grids, as its network was trained at); the bin and
+    # the camera are the first part's.
+    models = {
+        part.name: bench_models(part, picking_settings(settings, part), checkpoints.get(part.name)) for part in parts
+    }
     rows: dict[str, list[dict[str, float]]] = {part.name: [] for part in parts}
     mixed_s: list[float] = []
     single_s: list[float] = []
