@@ -344,8 +344,15 @@ def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browse
             browser.get(url + "/?refresh=0")
             assert not browser.find_elements(By.TAG_NAME, "button")
             browser.get(url + "/?token=s3cret&refresh=0")
-            browser.find_element(By.TAG_NAME, "button").click()
-            assert browser.find_element(By.ID, "parts").text == "t_joint"
+            button = browser.find_element(By.TAG_NAME, "button")
+            button.click()
+            # The form posts, the service reloads the parts and sends the browser back to the page.
+            from selenium.webdriver.support import expected_conditions
+            from selenium.webdriver.support.wait import WebDriverWait
+
+            WebDriverWait(browser, 60).until(expected_conditions.staleness_of(button))
+            parts = WebDriverWait(browser, 60).until(expected_conditions.presence_of_element_located((By.ID, "parts")))
+            assert parts.text == "t_joint"
         finally:
             service.token = None
         page = browser.page_source
