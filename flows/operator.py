@@ -174,6 +174,8 @@ def render_page(state: dict[str, Any], controls: bool, token: str | None, refres
         else '<p id="no-requests">No request yet.</p>'
     )
     hidden = f'<input type="hidden" name="token" value="{_e(token)}">' if token else ""
+    if refresh_s != REFRESH_S:
+        hidden += f'<input type="hidden" name="refresh" value="{refresh_s}">'
     reload_form = (
         f'<form method="post" action="/operator/reload">{hidden}<button>Reload the parts</button></form>'
         if controls

@@ -85,12 +85,15 @@ def http_app(service: PickService):
 
     @app.post("/operator/reload", include_in_schema=False)
     async def operator_reload(request: Request):
-        from urllib.parse import parse_qs
+        from urllib.parse import parse_qs, urlencode
 
-        given = parse_qs((await request.body()).decode(errors="replace")).get("token", [None])[0]
+        form = parse_qs((await request.body()).decode(errors="replace"))
+        given = form.get("token", [None])[0]
         service.check_token(given)
         await run_in_threadpool(service.reload)
-        return RedirectResponse("/" + (f"?token={given}" if given else ""), status_code=303)
+        # Back to the page as it was opened (its token, its refresh).
+        back: dict[str, str] = {k: form[k][0] for k in ("token", "refresh") if k in form}
+        return RedirectResponse("/" + (f"?{urlencode(back)}" if back else ""), status_code=303)
 
     def authorised(request: Request) -> None:
         value = request.headers.get("authorization", "")
