@@ -577,6 +577,11 @@ class PickParams(_Strict):
     order: list[Literal["height", "score", "clearance"]] = Field(min_length=1)
     height_tolerance_m: float = Field(ge=0, description="parts this close in height count as equally high")
     max_candidates_per_part: int = Field(ge=1, description="grasps tried per part, best-ranked first")
+    part_priority: list[str] = Field(
+        [],
+        description="a mixed bin (several parts in one request): these parts are picked first, in this order; "
+        "the rest, and every part when empty, by `order` whatever the part (a request's own priority wins)",
+    )
     pose_format: Literal["matrix", "ur", "abb", "kuka", "fanuc"] = Field(  # binpick.robot.pose_formats
         "matrix",
         description="picks.json and the service also give each pick's base-frame tool poses in this robot's "

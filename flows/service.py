@@ -326,7 +326,8 @@ class PickService:
             try:
                 if mixed:
                     models = {name: s.models for name, s in zip(names, served, strict=True)}
-                    result: Any = process_mixed(frame.xyz_m, frame.rgb, frame.shape, models, seeds, request.priority)
+                    priority = request.priority if request.priority is not None else first.params.pick.part_priority
+                    result: Any = process_mixed(frame.xyz_m, frame.rgb, frame.shape, models, seeds, priority)
                 else:
                     result = process(frame.xyz_m, frame.rgb, frame.shape, first.models, seeds)
             except BinpickError as exc:

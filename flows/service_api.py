@@ -30,7 +30,9 @@ class PicksRequest(BaseModel):
         "parameter",
     )
     priority: list[str] | None = Field(
-        None, description="a mixed bin: these parts are picked first, in this order (the rest by pick.order)"
+        None,
+        description="a mixed bin: these parts are picked first, in this order (the rest by pick.order); default: "
+        "pick.part_priority",
     )
     path: str | None = Field(
         None, description="capture file on the service's machine, absolute or relative to the project"

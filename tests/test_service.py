@@ -493,6 +493,7 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     root, _, capture = project
     raw = yaml.safe_load((root / "params.yaml").read_text())
     raw["parts"]["t_joint_b"] = dict(raw["parts"]["t_joint"])
+    raw["pick"]["part_priority"] = ["t_joint_b"]  # a mixed bin's picks: t_joint_b's first
     (root / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
     shutil.copytree(root / "data" / "models" / "t_joint", root / "data" / "models" / "t_joint_b")
     assert httpx.get(f"{url}/health").json()["parts"] == ["t_joint"]
@@ -533,7 +534,7 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     single = httpx.post(f"{url}/picks", json={"part": "t_joint", "path": str(capture)}, timeout=120).json()
     mixed = httpx.post(
         f"{url}/picks",
-        params={"parts": "t_joint,t_joint_b", "priority": "t_joint_b", "format": "zdf", "pose_format": "ur"},
+        params={"parts": "t_joint,t_joint_b", "format": "zdf", "pose_format": "ur"},
         content=capture.read_bytes(),
         headers={"content-type": "application/octet-stream"},
         timeout=120,
@@ -544,7 +545,7 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
     assert len(answer["poses"]) == len(single["poses"]) and len(answer["conflicts"]) == len(single["poses"])
     assert {p["part"] for p in answer["poses"]} <= {"t_joint", "t_joint_b"}
     named = [p["part"] for p in answer["picks"]]
-    assert named == sorted(named, key=lambda n: n != "t_joint_b")  # the priority's part first
+    assert named == sorted(named, key=lambda n: n != "t_joint_b")  # pick.part_priority's part first
     for pick in answer["picks"]:
         assert answer["poses"][pick["pose_index"]]["part"] == pick["part"] and len(pick["robot"]["grasp"]) == 6
     refused = [
