@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from binpick.cell.robot import ARM_STOPPED, Robot, URRobot, execute_pick
+from binpick.cell.robot import ARM_STOPPED, MAX_FAILURES_IN_A_ROW, Robot, URRobot, execute_pick
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError, NothingAboveTheFloor
 from binpick.io.atomic import write_text
@@ -151,7 +151,7 @@ def run_cell(
     models: PartModels,
     max_cycles: int | None = None,
     stop: threading.Event | None = None,
-    max_failures: int = 3,
+    max_failures: int = MAX_FAILURES_IN_A_ROW,
 ) -> RunSummary:
     """The loop; every cycle kept under data/cell/runs/<run>/."""
     layout = Layout(root)

@@ -55,6 +55,10 @@ class Robot(Protocol):
     def close(self) -> None: ...
 
 
+# A cell (and the benchmarks' simulated one) gives a bin up after this many failed attempts in a row.
+MAX_FAILURES_IN_A_ROW = 3
+
+
 @dataclass
 class Execution:
     """What one pick did in the simulated cell.

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from binpick.cell.robot import Execution
+from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, Execution
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
@@ -61,7 +61,6 @@ from flows.bench.picking import bench_models, picking_settings
 log = logging.getLogger(__name__)
 
 DEFAULT_PARTS = BENCH_PARTS
-MAX_FAILURES_IN_A_ROW = 3
 # The arm's base stands this far out from the bin's outer long wall; the drop zone this far out
 # from its short wall, this high above the wall's top.
 BASE_GAP_M, PLACE_GAP_M, PLACE_HEIGHT_M = 0.15, 0.2, 0.05

@@ -33,6 +33,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
+from binpick.cell.robot import MAX_FAILURES_IN_A_ROW
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.physics import SettleSettings, settle
@@ -61,7 +62,6 @@ DEFAULT_PARTS = BENCH_PARTS
 TOUCH_M = 0.002
 TOUCH_DEG = 10.0
 PENETRATION_M = 0.0005
-MAX_FAILURES_IN_A_ROW = 3
 BIN_SAMPLE_SPACING_M = 0.002
 
 

@@ -349,7 +349,9 @@ def overlay(
 def cell_run(
     part: str = typer.Option(..., help="the part in the bin (its models built: make repro)"),
     max_cycles: int = typer.Option(None, min=1, help="stop after this many cycles (default: until the bin is empty)"),
-    max_failures: int = typer.Option(3, min=1, help="stop after this many failed attempts in a row"),
+    max_failures: int | None = typer.Option(
+        None, min=1, help="stop after this many failed attempts in a row (default: binpick.cell.robot's, 3)"
+    ),
     sim_parts: int = typer.Option(10, min=1, help="sim: parts settled in the bin"),
     seed: int = typer.Option(0, help="sim: the bin's and the camera noise's seed"),
     params: Path = PARAMS,
@@ -360,7 +362,7 @@ def cell_run(
     UR arm (ur_rtde). Every cycle is kept in data/cell/runs/<run>/."""
     import threading
 
-    from binpick.cell.robot import Robot
+    from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, Robot
     from binpick.params import load_params
     from binpick.scene.process import PartModels
     from flows.cell_run import Camera, ZividCamera, real_robot, run_cell, simulated_cell, stop_on_signals
@@ -386,7 +388,8 @@ def cell_run(
     stop = threading.Event()
     try:
         with stop_on_signals(stop):
-            summary = run_cell(root, p, part, robot, camera, models, max_cycles, stop, max_failures)
+            limit = max_failures or MAX_FAILURES_IN_A_ROW
+            summary = run_cell(root, p, part, robot, camera, models, max_cycles, stop, limit)
     finally:
         robot.close()
     typer.echo(f"{summary.placed} placed in {summary.cycles} cycles; {summary.ended}")
