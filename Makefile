@@ -33,7 +33,7 @@ demo: setup
 	$(BIN)/binpick demo
 
 # The suite without the end-to-end runs (marker `slow`: Prefect flows driving DVC stage processes,
-# served schedules; about 12 minutes on 2 CPU cores), which test-slow runs and CI runs after it.
+# served schedules; about 14 minutes on 2 CPU cores), which test-slow runs and CI runs after it.
 test: lint docs-build
 	$(BIN)/python -m pytest -q -m "not slow"
 
