@@ -101,7 +101,7 @@ def _grouped_bars(ax, groups: list[str], series: dict[str, dict[str, float]], yl
         ax.bar(xs, [values.get(g, 0.0) for g in groups], width, label=name)
     ax.set_xticks(range(len(groups)), groups, rotation=20, ha="right")
     ax.set_ylabel(ylabel)
-    ax.legend(fontsize="small")
+    ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.0, 1.0))
 
 
 def report(folder: Path, out: Path) -> list[Path]:
