@@ -1,6 +1,7 @@
-"""The scene path for a bin of several kinds of part: one capture cleaned once, each part's
-segmentation and registration on the shared cleaned cloud, conflicts between parts resolved by
-the verification the poses carry, and one ordered pick list across the parts.
+"""The scene path for a bin of several kinds of part: the capture cleaned once per distinct import
+setting of the parts (once when they agree), each part's segmentation and registration on its
+cleaning, conflicts between parts resolved by the verification the poses carry, and one ordered
+pick list across the parts.
 
 A region of the capture gets at most one part: two poses of different parts that claim the same
 measured points (more than CONFLICT_SHARE of the smaller claim) are a conflict, and the pose
@@ -11,12 +12,11 @@ points. Each part's picks see the other parts' kept poses as obstacles (their un
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.poses import PartPose
@@ -118,8 +118,8 @@ def process_mixed(
     q_from: np.ndarray | None = None,
 ) -> MixedResult:
     """The scene path on a capture of several kinds of part (the module's docstring). models:
-    each part's models (the import settings with the finest voxel grid clean the capture, and each
-    part segments and registers it thinned to its own grid);
+    each part's models (each part's import settings clean the capture for it; the cloud cleaned
+    with the finest grid decides which measured points a pose claims);
     priority: parts picked before the others, in that order (the rest by pick.order whatever the
     part; None or []: all by pick.order)."""
     names = list(models)
@@ -134,9 +134,17 @@ def process_mixed(
     segment_s = 0.0
     for name in names:
         m = models[name]
-        # Each part sees the cloud at its own grid, the density its network and matcher expect.
-        voxel_m = m.import_params.voxel_size_m
-        clouds[name] = cloud if voxel_m <= models[finest].import_params.voxel_size_m else at_grid(cloud, voxel_m)
+        # Each part sees the capture cleaned with its own import settings, as its network and
+        # matcher were built for (a cloud thinned from the finest one keeps more points there,
+        # which cost a long part 6 times the registration time); equal settings share one cleaning.
+        same = next((c for other, c in clouds.items() if models[other].import_params == m.import_params), None)
+        if same is None:
+            same = (
+                cloud
+                if m.import_params == models[finest].import_params
+                else clean(xyz_m, rgb, frame_shape, m.import_params, seeds.clean)
+            )
+        clouds[name] = same
         s0 = time.perf_counter()
         labels = segment(clouds[name], m.segmenter, seeds.segment) if m.segmenter is not None else None
         segment_s += time.perf_counter() - s0
@@ -165,20 +173,6 @@ def process_mixed(
     if picks or unpicked:
         timings["pick_s"] = t4 - t3
     return MixedResult(cloud, poses, conflicts, picks, unpicked, up_cam, timings)
-
-
-def at_grid(cloud: CleanCloud, voxel_m: float) -> CleanCloud:
-    """The cleaned cloud thinned to one point per voxel_m cell (itself when no cell holds two)."""
-    keep = voxel_downsample_indices(np.asarray(cloud.points_m, dtype=np.float64), voxel_m)
-    if len(keep) == len(cloud.points_m):
-        return cloud
-    return replace(
-        cloud,
-        points_m=cloud.points_m[keep],
-        normals=cloud.normals[keep],
-        rgb=cloud.rgb[keep],
-        pixel_index=cloud.pixel_index[keep],
-    )
 
 
 def _inlier_m(m: PartModels) -> float:
