@@ -249,7 +249,7 @@ class PickService:
                 raise RequestError(503, f"busy: {self._waiting} requests in progress or waiting")
             self._waiting += 1
         try:
-            return await asyncio.wrap_future(self._worker.submit(self._answer, served, request, payload))
+            return await asyncio.wrap_future(self._worker.submit(self._answer, names, served, request, payload))
         finally:
             with self._count:
                 self._waiting -= 1
@@ -294,6 +294,12 @@ class PickService:
             message = message.replace(p, shown)
         return self.public(message)
 
+    def refused(self, exc: RequestError, part: str | None) -> str:
+        """A refusal counted for the operator page; its message, as a client may read it."""
+        message = self.public(str(exc))
+        self.operator.refused(exc.status, message, part)
+        return message
+
     def public(self, message: str) -> str:
         """A message for a client: any file of the project named relative to the project, never
         where the project lies on this machine."""
@@ -301,15 +307,17 @@ class PickService:
             message = message.replace(root + os.sep, "").replace(root, ".")
         return message
 
-    def _answer(self, served: list[Served], request: PicksRequest, payload: bytes | None) -> dict[str, Any]:
-        """One request answered (one part, or several: request.parts, binpick/scene/mixed.py)."""
+    def _answer(
+        self, names: list[str], served: list[Served], request: PicksRequest, payload: bytes | None
+    ) -> dict[str, Any]:
+        """One request answered: the parts as the project names them and their models (one part,
+        or several: request.parts, binpick/scene/mixed.py)."""
         unit, first = request.unit, served[0]
         mixed = request.parts is not None
-        names = request.parts or [request.part or first.models.part.name]  # as the project names them
         t0 = time.perf_counter()
         stamp = datetime.now(UTC)
         request_id = f"{stamp:%Y%m%dT%H%M%S%f}-{'-'.join(names)}"
-        folder = self._keeper.folder(stamp, request_id)
+        folder = self._keeper.folder(request_id)
         try:
             path = self._capture_file(request, payload, folder)
             uploaded = f"the uploaded {path.suffix[1:]} capture"
@@ -385,7 +393,7 @@ class PickService:
         """A file of a kept request a browser may fetch (not request.json: it names this machine's paths)."""
         if name not in VIEWABLE or not KEPT_ID.fullmatch(request_id):
             raise RequestError(404, "no such file")
-        path = self._keeper.requests / f"{request_id[:4]}-{request_id[4:6]}-{request_id[6:8]}" / request_id / name
+        path = self._keeper.path_of(request_id) / name
         if not path.is_file():
             raise RequestError(404, f"{request_id}/{name} is not kept (service.keep_requests keeps the newest)")
         return path

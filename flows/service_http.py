@@ -58,7 +58,9 @@ def http_app(service: PickService):
     @app.exception_handler(RequestError)
     async def refused(request: Request, exc: RequestError) -> JSONResponse:
         if request.url.path == "/picks":
-            service.operator.refused(exc.status, service.public(str(exc)), request.query_params.get("part"))
+            return JSONResponse(
+                {"error": service.refused(exc, request.query_params.get("part"))}, status_code=exc.status
+            )
         return JSONResponse({"error": service.public(str(exc))}, status_code=exc.status)
 
     def state() -> dict[str, Any]:

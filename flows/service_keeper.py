@@ -12,7 +12,6 @@ import os
 import queue
 import shutil
 import threading
-from datetime import datetime
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -44,10 +43,15 @@ class Keeper:
         self._thread = threading.Thread(target=self._run, name="binpick-keeper", daemon=True)
         self._thread.start()
 
-    def folder(self, stamp: datetime, request_id: str) -> Path:
-        path = self.requests / f"{stamp:%Y-%m-%d}" / request_id
+    def folder(self, request_id: str) -> Path:
+        """A new request's folder, made."""
+        path = self.path_of(request_id)
         path.mkdir(parents=True, exist_ok=True)
         return path
+
+    def path_of(self, request_id: str) -> Path:
+        """Where a request is kept: <requests>/<its UTC day>/<id> (the id begins with its stamp, YYYYMMDDT...)."""
+        return self.requests / f"{request_id[:4]}-{request_id[4:6]}-{request_id[6:8]}" / request_id
 
     def keep(self, folder: Path, capture: Path, doc: dict, result, served: Served, unit: str, frame) -> None:
         """Keep one answered request (frame: the capture as loaded, binpick.io.capture; result:
@@ -79,7 +83,7 @@ class Keeper:
             folder / "picks.json", {k: v for k, v in doc.items() if k not in ("timings_s", "poses", "request_id")}
         )
         names = doc.get("parts") or [part.name]
-        self._write_request(folder, doc, names, capture, unit)
+        self._write_request(folder, doc, capture, unit)
         if result is not None:  # one part: its poses, the image and the recording (not for a mixed bin)
             save_poses(folder / "poses.json", part.name, result.poses)
             if frame.shape is not None:  # an image to draw on: the operator page shows it
@@ -103,10 +107,10 @@ class Keeper:
         self._log(doc, names, float(np.mean(scores)) if scores else 0.0)
         self._prune()
 
-    def _write_request(self, folder: Path, doc: dict, names: list[str], capture: Path, unit: str) -> None:
+    def _write_request(self, folder: Path, doc: dict, capture: Path, unit: str) -> None:
         record = {
             "request_id": doc["request_id"],
-            **({"part": names[0]} if len(names) == 1 and "parts" not in doc else {"parts": names}),
+            **({"parts": doc["parts"]} if "parts" in doc else {"part": doc["part"]}),
             "timings_s": doc["timings_s"],
             "counts": doc["counts"],
             "source": str(capture),
@@ -150,8 +154,7 @@ def write_overlay(path: Path, frame, part, result) -> None:
         part.points_m.astype(np.float64),
         np.array([p.T_cam_from_model for p in result.poses]).reshape(-1, 4, 4),
         [p.score for p in result.poses],
-        first.T_cam_from_pregrasp if first is not None else None,
-        first.T_cam_from_grasp if first is not None else None,
+        (first.T_cam_from_pregrasp, first.T_cam_from_grasp) if first is not None else None,
     )
     with atomic_path(path) as tmp:
         Image.fromarray(image).save(tmp, format="PNG")

@@ -64,9 +64,8 @@ async def _tcp_answer(service: PickService, line: bytes) -> dict[str, Any]:
                 raise RequestError(400, f"data_b64 is not base64: {exc}") from None
         return await service.answer(request, payload)
     except RequestError as exc:
-        message = service.public(str(exc))
-        service.operator.refused(exc.status, message, fields.get("part") if isinstance(fields, dict) else None)
-        return {"error": message, "status": exc.status}
+        part = fields.get("part") if isinstance(fields, dict) else None
+        return {"error": service.refused(exc, part), "status": exc.status}
 
 
 # The text commands' answer: a status, then the first pick's pregrasp, grasp, postgrasp and place
@@ -88,6 +87,7 @@ async def _text_answer(service: PickService, line: bytes, connection: dict[str, 
 
     words = line.decode(errors="replace").split()
     fmt = "ur"
+    no_pose = [0.0] * len(FIELDS[fmt])
     try:
         if not words:
             raise RequestError(400, "empty command")
@@ -103,17 +103,16 @@ async def _text_answer(service: PickService, line: bytes, connection: dict[str, 
         rest = words[2:]
         if rest and rest[0].lower() in FIELDS:
             fmt = rest.pop(0).lower()
+            no_pose = [0.0] * len(FIELDS[fmt])
         fields: dict[str, Any] = {"part": words[1], "pose_format": fmt}
         fields.update({"path": " ".join(rest)} if rest else {"camera": True})
         answer = await service.answer(picks_request(fields))
     except RequestError as exc:
         log.info("text command refused (%d): %s", exc.status, exc)
-        service.operator.refused(exc.status, service.public(str(exc)), words[1] if len(words) > 1 else None)
-        return _floats([-float(exc.status)] + [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS))
-    numbers = [0.0] * len(FIELDS[fmt]) * len(TEXT_WAYPOINTS)
-    if answer["picks"]:
-        robot = answer["picks"][0]["robot"]
-        numbers = [x for w in TEXT_WAYPOINTS for x in (robot.get(w) or [0.0] * len(FIELDS[fmt]))]
+        service.refused(exc, words[1] if len(words) > 1 else None)
+        return _floats([-float(exc.status)] + no_pose * len(TEXT_WAYPOINTS))
+    robot = answer["picks"][0]["robot"] if answer["picks"] else {}
+    numbers = [x for w in TEXT_WAYPOINTS for x in (robot.get(w) or no_pose)]
     return _floats([1.0 if answer["picks"] else 0.0, *numbers])
 
 

@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.poses import PartPose
+from binpick.params import ImportCaptureParams
 from binpick.picking.plan import Pick, rank_key
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
@@ -126,25 +127,31 @@ def process_mixed(
     if not names:
         raise ValueError("a mixed capture needs at least one part")
     t0 = time.perf_counter()
+    # Each part sees the capture cleaned with its own import settings, as its network and matcher
+    # were built for (a cloud thinned from the finest cleaning keeps more points there, which cost
+    # a long part 6 times the registration time); equal settings share one cleaning.
+    cleanings: list[tuple[ImportCaptureParams, CleanCloud]] = []
+    clean_s = 0.0
+
+    def cleaned(settings: ImportCaptureParams) -> CleanCloud:
+        nonlocal clean_s
+        for known, cloud in cleanings:
+            if known == settings:
+                return cloud
+        c0 = time.perf_counter()
+        cloud = clean(xyz_m, rgb, frame_shape, settings, seeds.clean)
+        clean_s += time.perf_counter() - c0
+        cleanings.append((settings, cloud))
+        return cloud
+
     finest = min(names, key=lambda n: models[n].import_params.voxel_size_m)
-    cloud = clean(xyz_m, rgb, frame_shape, models[finest].import_params, seeds.clean)
-    t1 = time.perf_counter()
+    cloud = cleaned(models[finest].import_params)
     found: dict[str, list[PartPose]] = {}
     clouds: dict[str, CleanCloud] = {}
     segment_s = 0.0
     for name in names:
         m = models[name]
-        # Each part sees the capture cleaned with its own import settings, as its network and
-        # matcher were built for (a cloud thinned from the finest one keeps more points there,
-        # which cost a long part 6 times the registration time); equal settings share one cleaning.
-        same = next((c for other, c in clouds.items() if models[other].import_params == m.import_params), None)
-        if same is None:
-            same = (
-                cloud
-                if m.import_params == models[finest].import_params
-                else clean(xyz_m, rgb, frame_shape, m.import_params, seeds.clean)
-            )
-        clouds[name] = same
+        clouds[name] = cleaned(m.import_params)
         s0 = time.perf_counter()
         labels = segment(clouds[name], m.segmenter, seeds.segment) if m.segmenter is not None else None
         segment_s += time.perf_counter() - s0
@@ -169,7 +176,8 @@ def process_mixed(
     t3 = time.perf_counter()
     picks, unpicked, up_cam = _picks(clouds, poses, models, priority or [], q_from)
     t4 = time.perf_counter()
-    timings = {"clean_s": t1 - t0, "segment_s": segment_s, "register_s": t2 - t1 - segment_s, "resolve_s": t3 - t2}
+    register_s = t2 - t0 - clean_s - segment_s
+    timings = {"clean_s": clean_s, "segment_s": segment_s, "register_s": register_s, "resolve_s": t3 - t2}
     if picks or unpicked:
         timings["pick_s"] = t4 - t3
     return MixedResult(cloud, poses, conflicts, picks, unpicked, up_cam, timings)

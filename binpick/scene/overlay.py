@@ -147,16 +147,31 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
     part = load_part_model(part_model_path)
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = [p.score for p in poses]
-    drawn = draw_poses(image, K, xyz[:, 2].reshape(H, W), part.points_m.astype(np.float64), T, scores)
-    drawn = label_poses(drawn, K, T, scores)
+    first = None
     if picks_path is not None:
         from binpick.io.picks import load_picks
 
         picks = load_picks(picks_path)["picks"]
-        if picks:
-            camera = picks[0]["camera"]
-            drawn = draw_pick(drawn, K, np.asarray(camera["pregrasp"]), np.asarray(camera["grasp"]))
-    return drawn
+        first = (np.asarray(picks[0]["camera"]["pregrasp"]), np.asarray(picks[0]["camera"]["grasp"])) if picks else None
+    depth = xyz[:, 2].reshape(H, W)
+    return draw_answer(image, K, depth, part.points_m.astype(np.float64), T, scores, first)
+
+
+def draw_answer(
+    image: np.ndarray,
+    K: np.ndarray,
+    depth_m: np.ndarray | None,
+    model_points_m: np.ndarray,
+    T_cam_from_model: np.ndarray,
+    scores: list[float],
+    first_pick: tuple[np.ndarray, np.ndarray] | None,
+) -> np.ndarray:
+    """The image (H, W, 3) uint8 with the poses tinted and labelled (draw_poses, label_poses) and
+    the first pick drawn (draw_pick; first_pick: its T_cam_from_pregrasp and T_cam_from_grasp, or
+    None when nothing was picked). Returns a new array."""
+    drawn = draw_poses(image, K, depth_m, model_points_m, T_cam_from_model, scores)
+    drawn = label_poses(drawn, K, T_cam_from_model, scores)
+    return draw_pick(drawn, K, *first_pick) if first_pick is not None else drawn
 
 
 def pick_overlay(
@@ -166,15 +181,15 @@ def pick_overlay(
     model_points_m: np.ndarray,
     T_cam_from_model: np.ndarray,
     scores: list[float],
-    T_cam_from_pregrasp: np.ndarray | None,
-    T_cam_from_grasp: np.ndarray | None,
+    first_pick: tuple[np.ndarray, np.ndarray] | None,
     max_width_px: int = 1024,
 ) -> np.ndarray:
     """One answered capture for the operator: its image (colour, or shaded depth) with the poses
-    tinted and labelled and the chosen pick drawn, at most max_width_px wide (H', W', 3) uint8.
+    and the chosen pick drawn (draw_answer), at most max_width_px wide (H', W', 3) uint8.
 
     xyz_m : (H * W, 3) organized capture, camera frame, metres; model_points_m : (n, 3) model frame;
-    T_cam_from_model : (k, 4, 4); the pick's poses (4, 4) camera frame, or None when nothing was picked.
+    T_cam_from_model : (k, 4, 4); first_pick: the pick's T_cam_from_pregrasp and T_cam_from_grasp
+    (4, 4), or None when nothing was picked.
     """
     from PIL import Image
 
@@ -184,10 +199,8 @@ def pick_overlay(
     xyz = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
     K = fit_intrinsics(xyz, (H, W)).K
     T = np.asarray(T_cam_from_model, dtype=float).reshape(-1, 4, 4)
-    drawn = draw_poses(capture_image(xyz, rgb, shape), K, xyz[:, 2].reshape(H, W), model_points_m, T, scores)
-    drawn = label_poses(drawn, K, T, scores)
-    if T_cam_from_grasp is not None and T_cam_from_pregrasp is not None:
-        drawn = draw_pick(drawn, K, T_cam_from_pregrasp, T_cam_from_grasp)
+    image = capture_image(xyz, rgb, shape)
+    drawn = draw_answer(image, K, xyz[:, 2].reshape(H, W), model_points_m, T, scores, first_pick)
     if W > max_width_px:
         drawn = np.asarray(
             Image.fromarray(drawn).resize((max_width_px, round(H * max_width_px / W)), Image.Resampling.BILINEAR)

@@ -70,7 +70,7 @@ def bench_mix(
         n = int(rng.integers(*PARTS_PER_BIN, endpoint=True))
         kinds = [int(x) for x in rng.integers(0, len(parts), n)]
         placed = place_objects([q.points_m for q in parts], n, g.bin, g.placement, rng, kinds)
-        truth = _render_each(parts, placed, p, g, rng, seed * 1000 + k)
+        truth = _render_each(parts, placed, p, g, seed * 1000 + k)
         xyz, shape = truth[parts[0].name].xyz_m.reshape(-1, 3), truth[parts[0].name].labels.shape
         seeds = SceneSeeds.of(settings.seed, f"mix-{k}")
         t0 = time.perf_counter()
@@ -83,7 +83,7 @@ def bench_mix(
             row["conflicts_lost"] = float(len(dropped))
             # The baseline: every part's poses as its own registration gave them, no conflicts resolved.
             base = _score(part, result.poses[part.name] + dropped, truth, parts, models[part.name])
-            row.update({f"baseline_{k}": v for k, v in base.items()})
+            row.update({f"baseline_{key}": v for key, v in base.items()})
             rows[part.name].append(row)
         log.info("mixed bin %d of %d: %d parts, %.2f s", k + 1, n_scenes, len(placed.T_bin_from_model), mixed_s[-1])
     per_part = {name: _sums(r) for name, r in rows.items()}
@@ -100,7 +100,7 @@ def bench_mix(
     }
 
 
-def _render_each(parts: list[PartModel], placed, p: Params, g, rng: np.random.Generator, seed: int) -> dict:
+def _render_each(parts: list[PartModel], placed, p: Params, g, seed: int) -> dict:
     """The bin rendered once per part: that part's instances as the objects (labels, visibility,
     truth), the other parts' as distractors; the same geometry, so one capture serves all."""
     import trimesh

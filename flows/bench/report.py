@@ -104,6 +104,33 @@ def _grouped_bars(ax, groups: list[str], series: dict[str, dict[str, float]], yl
     ax.legend(fontsize="small", loc="upper left", bbox_to_anchor=(1.0, 1.0))
 
 
+def _parts_last(part: str) -> tuple[bool, str]:
+    """The parts in name order, the figures over all parts after them."""
+    return part == ALL_PARTS, part
+
+
+def _per_bench(
+    plt,
+    figures: list[Figure],
+    x_of: Callable[[Figure], str],
+    series_of: Callable[[Figure], str],
+    ylabel: str,
+    x_order: Callable[[set[str]], list[str]],
+):
+    """One panel of grouped bars per benchmark file: groups along x by x_of, a colour per
+    series_of. Returns the figure and its panels."""
+    benches = sorted({f.bench for f in figures})
+    fig, axes = plt.subplots(len(benches), 1, figsize=(9, 3.4 * len(benches)), squeeze=False)
+    for ax, bench in zip(axes[:, 0], benches, strict=True):
+        mine = [f for f in figures if f.bench == bench]
+        series: dict[str, dict[str, float]] = {}
+        for f in mine:
+            series.setdefault(series_of(f), {})[x_of(f)] = float(f.value)  # type: ignore[arg-type]
+        _grouped_bars(ax, x_order({x_of(f) for f in mine}), series, ylabel)
+        ax.set_title(bench)
+    return fig, list(axes[:, 0])
+
+
 def report(folder: Path, out: Path) -> list[Path]:
     """Write the plots of folder's benchmark files into out (PNGs, index.html, plots.md); the PNGs written."""
     import matplotlib
@@ -125,17 +152,11 @@ def report(folder: Path, out: Path) -> list[Path]:
 
     quality = _select(figures, _is_quality, lists=False)
     if quality:
-        benches = sorted({f.bench for f in quality})
-        fig, axes = plt.subplots(len(benches), 1, figsize=(9, 3.4 * len(benches)), squeeze=False)
-        for ax, bench in zip(axes[:, 0], benches, strict=True):
-            mine = [f for f in quality if f.bench == bench]
-            parts = sorted({f.part for f in mine}, key=lambda p: (p == ALL_PARTS, p))
-            series: dict[str, dict[str, float]] = {}
-            for f in mine:
-                series.setdefault(f.key, {})[f.part] = float(f.value)  # type: ignore[arg-type]
-            _grouped_bars(ax, parts, series, "fraction")
+        fig, axes = _per_bench(
+            plt, quality, lambda f: f.part, lambda f: f.key, "fraction", lambda parts: sorted(parts, key=_parts_last)
+        )
+        for ax in axes:
             ax.set_ylim(0, 1.05)
-            ax.set_title(bench)
         save(fig, "precision_recall.png", "Precision and recall per part")
 
     cycles = _select(figures, lambda k: k.endswith("cycle_s"), lists=True)
@@ -149,21 +170,13 @@ def report(folder: Path, out: Path) -> list[Path]:
 
     steps = _select(figures, _is_step, lists=False)
     if steps:
-        benches = sorted({f.bench for f in steps})
-        fig, axes = plt.subplots(len(benches), 1, figsize=(9, 3.4 * len(benches)), squeeze=False)
-        for ax, bench in zip(axes[:, 0], benches, strict=True):
-            mine = [f for f in steps if f.bench == bench]
-            series = {}
-            for f in mine:
-                series.setdefault(f.part, {})[f.key] = float(f.value)  # type: ignore[arg-type]
-            _grouped_bars(ax, sorted({f.key for f in mine}), series, "seconds")
-            ax.set_title(bench)
+        fig, _ = _per_bench(plt, steps, lambda f: f.key, lambda f: f.part, "seconds", sorted)
         save(fig, "step_timings.png", "Timings per step")
 
     rates = _select(figures, lambda k: k in ("picks_per_hour", "baseline_picks_per_hour"), lists=False)
     if rates:
         groups = sorted({f"{f.bench}: {f.part}" for f in rates})
-        series = {}
+        series: dict[str, dict[str, float]] = {}
         for f in rates:
             series.setdefault(f.key, {})[f"{f.bench}: {f.part}"] = float(f.value)  # type: ignore[arg-type]
         fig, ax = plt.subplots(figsize=(9, 3.6))
