@@ -7,7 +7,9 @@ from __future__ import annotations
 import hashlib
 import logging
 import math
-from collections.abc import Callable
+import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +30,27 @@ log = logging.getLogger(__name__)
 
 LAST = "last.pt"
 BEST = "best.pt"
+
+
+@contextmanager
+def deterministic_kernels(device: torch.device) -> Iterator[None]:
+    """On CUDA, run only deterministic kernels while inside, so that a training run, and a run
+    resumed from its `last.pt`, ends with the same weights every time (on an H200 the default
+    kernels' atomic adds moved weights by 1e-4 within three epochs). The CPU kernels are
+    deterministic already."""
+    if device.type != "cuda":
+        yield
+        return
+    # cuBLAS needs a fixed workspace to be deterministic; torch reads this when it makes one.
+    os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+    before = torch.are_deterministic_algorithms_enabled(), torch.backends.cudnn.benchmark
+    torch.use_deterministic_algorithms(True, warn_only=True)  # an op without one warns, never fails
+    torch.backends.cudnn.benchmark = False
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before[0])
+        torch.backends.cudnn.benchmark = before[1]
 
 
 @dataclass(frozen=True)
@@ -208,64 +231,67 @@ def train_fpcc(
         initial=start_epoch,
         total=params.epochs,
     )
-    for epoch in bar:
-        # Every epoch draws from its own seed, so a resumed run sees the same batches.
-        rng = np.random.default_rng([seed, epoch])
-        gen = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
-        model.train()
-        order = rng.permutation(len(train))
-        sums: dict[str, float] = {}
-        for step in range(steps):
-            batch = _batch(
-                train,
-                order[step * params.batch_size : (step + 1) * params.batch_size],
-                params.n_points,
-                rng,
-                True,
-                device,
-            )
-            loss, parts = _loss(model, *batch, params, d_max_m, gen)
-            optimiser.zero_grad()
-            loss.backward()
-            optimiser.step()
-            for k, v in parts.items():
-                sums[k] = sums.get(k, 0.0) + v / steps
-
-        model.eval()
-        val_sums: dict[str, float] = {}
-        with torch.no_grad():
-            val_rng = np.random.default_rng([seed, 10**9])  # the same validation draw every epoch
-            for start in range(0, len(val), params.batch_size):
-                idx = np.arange(start, min(start + params.batch_size, len(val)))
-                _, parts = _loss(
-                    model,
-                    *_batch(val, idx, params.n_points, val_rng, False, device),
-                    params,
-                    d_max_m,
-                    torch.Generator().manual_seed(seed),
+    with deterministic_kernels(device):
+        for epoch in bar:
+            # Every epoch draws from its own seed, so a resumed run sees the same batches.
+            rng = np.random.default_rng([seed, epoch])
+            gen = torch.Generator().manual_seed(seed * 1_000_003 + epoch)
+            model.train()
+            order = rng.permutation(len(train))
+            sums: dict[str, float] = {}
+            for step in range(steps):
+                batch = _batch(
+                    train,
+                    order[step * params.batch_size : (step + 1) * params.batch_size],
+                    params.n_points,
+                    rng,
+                    True,
+                    device,
                 )
+                loss, parts = _loss(model, *batch, params, d_max_m, gen)
+                optimiser.zero_grad()
+                loss.backward()
+                optimiser.step()
                 for k, v in parts.items():
-                    val_sums[k] = val_sums.get(k, 0.0) + v * len(idx) / len(val)
+                    sums[k] = sums.get(k, 0.0) + v / steps
 
-        epochs_run = epoch + 1
-        val_loss = val_sums["loss"]
-        if val_loss < best_val:
-            best_val, best_epoch = val_loss, epoch
-        metrics = {
-            **{f"train_{k}": v for k, v in sums.items()},
-            **{f"val_{k}": v for k, v in val_sums.items()},
-            "best_val_loss": best_val,
-            "best_epoch": best_epoch,
-        }
-        if best_epoch == epoch:
-            save_checkpoint(checkpoint_dir / BEST, model, None, epoch, metrics, extra)
-        save_checkpoint(last, model, optimiser, epoch, metrics, extra)
-        bar.set_postfix(loss=f"{sums['loss']:.3f}", val=f"{val_loss:.3f}")
-        if on_epoch is not None:
-            on_epoch(epoch, metrics, model)
-        if epoch - best_epoch >= params.patience_epochs:
-            log.info("early stop at epoch %d: no validation improvement for %d epochs", epoch, params.patience_epochs)
-            break
+            model.eval()
+            val_sums: dict[str, float] = {}
+            with torch.no_grad():
+                val_rng = np.random.default_rng([seed, 10**9])  # the same validation draw every epoch
+                for start in range(0, len(val), params.batch_size):
+                    idx = np.arange(start, min(start + params.batch_size, len(val)))
+                    _, parts = _loss(
+                        model,
+                        *_batch(val, idx, params.n_points, val_rng, False, device),
+                        params,
+                        d_max_m,
+                        torch.Generator().manual_seed(seed),
+                    )
+                    for k, v in parts.items():
+                        val_sums[k] = val_sums.get(k, 0.0) + v * len(idx) / len(val)
+
+            epochs_run = epoch + 1
+            val_loss = val_sums["loss"]
+            if val_loss < best_val:
+                best_val, best_epoch = val_loss, epoch
+            metrics = {
+                **{f"train_{k}": v for k, v in sums.items()},
+                **{f"val_{k}": v for k, v in val_sums.items()},
+                "best_val_loss": best_val,
+                "best_epoch": best_epoch,
+            }
+            if best_epoch == epoch:
+                save_checkpoint(checkpoint_dir / BEST, model, None, epoch, metrics, extra)
+            save_checkpoint(last, model, optimiser, epoch, metrics, extra)
+            bar.set_postfix(loss=f"{sums['loss']:.3f}", val=f"{val_loss:.3f}")
+            if on_epoch is not None:
+                on_epoch(epoch, metrics, model)
+            if epoch - best_epoch >= params.patience_epochs:
+                log.info(
+                    "early stop at epoch %d: no validation improvement for %d epochs", epoch, params.patience_epochs
+                )
+                break
 
     best_state = read_checkpoint(checkpoint_dir / BEST, device)
     model.load_state_dict(best_state["model"])

@@ -112,6 +112,8 @@ def bench_segment(
         opt.zero_grad()
         loss.backward()
         opt.step()
+        if device.type == "cuda":  # CUDA runs the step asynchronously: wait for it before reading the clock
+            torch.cuda.synchronize(device)
         if k:  # the first step warms up
             steps.append(time.perf_counter() - t0)
     out["train_samples_per_s"] = 4.0 / float(np.median(steps))
