@@ -22,11 +22,16 @@ class ViewParams:
 
     voxel_size_m: float
     normal_radius_m: float
+    # The import step's settings: when given, a generated scene's view is its frame cleaned as the
+    # import step cleans a capture (floor, walls and outliers removed; whatever else is left, a
+    # distractor or a rim, stays in labelled -1, as the network meets it in a capture), else
+    # the part's points alone.
+    cleaning: ImportCaptureParams | None = None
 
     @classmethod
     def of_import(cls, params: ImportCaptureParams) -> ViewParams:
         """The view the import step gives a capture with these settings."""
-        return cls(voxel_size_m=params.voxel_size_m, normal_radius_m=params.normal_radius_m)
+        return cls(voxel_size_m=params.voxel_size_m, normal_radius_m=params.normal_radius_m, cleaning=params)
 
 
 def view_grid(points: np.ndarray, view: ViewParams) -> np.ndarray:

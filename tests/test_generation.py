@@ -264,3 +264,36 @@ def test_clutter_adds_distractors_and_tilts_the_camera(t_joint):
         return int((height > 0.01).sum())
 
     assert raised_background(busy) > raised_background(tilted_only) + 50
+
+
+def test_the_training_view_is_the_frame_as_the_import_step_cleans_it(t_joint):
+    """With the import settings, a scene's view is what the network meets in a capture: every
+    point is a pixel of the frame carrying that pixel's label, the distractors the cleaning keeps
+    stay in as -1, the floor and the walls do not."""
+    from binpick.scene.cleaning import clean_capture
+
+    off = PARAMS.generate.clutter.off()
+    gen = PARAMS.generate.model_copy(update={"clutter": changed(off, n_distractors_max=6, outside_share=0.0)})
+    camera = changed(PARAMS.camera, downscale=4)
+    scene = generate_scene(t_joint, gen, camera, ViewParams.of_import(PARAMS.import_capture), 3, n_objects=4)
+    h, w = scene.labels.shape
+    cloud = clean_capture(scene.xyz_m.reshape(-1, 3), None, (h, w), PARAMS.import_capture, 0)
+    assert np.array_equal(scene.view_points_m, cloud.points_m)
+    assert np.array_equal(scene.view_labels, scene.labels.reshape(-1)[cloud.pixel_index])
+    # Each point's label is its pixel's: the pixel whose measured point it is.
+    pixel = {
+        tuple(p): lab
+        for p, lab in zip(scene.xyz_m.reshape(-1, 3).tolist(), scene.labels.reshape(-1).tolist(), strict=True)
+    }
+    assert all(
+        pixel[tuple(p)] == lab for p, lab in zip(scene.view_points_m.tolist(), scene.view_labels.tolist(), strict=True)
+    )
+    # Every part seen is in (the parts' own view is the same points less what the cleaning drops
+    # as outliers), and so are distractors standing in the bin.
+    own = ViewParams(PARAMS.import_capture.voxel_size_m, PARAMS.import_capture.normal_radius_m)
+    parts_only = generate_scene(t_joint, gen, camera, own, 3, n_objects=4)
+    assert set(np.unique(parts_only.view_labels)) == set(np.unique(scene.view_labels[scene.view_labels >= 0]))
+    assert (scene.view_labels >= 0).sum() >= 0.97 * len(parts_only.view_labels)
+    background = scene.view_points_m[scene.view_labels == -1]
+    height = transform_points(invert_T(scene.T_cam_from_bin), background)[:, 2]
+    assert len(background) > 50 and np.all(height > PARAMS.import_capture.keep_above_plane_m - 0.002)

@@ -59,13 +59,17 @@ def test_edgeconv_equals_the_mlp_applied_to_every_edge(training):
 
 @pytest.mark.parametrize("backbone", ["dgcnn", "pointnet"])
 def test_forward_shapes(backbone):
-    model = FPCC(FPCCConfig(backbone=backbone, k_neighbours=8, width=16, embedding_dim=12))
+    def features(p):
+        return input_features(p, torch.nn.functional.normalize(torch.randn(2, 256, 3), dim=-1), "normals", 0.03)
+
     p = torch.rand(2, 256, 3) * 0.1
-    emb, ctr = model(
-        input_features(p, torch.nn.functional.normalize(torch.randn(2, 256, 3), dim=-1), "normals", 0.03), p
-    )
-    assert emb.shape == (2, 256, 12) and ctr.shape == (2, 256)
+    model = FPCC(FPCCConfig(backbone=backbone, k_neighbours=8, width=16, embedding_dim=12, foreground_head=True))
+    emb, ctr, fg = model(features(p), p)
+    assert emb.shape == (2, 256, 12) and ctr.shape == (2, 256) and fg.shape == (2, 256)
     assert ctr.min() >= 0 and ctr.max() <= 1
+    # A network from before the foreground head calls every point a part's.
+    _, _, fg = FPCC(FPCCConfig(backbone=backbone, k_neighbours=8, width=16, embedding_dim=12))(features(p), p)
+    assert torch.all(torch.sigmoid(fg) == 1.0)
 
 
 def test_centre_score_targets_linear_and_squared():
@@ -100,6 +104,12 @@ def test_cluster_recovers_handmade_instances():
     labels = cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 1))
     assert labels.tolist() == [0, 0, 1, 1, -1]
     assert (cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 3)) == -1).all()  # all too small
+    # Points the network calls no part's are noise and never a centre: without its first point
+    # (the best centre) the first instance is centred on the second, which the score allows only
+    # at a lower threshold (and, the weaker centre, it is numbered second).
+    background = np.array([True, False, False, False, False])
+    assert cluster(pts, emb, ctr, ClusterParams(0.5, 0.05, 1.0, 1), ~background).tolist() == [-1, -1, 0, 0, -1]
+    assert cluster(pts, emb, ctr, ClusterParams(0.1, 0.05, 1.0, 1), ~background).tolist() == [-1, 1, 0, 0, -1]
 
 
 def _cluster_by_definition(points, embedding, centre, params):
@@ -151,7 +161,7 @@ class _OracleNet(torch.nn.Module):
         band = torch.div(xyz[..., 0] + 0.05, 0.1, rounding_mode="floor")  # -> 0, 1, 2
         emb = torch.stack([band * 3.0, torch.zeros_like(band)], dim=-1)
         ctr = 1.0 - (xyz[..., 0] - (band * 0.1)).abs() / 0.05
-        return emb, ctr.clamp(0, 1)
+        return emb, ctr.clamp(0, 1), torch.full_like(ctr, 30.0)
 
 
 def test_block_inference_labels_every_point_and_merges_across_blocks():
@@ -276,8 +286,8 @@ class _CloseBandsNet(_OracleNet):
     """The oracle with its three instances only 1.3 apart in embedding space."""
 
     def forward(self, features, xyz):
-        emb, ctr = super().forward(features, xyz)
-        return emb * (1.3 / 3.0), ctr
+        emb, ctr, fg = super().forward(features, xyz)
+        return emb * (1.3 / 3.0), ctr, fg
 
 
 def test_calibration_finds_the_embedding_threshold_that_separates_the_instances():
@@ -315,11 +325,11 @@ class _SliverNet(_OracleNet):
     score: a sliver of each part becomes an instance of its own."""
 
     def forward(self, features, xyz):
-        emb, ctr = super().forward(features, xyz)
+        emb, ctr, fg = super().forward(features, xyz)
         band = torch.div(xyz[..., 0] + 0.05, 0.1, rounding_mode="floor")
         sliver = xyz[..., 0] - band * 0.1 > 0.03
         emb = emb + torch.stack([torch.zeros_like(band), sliver * 3.0], dim=-1)
-        return emb, torch.where(sliver, torch.full_like(ctr, 0.9), ctr)
+        return emb, torch.where(sliver, torch.full_like(ctr, 0.9), ctr), fg
 
 
 def test_calibration_drops_slivers_by_instance_size():
@@ -441,3 +451,23 @@ def test_older_checkpoints_keep_their_verification_thresholds(tmp_path):
     save_verification(tmp_path / "verification.json", Verification(0.38, 0.52, "abc"))
     assert chosen_verification(tmp_path / "verification.json", both) == Verification(0.38, 0.52, "abc")
     assert chosen_verification(None, load_segmenter(tmp_path / "m.pt", PARAMS.segment)) is None
+
+
+def test_the_loss_teaches_points_not_of_a_part_to_be_no_centre_and_leaves_ignored_points_out():
+    """A part's points (0), a distractor beside it (-1) and unexplained points (-2): the distractor's
+    centre scores are pulled to 0 and its embedding pushed from the part's; the ignored points get
+    no gradient at all."""
+    rng = np.random.default_rng(0)
+    part = rng.normal(0, 0.005, (40, 3))
+    distractor = rng.normal(0, 0.005, (30, 3)) + [0.03, 0, 0]
+    unexplained = rng.normal(0, 0.005, (30, 3)) + [-0.03, 0, 0]
+    pts = torch.tensor(np.concatenate([part, distractor, unexplained])[None], dtype=torch.float32)
+    lab = torch.tensor([[0] * 40 + [-1] * 30 + [-2] * 30])
+    # Every point near the part's embedding (not on it: a distance's gradient is undefined at 0).
+    emb = torch.tensor(rng.normal(0, 0.01, (1, 100, 4)), dtype=torch.float32, requires_grad=True)
+    ctr = torch.full((1, 100), 0.8, requires_grad=True)  # and scored as a centre
+    total, _ = fpcc_loss(emb, ctr, pts, lab, 0.05, 0.5, 1.5, 1.0, "linear", 100, torch.Generator().manual_seed(0))
+    total.backward()
+    assert torch.all(ctr.grad[0, 40:70] > 0)  # descending lowers the distractor's centre scores
+    assert emb.grad[0, 40:70].abs().sum() > 0  # and moves its embedding
+    assert torch.count_nonzero(ctr.grad[0, 70:]) == 0 and torch.count_nonzero(emb.grad[0, 70:]) == 0

@@ -17,6 +17,7 @@ from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, trans
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.params import CameraParams, GenerateParams, SensorModelParams
+from binpick.scene.cleaning import captured_view
 from binpick.view import ViewParams, labelled_view
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,10 @@ def render_scene(
         noisy = apply_sensor_model(
             clean, objects + clutter, intr, sensor, generate.sensor.materials[generate.sensor.surface], rng
         )
-    vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
+    if view.cleaning is not None:
+        vp, vn, vl = captured_view(noisy.xyz_m, noisy.labels, view.cleaning)
+    else:
+        vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
         xyz_m=noisy.xyz_m,
         labels=noisy.labels.astype(np.int16),

@@ -32,16 +32,25 @@ class ClusterParams:
     min_points: int
 
 
-def cluster(points: np.ndarray, embedding: np.ndarray, centre: np.ndarray, params: ClusterParams) -> np.ndarray:
+def cluster(
+    points: np.ndarray,
+    embedding: np.ndarray,
+    centre: np.ndarray,
+    params: ClusterParams,
+    foreground: np.ndarray | None = None,
+) -> np.ndarray:
     """Instance labels (N,) int32, -1 = noise.
 
-    points (N, 3) metres; embedding (N, D); centre (N,) predicted centre scores in [0, 1].
+    points (N, 3) metres; embedding (N, D); centre (N,) predicted centre scores in [0, 1];
+    foreground (N,) bool, the points the network calls a part's (default: all): the others are
+    noise and never a centre.
     """
     N = len(points)
     if N == 0:
         return np.zeros(0, np.int32)
-    order = np.argsort(-centre, kind="stable")
-    candidates = order[centre[order] > params.centre_threshold]
+    part = np.ones(N, bool) if foreground is None else np.asarray(foreground, bool)
+    order = np.argsort(-np.where(part, centre, -1.0), kind="stable")
+    candidates = order[(centre[order] > params.centre_threshold) & part[order]]
     cand_xyz, cand_emb = points[candidates], embedding[candidates]
     cand_sq = np.einsum("ij,ij->i", cand_emb, cand_emb)
     r_xyz_sq, r_emb_sq = params.nms_radius_m**2, params.embedding_threshold**2
@@ -67,7 +76,7 @@ def cluster(points: np.ndarray, embedding: np.ndarray, centre: np.ndarray, param
         + np.einsum("ij,ij->i", ce, ce)[None, :]
     )
     labels = d_sq.argmin(axis=1).astype(np.int32)
-    labels[d_sq.min(axis=1) > r_emb_sq] = -1
+    labels[(d_sq.min(axis=1) > r_emb_sq) | ~part] = -1
     sizes = np.bincount(labels[labels >= 0], minlength=len(centres))
     small = sizes < params.min_points
     labels[(labels >= 0) & small[np.maximum(labels, 0)]] = -1
@@ -81,13 +90,14 @@ def cluster(points: np.ndarray, embedding: np.ndarray, centre: np.ndarray, param
 @torch.no_grad()
 def predict(
     model: FPCC, points: np.ndarray, normals: np.ndarray, features: str, length_scale_m: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """One network pass: points (N, 3) metres, normals (N, 3) -> embedding (N, D), centre scores (N,)."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One network pass: points (N, 3) metres, normals (N, 3) -> embedding (N, D), centre scores
+    (N,) and foreground (N,) bool (the points it calls a part's)."""
     device = next(model.parameters()).device
     p = torch.as_tensor(points, dtype=torch.float32, device=device)[None]
     n = torch.as_tensor(normals, dtype=torch.float32, device=device)[None]
-    emb, ctr = model(input_features(p, n, features, length_scale_m), p)
-    return emb[0].cpu().numpy(), ctr[0].cpu().numpy()
+    emb, ctr, fg = model(input_features(p, n, features, length_scale_m), p)
+    return emb[0].cpu().numpy(), ctr[0].cpu().numpy(), (fg[0] > 0).cpu().numpy()
 
 
 def segment_scene(
@@ -105,7 +115,8 @@ def segment_scene(
     return label_blocks(points, predict_blocks(model, points, normals, features, length_scale_m, n_points, rng), params)
 
 
-Block = tuple[int, np.ndarray, np.ndarray, np.ndarray]  # seed point, point indices, embeddings, centre scores
+# Seed point, point indices, embeddings, centre scores, foreground.
+Block = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def predict_blocks(
@@ -123,8 +134,8 @@ def predict_blocks(
         return []
     blocks = []
     for seed, idx in cover(points, n_points, rng):
-        emb, ctr = predict(model, points[idx], normals[idx], features, length_scale_m)
-        blocks.append((seed, idx, emb, ctr))
+        emb, ctr, fg = predict(model, points[idx], normals[idx], features, length_scale_m)
+        blocks.append((seed, idx, emb, ctr, fg))
     return blocks
 
 
@@ -143,8 +154,8 @@ def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams)
     best_dist = np.full(M, np.inf)  # to the seed of the block that gave the label
     seen = np.zeros(M, bool)  # in a block
     n_instances = 0
-    for seed, idx, emb, ctr in blocks:
-        local = cluster(points[idx], emb, ctr, params)
+    for seed, idx, emb, ctr, fg in blocks:
+        local = cluster(points[idx], emb, ctr, params, fg)
         mapping = np.full(int(local.max()) + 2, -1, np.int32)  # local id -> global id; last slot: noise
         for j in range(int(local.max()) + 1):
             before = labels[idx[local == j]]

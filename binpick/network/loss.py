@@ -9,12 +9,18 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+# Label of a point known not to belong to any part (a scene's instances are >= 0; lower labels are
+# points the loss leaves out).
+NOT_A_PART = -1
+# The foreground term's weight beside the embedding term (both are about 1 at the start).
+FOREGROUND_LOSS_WEIGHT = 1.0
+
 
 def centre_score_targets(points: torch.Tensor, labels: torch.Tensor, d_max_m: float, form: str) -> torch.Tensor:
     """Ground-truth centre score of each point, (N,) in [0, 1].
 
-    points (N, 3) metres; labels (N,) int64 instance indices (>= 0; a negative label, a point
-    the loss ignores, gets 0). The centre of an instance is the mean of its points. linear:
+    points (N, 3) metres; labels (N,) int64 instance indices (>= 0; a negative label, not a
+    part or a point the loss ignores, gets 0). The centre of an instance is the mean of its points. linear:
     1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
     """
     known = labels >= 0
@@ -43,24 +49,35 @@ def fpcc_loss(
     form: str,
     n_anchors: int,
     generator: torch.Generator | None = None,
+    foreground_logit: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, float]]:
     """Loss of one batch.
 
-    embedding (B, N, D), centre (B, N) predicted; points (B, N, 3) metres; labels (B, N) int64,
-    negative for a point the loss ignores (a captured scene's unexplained points: input, not
-    target). Pairs farther apart than 2 * d_max (a true, not a squared, distance) are ignored.
+    embedding (B, N, D), centre (B, N) predicted; points (B, N, 3) metres; labels (B, N) int64:
+    an instance (>= 0), NOT_A_PART (a rendered distractor or rim the cleaning left: its centre
+    score is taught 0 and its embedding is pushed from the parts' near it) or below (a point the
+    loss ignores, a captured scene's unexplained points: input, not target). Pairs farther apart
+    than 2 * d_max (a true, not a squared, distance) are ignored. foreground_logit (B, N), when
+    given: the foreground head's output, taught part (>= 0) against NOT_A_PART with the two
+    classes weighted alike (points of no part are a few per cent of a training view).
     """
     B, N, _ = embedding.shape
-    emb_terms, ctr_terms = [], []
+    emb_terms, ctr_terms, fg_terms = [], [], []
     for b in range(B):
         target = centre_score_targets(points[b], labels[b], d_max_m, form)
-        known = labels[b] >= 0
+        known = labels[b] >= NOT_A_PART
         index = torch.nonzero(known).squeeze(1)  # every point of a synthetic scene
         if not len(index):  # nothing to learn from in this crop: no gradient, no term
             ctr_terms.append(centre[b].sum() * 0.0)
             emb_terms.append(embedding[b].sum() * 0.0)
             continue
         ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
+        if foreground_logit is not None:
+            is_part = labels[b, index] >= 0
+            bce = F.binary_cross_entropy_with_logits(
+                foreground_logit[b, index], is_part.to(foreground_logit.dtype), reduction="none"
+            )
+            fg_terms.append(torch.stack([bce[m].mean() for m in (is_part, ~is_part) if bool(m.any())]).mean())
         anchors = index[
             torch.randperm(len(index), generator=generator, device="cpu")[: min(n_anchors, len(index))].to(index.device)
         ]
@@ -74,4 +91,9 @@ def fpcc_loss(
     emb = torch.stack(emb_terms).mean()
     ctr = torch.stack(ctr_terms).mean()
     total = emb + centre_weight * ctr
-    return total, {"loss": total.item(), "embedding_loss": emb.item(), "centre_loss": ctr.item()}
+    parts = {"embedding_loss": emb.item(), "centre_loss": ctr.item()}
+    if fg_terms:
+        fg = torch.stack(fg_terms).mean()
+        total = total + FOREGROUND_LOSS_WEIGHT * fg
+        parts["foreground_loss"] = fg.item()
+    return total, {"loss": total.item(), **parts}

@@ -27,9 +27,15 @@ class FPCCConfig:
     k_neighbours: int = 16
     width: int = 64
     embedding_dim: int = 128
+    # A third head: whether a point belongs to a part at all (trained where the training view
+    # holds points of no part; checkpoints from before it have none and call every point a part's).
+    foreground_head: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+ALWAYS_FOREGROUND_LOGIT = 30.0  # sigmoid(30) = 1 - 1e-13
 
 
 def knn_indices(xyz: torch.Tensor, k: int) -> torch.Tensor:
@@ -129,9 +135,11 @@ class FPCC(nn.Module):
         self.trunk = nn.Sequential(_pointwise(3 * w + 8 * w, 4 * w), _pointwise(4 * w, 2 * w))
         self.embedding_head = nn.Conv1d(2 * w, config.embedding_dim, 1)
         self.centre_head = nn.Conv1d(2 * w, 1, 1)
+        self.foreground_head = nn.Conv1d(2 * w, 1, 1) if config.foreground_head else None
 
-    def forward(self, features: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """features (B, 6, N), xyz (B, N, 3) -> embedding (B, N, D), centre score (B, N)."""
+    def forward(self, features: torch.Tensor, xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """features (B, 6, N), xyz (B, N, 3) -> embedding (B, N, D), centre score (B, N) and
+        foreground logit (B, N) (a large constant without the head: every point a part's)."""
         idx = knn_indices(xyz, self.config.k_neighbours) if self.config.backbone == "dgcnn" else None
         h = features
         levels = []
@@ -143,7 +151,9 @@ class FPCC(nn.Module):
         h = self.trunk(torch.cat([local, glob.expand(-1, -1, local.shape[-1])], dim=1))  # (B, 2w, N)
         embedding = self.embedding_head(h).transpose(1, 2)  # (B, N, D)
         centre = torch.sigmoid(self.centre_head(h)).squeeze(1)  # (B, N)
-        return embedding, centre
+        if self.foreground_head is None:
+            return embedding, centre, torch.full_like(centre, ALWAYS_FOREGROUND_LOGIT)
+        return embedding, centre, self.foreground_head(h).squeeze(1)
 
 
 def input_features(points: torch.Tensor, normals: torch.Tensor, mode: str, length_scale_m: float) -> torch.Tensor:

@@ -132,7 +132,7 @@ def _batch(
 
 
 def _loss(model: FPCC, points, normals, labels, params: TrainParams, d_max_m: float, gen: torch.Generator):
-    emb, ctr = model(input_features(points, normals, params.features, d_max_m), points)
+    emb, ctr, fg = model(input_features(points, normals, params.features, d_max_m), points)
     return fpcc_loss(
         emb,
         ctr,
@@ -145,6 +145,7 @@ def _loss(model: FPCC, points, normals, labels, params: TrainParams, d_max_m: fl
         params.centre_score_form,
         params.loss_anchors,
         gen,
+        fg,
     )
 
 
@@ -179,6 +180,7 @@ def train_fpcc(
             k_neighbours=params.k_neighbours,
             width=params.width,
             embedding_dim=params.embedding_dim,
+            foreground_head=True,
         )
     else:
         config = FPCCConfig(**init_state["config"])

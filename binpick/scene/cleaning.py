@@ -283,6 +283,24 @@ def clean_capture(
     )
 
 
+def captured_view(
+    xyz_m: np.ndarray, labels: np.ndarray, params: ImportCaptureParams
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The network's view of a labelled organized frame as a capture of it would give it: the
+    frame cleaned as the import step cleans one (seed 0), each point keeping its pixel's label.
+
+    xyz_m (H, W, 3) camera frame, NaN = no return; labels (H, W) int, -1 = not a part. Returns
+    points (N, 3) float32, normals (N, 3) float32, labels (N,) int16; empty when the cleaning
+    leaves nothing (a frame that shows no surface above its floor).
+    """
+    h, w = labels.shape
+    try:
+        cloud = clean_capture(xyz_m.reshape(-1, 3), None, (h, w), params, 0)
+    except BinpickError:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int16)
+    return cloud.points_m, cloud.normals, labels.reshape(-1)[cloud.pixel_index].astype(np.int16)
+
+
 # _screen's chunks of the frame, spread over the cores (a fixed number: the result is the same
 # whatever the cores, as minima, maxima and counts do not depend on the order they are taken in).
 SCREEN_CHUNKS = 16

@@ -96,7 +96,7 @@ def bench_segment(
     steps = []
     for k in range(repeats + 1):
         t0 = time.perf_counter()
-        emb, ctr = train_model(input_features(pts, nrm, tp.features, settings.d_max_m), pts)
+        emb, ctr, fg = train_model(input_features(pts, nrm, tp.features, settings.d_max_m), pts)
         loss, _ = fpcc_loss(
             emb,
             ctr,
@@ -108,6 +108,7 @@ def bench_segment(
             tp.centre_loss_weight,
             tp.centre_score_form,
             tp.loss_anchors,
+            foreground_logit=fg,
         )
         opt.zero_grad()
         loss.backward()
