@@ -27,7 +27,7 @@ def dvc_env() -> dict[str, str]:
 
 
 def prefect_run_env() -> dict[str, str]:
-    """The current Prefect flow and task run, for the stages' MLflow tags (stages/common/__init__.py)."""
+    """The current Prefect flow and task run, for the stages' MLflow tags (review/tracking.py)."""
     from prefect.runtime import flow_run, task_run
 
     values = {

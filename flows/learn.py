@@ -324,7 +324,7 @@ def score(checkpoint: Path, params: Params, synthetic_test: Path, real_test: lis
 def _register(params: Params, part: str, served: Path, outcome: dict[str, object]) -> str:
     """An MLflow run of the fine-tuning, its network registered as a version of fpcc-<part> with
     the serve alias."""
-    from stages.common import accept_checkpoint, add_model_version, mlflow_run
+    from review.tracking import accept_checkpoint, add_model_version, mlflow_run
 
     with mlflow_run(
         f"part-{part}", f"finetune-{part}", params.tracking.mlflow_uri, {"binpick.step": "finetune"}

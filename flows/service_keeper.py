@@ -20,7 +20,7 @@ import numpy as np
 from binpick.io.atomic import atomic_path
 from binpick.io.picks import write_picks_document
 from binpick.io.poses import save_poses
-from stages.common.pick_recording import write_pick_recording
+from review.pick_recording import write_pick_recording
 
 if TYPE_CHECKING:
     from flows.service import Served
@@ -121,7 +121,7 @@ class Keeper:
     def _log(self, doc: dict, names: list[str], score_mean: float) -> None:
         if not self.log_mlflow:
             return
-        from stages.common import mlflow_run
+        from review.tracking import mlflow_run
 
         tags = {"part": ",".join(names), "request_id": doc["request_id"]}
         with mlflow_run("service", doc["request_id"], self.mlflow_uri, tags):

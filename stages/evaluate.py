@@ -13,7 +13,8 @@ from binpick.network.checkpoint import InferenceSettings, read_checkpoint
 from binpick.network.evaluate import segment_and_count
 from binpick.network.infer import Segmenter, load_segmenter
 from binpick.params import Params, load_params
-from stages.common import accept_checkpoint, entry, flat_params, mlflow_run, model_name, parser, start, write_metrics
+from review.tracking import accept_checkpoint, flat_params, mlflow_run, model_name
+from stages.common import entry, parser, start, write_metrics
 from stages.common.fanout import fan_out
 
 log = logging.getLogger("binpick.stage.evaluate")

@@ -15,8 +15,8 @@ from binpick.io.grasps import load_grasps, save_grasps
 from binpick.io.part_model import load_part_model
 from binpick.params import Params, load_params
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
+from review.pick_recording import write_grasp_recording
 from stages.common import entry, log_timings, parser, start, write_metrics
-from stages.common.pick_recording import write_grasp_recording
 
 log = logging.getLogger("binpick.stage.grasps")
 

@@ -19,8 +19,9 @@ from binpick.io.picks import save_picks
 from binpick.io.poses import load_poses
 from binpick.params import Params, load_params
 from binpick.scene.pick import pick
-from stages.common import entry, mlflow_run, parser, start, write_metrics
-from stages.common.pick_recording import write_pick_recording
+from review.pick_recording import write_pick_recording
+from review.tracking import mlflow_run
+from stages.common import entry, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.pick")
 

@@ -22,8 +22,9 @@ from binpick.metrics.pose import scene_pose_metrics
 from binpick.params import Params, load_params
 from binpick.scene.register import register, with_verification
 from binpick.seeding import scene_seeds
-from stages.common import entry, mlflow_run, parser, start, write_metrics
-from stages.common.recording import write_scene_recording
+from review.recording import write_scene_recording
+from review.tracking import mlflow_run
+from stages.common import entry, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.register")
 

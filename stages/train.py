@@ -14,8 +14,9 @@ from binpick.network.infer import cluster_params, default_device, segment_scene
 from binpick.network.train import BEST, LAST, load_views, train_fpcc
 from binpick.params import Params, load_params
 from binpick.seeding import derive_int, derive_seed
-from stages.common import add_model_version, entry, flat_params, mlflow_run, model_name, parser, start, write_metrics
-from stages.common.recording import TrainingRecording
+from review.recording import TrainingRecording
+from review.tracking import add_model_version, flat_params, mlflow_run, model_name
+from stages.common import entry, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.train")
 

@@ -19,7 +19,8 @@ from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
 from binpick.scene.process import PartModels
 from binpick.scene.verification_threshold import calibrate_verification
-from stages.common import entry, mlflow_run, parser, start, write_metrics
+from review.tracking import mlflow_run
+from stages.common import entry, parser, start, write_metrics
 
 log = logging.getLogger("binpick.stage.verify")
 

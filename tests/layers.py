@@ -7,7 +7,7 @@ import ast
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("binpick", "stages", "flows")
+PACKAGES = ("binpick", "stages", "flows", "review")
 
 
 def module_file(name: str) -> Path | None:

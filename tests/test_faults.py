@@ -56,7 +56,7 @@ def test_temporaries_of_a_killed_writer_are_swept_by_the_next(tmp_path):
 def test_runs_of_killed_stages_are_ended(tmp_path):
     import mlflow
 
-    from stages.common import end_dead_runs
+    from review.tracking import end_dead_runs
 
     mlflow.set_tracking_uri(f"sqlite:///{tmp_path / 'mlflow.db'}")
     try:

@@ -133,7 +133,7 @@ def test_region_of_interest_in_a_bin_frame():
 
 
 def test_plane_quad_lies_on_the_plane_under_the_points():
-    from stages.common.recording import plane_quad
+    from review.recording import plane_quad
 
     plane = np.array([0.1, -0.05, -1.0, 0.5])
     plane /= np.linalg.norm(plane[:3])

@@ -12,7 +12,7 @@ import yaml
 from layers import ROOT, all_modules, closure, imported_names, module_file
 
 # The library holds kernels and file formats; these belong to the application side.
-FORBIDDEN_IN_LIBRARY = ("stages", "flows", "prefect", "mlflow", "rerun", "dvc")
+FORBIDDEN_IN_LIBRARY = ("stages", "flows", "review", "prefect", "mlflow", "rerun", "dvc")
 
 
 def test_the_library_imports_no_application_module_and_no_framework():

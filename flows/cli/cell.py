@@ -152,7 +152,7 @@ def fit_bin(
     from binpick.io.capture import load_capture
     from binpick.params import load_params
     from binpick.view import ViewParams, view_grid
-    from stages.common.recording import write_bin_recording
+    from review.recording import write_bin_recording
 
     root = project_root()
     try:

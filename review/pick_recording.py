@@ -13,7 +13,7 @@ from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
 from binpick.palette import instance_colours
 from binpick.picking.gripper import gripper_primitives
-from stages.common.recording import log_part
+from review.recording import log_part
 
 GRIPPER_COLOUR = np.array([230, 160, 40, 140], np.uint8)
 REJECTED_COLOUR = np.array([220, 50, 50, 255], np.uint8)

@@ -1,0 +1,2 @@
+"""Result review for the application (stages, flows, the service): MLflow tracking and rerun
+recordings. The library never calls either."""
