@@ -10,12 +10,14 @@ nothing to the loss. It is not called background: the cell does not know what it
 from __future__ import annotations
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.poses import PartPose
+from binpick.picking.plan import image_coordinates, local_noise_m
 
 # Label of a point the loss and the scoring leave out (instances are >= 0; -1 is "not a part").
 IGNORE = -2
@@ -79,10 +81,6 @@ def label_capture(
     dense_points_m (M, 3): the part's dense surface sample, model frame (the PPF model's);
     diameter_m: the part's; min_score: the verification threshold the poses passed;
     voxel_size_m: the import grid the cloud is on."""
-    from pykdtree.kdtree import KDTree
-
-    from binpick.picking.plan import image_coordinates, local_noise_m
-
     points = np.asarray(cloud.points_m, dtype=np.float64)
     keep = trusted(poses, min_score, margin)
     T_trusted = np.array([p.T_cam_from_model for p in poses], dtype=np.float64).reshape(-1, 4, 4)[keep]

@@ -11,8 +11,12 @@ the user to check in the recording and keep in params.yaml.
 from __future__ import annotations
 
 import numpy as np
+from scipy import ndimage
+from scipy.spatial import ConvexHull, QhullError
 
 from binpick.cell.bin_box import BinBox
+from binpick.geometry.pointcloud import plane_frame
+from binpick.scene.cleaning import bin_reference_point
 
 # Occupancy grid of what stands on the plane; gaps up to one cell join a region.
 GRID_CELL_M = 0.005
@@ -33,8 +37,6 @@ MAX_VIEW_TILT_DEG = 60.0
 def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     """Smallest rectangle around 2-D points (n, 2): (centre (2,), angle of its first side in
     radians, half sizes (2,), first side the longer). Rotating calipers over the hull's edges."""
-    from scipy.spatial import ConvexHull, QhullError
-
     try:
         hull = uv[ConvexHull(uv).vertices]
     except QhullError:
@@ -61,11 +63,6 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     points_m : (n, 3) camera frame, metres (a voxel grid of the capture is plenty).
     Raises ValueError when nothing stands on the plane.
     """
-    from scipy import ndimage
-
-    from binpick.geometry.pointcloud import plane_frame
-    from binpick.scene.cleaning import bin_reference_point
-
     n = floor[:3]
     height = points_m @ n + floor[3]
     above = points_m[height > keep_above_m]

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from binpick.geometry.transforms import invert_T, make_T
 from binpick.native import stdout_silenced
@@ -154,6 +155,4 @@ def settle(
 
 
 def quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    from scipy.spatial.transform import Rotation
-
     return Rotation.from_matrix(R).as_quat()  # scipy's order is (x, y, z, w), as pybullet's

@@ -8,7 +8,9 @@ Spec: data/README.md#checkpoint.
 
 from __future__ import annotations
 
+import hashlib
 import io
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,9 +131,6 @@ def content_sha256(state: dict[str, Any]) -> str:
     """SHA-256 of what a checkpoint means: every weight tensor (name, dtype, shape, bytes) in
     name order, the optimiser's tensors, and the config, epoch, metrics and extra as JSON. A
     flipped byte that torch still reads changes it."""
-    import hashlib
-    import json
-
     h = hashlib.sha256()
 
     def tensors(prefix: str, value: Any) -> None:

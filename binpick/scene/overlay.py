@@ -7,9 +7,19 @@ part is looks like a tint on it and a pose behind a wall does not hide the wall.
 
 from __future__ import annotations
 
-import numpy as np
+from pathlib import Path
 
+import numpy as np
+from PIL import Image, ImageDraw
+
+from binpick.errors import InputError
+from binpick.io.capture import load_capture
+from binpick.io.depth_image import load_intrinsics
+from binpick.io.part_model import load_part_model
+from binpick.io.picks import load_picks
+from binpick.io.poses import load_poses
 from binpick.palette import instance_colours
+from binpick.registration.visibility import fit_intrinsics
 
 # A model point this far behind the measured depth at its pixel is hidden.
 HIDDEN_MARGIN_M = 0.005
@@ -56,7 +66,6 @@ def draw_poses(
 
 def label_poses(image: np.ndarray, K: np.ndarray, T_cam_from_model: np.ndarray, scores: list[float]) -> np.ndarray:
     """Write each pose's index and score at its model origin's pixel."""
-    from PIL import Image, ImageDraw
 
     img = Image.fromarray(image)
     draw = ImageDraw.Draw(img)
@@ -92,7 +101,6 @@ def draw_pick(image: np.ndarray, K: np.ndarray, T_cam_from_pregrasp: np.ndarray,
     """The image (H, W, 3) uint8 with a pick drawn: a ring at the grasp's tool centre point and
     the approach from the pre-grasp's, in yellow over black so it shows on any part's tint.
     K : (3, 3) pinhole; the poses (4, 4), camera frame, metres. Returns a new array."""
-    from PIL import Image, ImageDraw
 
     img = Image.fromarray(image)
     draw = ImageDraw.Draw(img)
@@ -115,16 +123,6 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
     """The overlay image (H, W, 3) uint8 of a processed capture: its colour image (or `image_path`,
     or depth shading when it has no colour) with its poses drawn, and the first pick of
     `picks_path` (a picks.json) when given. The capture must be organized."""
-    from pathlib import Path
-
-    from PIL import Image
-
-    from binpick.errors import InputError
-    from binpick.io.capture import load_capture
-    from binpick.io.depth_image import load_intrinsics
-    from binpick.io.part_model import load_part_model
-    from binpick.io.poses import load_poses
-    from binpick.registration.visibility import fit_intrinsics
 
     capture = load_capture(capture_path, options)
     if capture.shape is None:
@@ -149,8 +147,6 @@ def overlay_capture(capture_path, options, poses_path, part_model_path, image_pa
     scores = [p.score for p in poses]
     first = None
     if picks_path is not None:
-        from binpick.io.picks import load_picks
-
         picks = load_picks(picks_path)["picks"]
         first = (np.asarray(picks[0]["camera"]["pregrasp"]), np.asarray(picks[0]["camera"]["grasp"])) if picks else None
     depth = xyz[:, 2].reshape(H, W)
@@ -191,9 +187,6 @@ def pick_overlay(
     T_cam_from_model : (k, 4, 4); first_pick: the pick's T_cam_from_pregrasp and T_cam_from_grasp
     (4, 4), or None when nothing was picked.
     """
-    from PIL import Image
-
-    from binpick.registration.visibility import fit_intrinsics
 
     H, W = shape
     xyz = np.asarray(xyz_m, dtype=np.float64).reshape(-1, 3)
