@@ -59,15 +59,25 @@ def bench_segment(
     if not paths:
         raise ValueError(f"{scenes / 'test'} holds no scenes")
     ours, base = SegmentationCounts(), SegmentationCounts()
+    no_part = no_part_in_segments = segments_on_no_part = 0
     for i, path in enumerate(paths):
         s = load_scene(path)
-        ours = ours.add(segment_and_count(segmenter, s, segment, iou_threshold, seed, i)[1])
+        labels, counts = segment_and_count(segmenter, s, segment, iou_threshold, seed, i)
+        ours = ours.add(counts)
+        # What a capture shows besides the part (distractors, rims the cleaning left): the network
+        # should leave it out of every segment.
+        outside = s.view_labels < 0
+        no_part += int(outside.sum())
+        no_part_in_segments += int((outside & (labels >= 0)).sum())
+        segments_on_no_part += sum(int(outside[labels == k].mean() > 0.5) for k in np.unique(labels[labels >= 0]))
         db = dbscan_labels(s.view_points_m, DBSCAN_EPS_PER_VOXEL * voxel_size_m, 10)
         base = base.add(scene_counts(db, s.view_labels, iou_threshold, segment.min_points))
     out: dict[str, object] = {
         **{k: v for k, v in ours.summary().items()},
         "n_scenes": len(paths),
         "device": str(device),
+        "no_part_points_in_segments": no_part_in_segments / no_part if no_part else 0.0,
+        "segments_mostly_no_part": segments_on_no_part,
     }
     out["baseline_dbscan"] = base.summary()
 
