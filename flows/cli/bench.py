@@ -9,10 +9,17 @@ import typer
 from binpick.env import project_root
 from flows.cli.common import PARAMS, bench_app, checkpoints, fail, trained_part_paths, write_json
 
+# Options several benchmarks share, declared once.
+OUT = typer.Option(..., help="JSON file to write")
+BENCH_PARTS_OPTION = typer.Option(None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)")
+SHARED_PARTS_OPTION = typer.Option(None, help="parts to use (default: the built-in part and every shared part)")
+MIN_PARTS = typer.Option(10, min=1, help="parts per bin, at least")
+MAX_PARTS = typer.Option(20, min=1, help="parts per bin, at most")
+
 
 @bench_app.command("import")
 def bench_import_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     repeats: int = typer.Option(7, min=1),
     params: Path = PARAMS,
 ) -> None:
@@ -25,7 +32,7 @@ def bench_import_cmd(
 
 
 @bench_app.command("ingest")
-def bench_ingest_cmd(out: Path = typer.Option(..., help="JSON file to write"), params: Path = PARAMS) -> None:
+def bench_ingest_cmd(out: Path = OUT, params: Path = PARAMS) -> None:
     """Ingest of CAD meshes of 10^4 to 2 x 10^6 faces: time, peak memory, diameter error."""
     from binpick.params import load_params
     from flows.bench.ingest import bench_ingest
@@ -36,7 +43,7 @@ def bench_ingest_cmd(out: Path = typer.Option(..., help="JSON file to write"), p
 
 @bench_app.command("clutter")
 def bench_clutter_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     scenes: int = typer.Option(4, min=1, help="cluttered scenes per part"),
     part: list[str] = typer.Option(
         None, help="parts (default: t_joint, the gear shaft, ring screw, three-way pipe and IC-BIN coffee cup)"
@@ -74,13 +81,11 @@ def bench_clutter_cmd(
 
 @bench_app.command("cell")
 def bench_cell_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     bins: int = typer.Option(2, min=1, help="bins per part"),
-    min_parts: int = typer.Option(10, min=1, help="parts per bin, at least"),
-    max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
-    part: list[str] = typer.Option(
-        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
-    ),
+    min_parts: int = MIN_PARTS,
+    max_parts: int = MAX_PARTS,
+    part: list[str] = BENCH_PARTS_OPTION,
     params: Path = PARAMS,
 ) -> None:
     """Empty simulated bins with the arm (cell.arm) in physics: every pick executed from the
@@ -110,13 +115,11 @@ def bench_cell_cmd(
 
 @bench_app.command("picking")
 def bench_picking_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     bins: int = typer.Option(10, min=1, help="bins per part"),
-    min_parts: int = typer.Option(10, min=1, help="parts per bin, at least"),
-    max_parts: int = typer.Option(20, min=1, help="parts per bin, at most"),
-    part: list[str] = typer.Option(
-        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
-    ),
+    min_parts: int = MIN_PARTS,
+    max_parts: int = MAX_PARTS,
+    part: list[str] = BENCH_PARTS_OPTION,
     gripper: str = typer.Option(None, help="suction or jaw (default: pick.gripper)"),
     tilt_deg_max: float = typer.Option(
         45.0, min=0.0, max=59.0, help="each bin's camera is tilted from the bin's up axis by up to this, degrees"
@@ -152,7 +155,7 @@ def bench_picking_cmd(
 
 @bench_app.command("sensors")
 def bench_sensors_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     part: list[str] = typer.Option(None, help="parts (default: t_joint)"),
     train_scenes: int = typer.Option(48, min=2, help="synthetic training scenes per network"),
     val_scenes: int = typer.Option(6, min=1, help="validation scenes per network"),
@@ -190,10 +193,8 @@ def bench_sensors_cmd(
 
 @bench_app.command("scene")
 def bench_scene_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
-    part: list[str] = typer.Option(
-        None, help="parts (default: t_joint, the gear shaft, ring screw and three-way pipe)"
-    ),
+    out: Path = OUT,
+    part: list[str] = BENCH_PARTS_OPTION,
     params: Path = PARAMS,
 ) -> None:
     """The in-process scene path per step on 1920 x 1200 captures of 8- and 20-part bins, and the
@@ -212,7 +213,7 @@ def bench_scene_cmd(
 
 @bench_app.command("soak")
 def bench_soak_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     requests: int = typer.Option(1000, min=1, help="sequential requests"),
     clients: int = typer.Option(4, min=1, help="concurrent clients after them"),
     per_client: int = typer.Option(25, min=1, help="requests per concurrent client"),
@@ -240,10 +241,10 @@ def bench_soak_cmd(
 
 @bench_app.command("generate")
 def bench_generate_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     scenes: int = typer.Option(3, min=1, help="scenes per part and object count"),
     baseline_scenes: int = typer.Option(2, min=1, help="baseline scenes per part and object count"),
-    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+    part: list[str] = SHARED_PARTS_OPTION,
     params: Path = PARAMS,
 ) -> None:
     """Placement + 1920 x 1200 rendering against the original rejection sampling, at 5, 10, 20 objects."""
@@ -259,7 +260,7 @@ def bench_generate_cmd(
 
 @bench_app.command("segment")
 def bench_segment_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     part: str = typer.Option("t_joint", help="a trained part (its checkpoint and generated scenes)"),
     checkpoint: Path = typer.Option(None, help="default: data/fpcc/<part>/model.pt"),
     scenes: Path = typer.Option(None, help="default: data/scenes/<part>"),
@@ -282,9 +283,9 @@ def bench_segment_cmd(
 
 @bench_app.command("ppf")
 def bench_ppf_cmd(
-    out: Path = typer.Option(..., help="JSON file to write"),
+    out: Path = OUT,
     trials: int = typer.Option(20, min=1, help="views per part"),
-    part: list[str] = typer.Option(None, help="parts to use (default: the built-in part and every shared part)"),
+    part: list[str] = SHARED_PARTS_OPTION,
     method: list[str] = typer.Option(None, help="methods to run (default: all)"),
     params: Path = PARAMS,
 ) -> None:
