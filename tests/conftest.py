@@ -66,7 +66,7 @@ def copy_project(root: Path, params_text: str | None = None) -> Path:
     import shutil
     import subprocess
 
-    for name in ("binpick", "stages", "flows", ".dvc"):
+    for name in ("binpick", "stages", "flows", "review", ".dvc"):
         shutil.copytree(
             ROOT / name, root / name, ignore=shutil.ignore_patterns("__pycache__", "tmp", "cache", "config.local")
         )

@@ -1,4 +1,4 @@
-"""Static import graph of the project's own packages (binpick, stages, flows), read from the
+"""Static import graph of the project's own packages (binpick, stages, flows, review), read from the
 source with `ast`: every import statement, at module level or inside a function."""
 
 from __future__ import annotations
