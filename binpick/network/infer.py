@@ -49,7 +49,7 @@ def cluster(
     if N == 0:
         return np.zeros(0, np.int32)
     part = np.ones(N, bool) if foreground is None else np.asarray(foreground, bool)
-    order = np.argsort(-np.where(part, centre, -1.0), kind="stable")
+    order = np.argsort(-centre, kind="stable")
     candidates = order[(centre[order] > params.centre_threshold) & part[order]]
     cand_xyz, cand_emb = points[candidates], embedding[candidates]
     cand_sq = np.einsum("ij,ij->i", cand_emb, cand_emb)

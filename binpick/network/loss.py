@@ -20,8 +20,8 @@ def centre_score_targets(points: torch.Tensor, labels: torch.Tensor, d_max_m: fl
     """Ground-truth centre score of each point, (N,) in [0, 1].
 
     points (N, 3) metres; labels (N,) int64 instance indices (>= 0; a negative label, not a
-    part or a point the loss ignores, gets 0). The centre of an instance is the mean of its points. linear:
-    1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
+    part or a point the loss ignores, gets 0). The centre of an instance is the mean of its
+    points. linear: 1 - r / d_max; squared (reference code): 1 - (r / d_max)^2.
     """
     known = labels >= 0
     own = labels.clamp_min(0)
