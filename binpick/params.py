@@ -489,6 +489,10 @@ class RegisterParams(_Strict):
     # scene matched without the segments; segments_then_scene: per segment, then the whole scene
     # for parts the segmentation missed or merged. max_instances bounds whole-scene poses.
     mode: Literal["segments", "whole_scene", "segments_then_scene"]
+    # The whole-scene pass votes from the points the network calls a part's (`parts`: a carton
+    # or a desk beside the bin then gets no pose), or from every cleaned point (`all`: a part the
+    # network calls background can still be found, and so can a part-like carton).
+    scene_votes_from: Literal["parts", "all"] = "parts"
     max_instances: int = Field(ge=1)
     # Poses with more than this share of their camera-facing surface in space the camera saw
     # through (in front of what it measured) are dropped; 1 = no such check; null = the value

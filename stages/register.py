@@ -43,19 +43,20 @@ def run(
     verification: Path | None = None,
 ) -> dict[str, float]:
     cloud = load_cloud(cloud_path)
-    labels = load_segments(segments_path)
-    if len(labels) != len(cloud.points_m):
-        raise InputError(segments_path, f"has {len(labels)} labels for {len(cloud.points_m)} cloud points")
+    segments = load_segments(segments_path)
+    if len(segments.labels) != len(cloud.points_m):
+        raise InputError(segments_path, f"has {len(segments.labels)} labels for {len(cloud.points_m)} cloud points")
     ppf = load_ppf_model(ppf_path)
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
     chosen = load_verification(verification) if verification is not None else None
     result = register(
         cloud,
-        labels,
+        segments.labels,
         ppf,
         with_verification(params.registration, chosen),
         scene_seeds(params.seed, cloud.capture_digest, cloud_path).register,
+        segments.is_part,
     )
     register_s = time.perf_counter() - t0
     estimates = result.poses
@@ -90,7 +91,7 @@ def run(
                 tmp_rrd,
                 name,
                 cloud,
-                labels,
+                segments.labels,
                 part,
                 estimates,
                 truth,

@@ -1,5 +1,5 @@
 """Stage `segment`: every point of a clean scene gets a part instance label (or -1) from the
-part's FPCC network."""
+part's FPCC network, and whether the network calls it a part's at all."""
 
 from __future__ import annotations
 
@@ -14,6 +14,7 @@ from binpick.io.atomic import atomic_paths
 from binpick.io.cloud import load_cloud, save_segments
 from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
+from binpick.scene.segment import segment
 from binpick.seeding import scene_seeds
 from stages.common import entry, log_timings, parser, start, write_metrics
 
@@ -31,20 +32,18 @@ def run(
     cloud = load_cloud(cloud_path)
     segmenter = load_segmenter(checkpoint, params.segment)
     t0 = time.perf_counter()
-    labels = segmenter.segment(
-        cloud.points_m,
-        cloud.normals,
-        np.random.default_rng(scene_seeds(params.seed, cloud.capture_digest, cloud_path).segment),
-    )
+    segments = segment(cloud, segmenter, scene_seeds(params.seed, cloud.capture_digest, cloud_path).segment)
+    labels = segments.labels
     seconds = time.perf_counter() - t0
     n_inst = int(labels.max()) + 1 if len(labels) else 0
     metrics = {
         "segment_s": seconds,
         "n_instances": float(n_inst),
         "noise_fraction": float(np.mean(labels < 0)) if len(labels) else 0.0,
+        "not_a_part_fraction": float(np.mean(~segments.is_part)) if len(labels) else 0.0,
     }
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
-        save_segments(tmp_out, labels)
+        save_segments(tmp_out, segments)
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
             if name:

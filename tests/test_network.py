@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 from binpick.errors import InputError
 from binpick.network.blocks import cover, crop
 from binpick.network.checkpoint import CalibratedClustering, load_checkpoint, save_checkpoint, write_state
-from binpick.network.infer import ClusterParams, cluster, segment_scene
+from binpick.network.infer import ClusterParams, cluster, part_points, segment_scene
 from binpick.network.loss import centre_score_targets, fpcc_loss
 from binpick.network.model import (
     FPCC,
@@ -179,6 +179,19 @@ def test_block_inference_labels_every_point_and_merges_across_blocks():
     # Same partition as the truth, up to renumbering.
     pairs = set(zip(labels.tolist(), truth.tolist(), strict=False))
     assert len(pairs) == 3 and len({a for a, _ in pairs}) == 3
+
+
+def test_each_point_is_called_a_part_or_not_by_the_block_whose_seed_is_nearest():
+    """Points 0..4 on a line, two overlapping blocks that disagree, and a rim point (5) in no
+    block: each point takes the judgement of the nearer seed (the first block on a tie), the rim
+    point its nearest neighbour's."""
+    points = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [4.2, 0, 0]])
+    none = np.zeros((0,))
+    blocks = [
+        (0, np.array([0, 1, 2, 3]), none, none, np.array([True, True, False, False])),
+        (4, np.array([2, 3, 4]), none, none, np.array([True, True, False])),
+    ]
+    np.testing.assert_array_equal(part_points(points, blocks), [True, True, False, True, False, False])
 
 
 def test_crop_is_contiguous_and_pads_small_scenes():

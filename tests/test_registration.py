@@ -169,6 +169,32 @@ def test_whole_scene_matching_skips_parts_already_found(t_joint, ppf):
     assert summary["pose_precision"] == 1.0 and summary["pose_recall"] >= 2 / 3, summary
 
 
+def test_whole_scene_matching_votes_only_from_the_points_called_a_part(t_joint, ppf):
+    """Points the network calls no part's start no vote: with three parts' points marked so, the
+    whole-scene pass finds the other parts and none of those three, though their points are still
+    in the cloud it fits and scores on."""
+    from binpick.metrics.pose import scene_pose_metrics
+
+    scene = generate_scene(
+        t_joint, PARAMS.generate, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), seed=21, n_objects=6
+    )
+    hidden = [0, 1, 2]
+    found = match_scene(
+        ppf,
+        scene.view_points_m.astype(np.float64),
+        scene.view_normals.astype(np.float64),
+        PARAMS.registration,
+        np.random.default_rng(0),
+        votes_from=~np.isin(scene.view_labels, hidden),
+    )
+    T_found = np.array([e.T_cam_from_model for e in found]).reshape(-1, 4, 4)
+    args = (ppf.dense_points_m, ppf.symmetries, ppf.diameter_m)
+    on_hidden, _ = scene_pose_metrics(T_found, scene.T_cam_from_model[hidden], scene.visible_fraction[hidden], *args)
+    on_rest, _ = scene_pose_metrics(T_found, scene.T_cam_from_model[3:], scene.visible_fraction[3:], *args)
+    assert on_hidden["pose_recall"] == 0.0, on_hidden
+    assert on_rest["pose_precision"] == 1.0 and on_rest["pose_recall"] >= 2 / 3, on_rest
+
+
 def test_scene_pairs_match_the_training_features():
     """The scene side (one compiled pass) must quantise exactly like the model table, built from
     _features, _keys and _alpha, or votes miss their model pairs."""

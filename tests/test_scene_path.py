@@ -142,7 +142,7 @@ def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_fo
     """Every step draws its seeds from the capture's content: the import and register stages, run
     on the capture file under any name, give the poses the in-process path (the service's) gave."""
     from binpick.io.capture import ImportOptions, load_capture
-    from binpick.io.cloud import save_segments
+    from binpick.io.cloud import Segments, save_segments
     from binpick.io.ply import PointCloudData, save_ply
     from binpick.io.poses import load_poses
     from stages import import_capture
@@ -159,7 +159,8 @@ def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_fo
 
     params = PARAMS.model_copy(update={"registration": models.register_params})
     import_capture.run(params, capture, ImportOptions("mm"), tmp_path / "cloud.npz")
-    save_segments(tmp_path / "segments.npz", np.full(len(served.cloud.points_m), -1, np.int32))
+    n = len(served.cloud.points_m)
+    save_segments(tmp_path / "segments.npz", Segments(np.full(n, -1, np.int32), np.ones(n, bool)))
     register_stage.run(
         params,
         "any-name",

@@ -57,18 +57,33 @@ def load_cloud(path: str | Path) -> CleanCloud:
     return CleanCloud(**{**arrays, "capture_digest": str(arrays["capture_digest"])})  # type: ignore[arg-type]  # the rest are arrays
 
 
-def save_segments(path: str | Path, labels: np.ndarray) -> None:
-    """labels (n,) int32 instance of each cloud point, -1 = none."""
+@dataclass(frozen=True)
+class Segments:
+    """A cloud's segmentation: labels (n,) int32 instance of each cloud point, -1 = in no
+    instance; is_part (n,) bool the points the network calls a part's (all of them for a
+    network without a foreground head, and in files written before it)."""
+
+    labels: np.ndarray
+    is_part: np.ndarray
+
+
+def save_segments(path: str | Path, segments: Segments) -> None:
     with atomic_path(path) as tmp:
-        np.savez_compressed(tmp, labels=np.asarray(labels, dtype=np.int32))
+        np.savez_compressed(
+            tmp, labels=np.asarray(segments.labels, dtype=np.int32), is_part=np.asarray(segments.is_part, dtype=bool)
+        )
 
 
-def load_segments(path: str | Path) -> np.ndarray:
+def load_segments(path: str | Path) -> Segments:
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "segments not found (run the segment stage first)")
     try:
         with np.load(path, allow_pickle=False) as z:
-            return z["labels"]
+            labels = z["labels"]
+            is_part = z["is_part"] if "is_part" in z.files else np.ones(len(labels), bool)
     except (KeyError, ValueError, OSError) as exc:
         raise InputError(path, f"not a binpick segments file ({exc})") from None
+    if is_part.shape != labels.shape:
+        raise InputError(path, f"has {len(is_part)} part flags for {len(labels)} labels")
+    return Segments(labels, is_part.astype(bool))

@@ -139,6 +139,27 @@ def predict_blocks(
     return blocks
 
 
+def part_points(points: np.ndarray, blocks: list[Block]) -> np.ndarray:
+    """(M,) bool: the scene points the network calls a part's (its foreground head; every point
+    for a network without one). Each point is judged by the block whose seed is nearest to it
+    (where it had the most context), as label_blocks labels it; a point in no block takes its
+    nearest neighbour's judgement."""
+    M = len(points)
+    is_part = np.ones(M, bool)
+    best_dist = np.full(M, np.inf)
+    for seed, idx, _, _, fg in blocks:
+        dist = np.linalg.norm(points[idx] - points[seed], axis=1)
+        closer = dist < best_dist[idx]
+        is_part[idx[closer]] = fg[closer]
+        best_dist[idx[closer]] = dist[closer]
+    rim = np.flatnonzero(~np.isfinite(best_dist))
+    if len(rim) and len(rim) < M:
+        inside = np.flatnonzero(np.isfinite(best_dist))
+        _, nearest = cKDTree(points[inside]).query(points[rim])
+        is_part[rim] = is_part[inside[nearest]]
+    return is_part
+
+
 def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams) -> np.ndarray:
     """Labels (M,) int32 of the M scene points from the clustered blocks.
 
@@ -238,8 +259,15 @@ class Segmenter:
 
     def segment(self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Labels (M,) int32 of the M scene points (camera frame, metres, on the voxel grid the
-        network was trained at; normals facing the camera), -1 = not a part."""
+        network was trained at; normals facing the camera), -1 = in no instance."""
         return label_blocks(points, self.predict_blocks(points, normals, rng), self.clustering)
+
+    def segment_parts(
+        self, points: np.ndarray, normals: np.ndarray, rng: np.random.Generator
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """segment's labels (M,) int32 and part_points' (M,) bool from one pass of the network."""
+        blocks = self.predict_blocks(points, normals, rng)
+        return label_blocks(points, blocks, self.clustering), part_points(points, blocks)
 
 
 def make_segmenter(network: FPCC, settings: InferenceSettings, segment: SegmentParams) -> Segmenter:

@@ -132,6 +132,7 @@ def match_scene(
     rng: np.random.Generator,
     max_instances: int = 30,
     known: Sequence[np.ndarray] = (),
+    votes_from: np.ndarray | None = None,
 ) -> list[PartPose]:
     """Every instance of the part in a whole scene, without segments: votes from reference
     points all over the scene, the strongest pose clusters refined and scored, poses scoring
@@ -140,6 +141,8 @@ def match_scene(
     scene_points, scene_normals : (n, 3) camera frame, metres; normals facing the camera.
     known : poses T_cam_from_model found already (e.g. on segments); the scene points they
             explain are taken, and only other instances are returned.
+    votes_from : (n,) bool, the points a vote may start from (default all). Poses are still
+            fitted and scored on every point.
     """
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
@@ -151,9 +154,14 @@ def match_scene(
     free = np.arange(len(pts))
     grid_tree = cKDTree(pts)
     taken = np.zeros(len(pts), bool)  # voting-grid points a known or found pose explains
+    if votes_from is not None:
+        # A point the network calls no part's (a carton, the desk) starts no vote: a part is
+        # only looked for where the network saw one. Taken from the start, such points also
+        # leave the stopping test below.
+        taken |= ~np.asarray(votes_from, bool)[idx]
     min_free = MIN_FREE_SHARE * len(model.points_m)
 
-    if len(known):
+    if len(known) or votes_from is not None:
         # Votes come only from what the known poses leave unexplained: the rest is found.
         for T in known:
             _take(taken, model, T, pts, grid_tree, scales)

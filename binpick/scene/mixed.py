@@ -153,9 +153,16 @@ def process_mixed(
         m = models[name]
         clouds[name] = cleaned(m.import_params)
         s0 = time.perf_counter()
-        labels = segment(clouds[name], m.segmenter, seeds.segment) if m.segmenter is not None else None
+        segments = segment(clouds[name], m.segmenter, seeds.segment) if m.segmenter is not None else None
         segment_s += time.perf_counter() - s0
-        found[name] = register(clouds[name], labels, m.ppf, m.register_params, seeds.register).poses
+        found[name] = register(
+            clouds[name],
+            segments.labels if segments is not None else None,
+            m.ppf,
+            m.register_params,
+            seeds.register,
+            segments.is_part if segments is not None else None,
+        ).poses
     t2 = time.perf_counter()
     flat = [(name, p) for name in names for p in found[name]]
     tree = cKDTree(np.asarray(cloud.points_m, dtype=np.float64)) if len(cloud.points_m) else None

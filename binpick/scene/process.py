@@ -113,9 +113,16 @@ def process(
     t0 = time.perf_counter()
     cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
     t1 = time.perf_counter()
-    labels = segment(cloud, models.segmenter, seeds.segment) if models.segmenter is not None else None
+    segments = segment(cloud, models.segmenter, seeds.segment) if models.segmenter is not None else None
     t2 = time.perf_counter()
-    registration = register(cloud, labels, models.ppf, models.register_params, seeds.register)
+    registration = register(
+        cloud,
+        segments.labels if segments is not None else None,
+        models.ppf,
+        models.register_params,
+        seeds.register,
+        segments.is_part if segments is not None else None,
+    )
     t3 = time.perf_counter()
     plan = None
     if models.grasps is not None and models.pick_params is not None:
@@ -130,8 +137,7 @@ def process(
             q_from,
         )
     t4 = time.perf_counter()
-    if labels is None:
-        labels = np.full(len(cloud.points_m), -1, np.int32)
+    labels = segments.labels if segments is not None else np.full(len(cloud.points_m), -1, np.int32)
     timings = {
         "clean_s": t1 - t0,
         "segment_s": t2 - t1,

@@ -69,12 +69,15 @@ def register(
     ppf: PPFModel,
     params: RegisterParams,
     seed: np.random.SeedSequence | int,
+    is_part: np.ndarray | None = None,
 ) -> Registration:
     """Poses of the part in the cloud, as params.mode says: `segments` fits the part onto every
     segment, keeps poses scoring at least min_score and drops repeats (the same pose, or support
     a better pose explains); `whole_scene` matches the whole cloud; `segments_then_scene` does
     both, the whole scene only for points no segment pose explains. labels (n,) int: needed
-    unless the mode is whole_scene."""
+    unless the mode is whole_scene. is_part (n,) bool: the points the network calls a part's
+    (Segments.is_part; default all): with params.scene_votes_from `parts`, the whole-scene pass
+    votes only from them."""
     rng = np.random.default_rng(seed)
     mode = params.mode
     poses: list[PartPose] = []
@@ -140,6 +143,7 @@ def register(
             rng,
             params.max_instances,
             known=[p.T_cam_from_model for p in poses],
+            votes_from=is_part if params.scene_votes_from == "parts" else None,
         )
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
