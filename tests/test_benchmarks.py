@@ -90,6 +90,23 @@ def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
     assert result["tilt_deg_max"] == 45.0 and figures["n_attempts"] == part["n_attempts"]
 
 
+def test_mixed_picking_bench_clears_a_small_bin_and_names_each_pick_s_part(shared_data):
+    """A bin of T-joints and three-way pipes (4 parts, no networks) emptied through the mixed
+    scene path: every attempt is counted once, under the part its pick named or as no pick, and
+    the parts settled per kind add up to the bin."""
+    from flows.bench.mix_picking import bench_picking_mix
+
+    names = ["t_joint", "zju_three_way_pipe"]
+    result = bench_picking_mix(PARAMS, names, n_bins=1, parts_per_bin=(4, 4), checkpoints={})
+    parts = result["parts"]
+    assert set(parts) == set(names)
+    assert sum(parts[n]["parts_settled"] for n in names) == result["parts_settled"] >= 3
+    assert sum(parts[n]["n_attempts"] for n in names) + result["attempts_without_a_pick"] == result["n_attempts"]
+    for key in ("pick_success_rate", "clearance_rate", "wrong_part_picks", "collisions", "cycle_s_median"):
+        assert key in result
+    assert result["clearance_rate"] >= 2 / 3 and result["wrong_part_picks"] == 0
+
+
 def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     """The benchmark's own judge: a grasp placed on a true part passes, one 5 mm above it or
     whose tool passes through a neighbour fails."""
@@ -116,8 +133,10 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     distance, angle = _nearest_surface(lifted, T_obj[None], truth)  # what the failed pick missed by
     assert distance == pytest.approx(0.005, abs=1e-4) and angle < 10.0  # the approach the unlifted grasp passed with
     neighbour = make_T(np.eye(3), np.array([0.0, 0.0, 0.44]))  # a second part in the tool's way
-    assert not _path_hits(pick(T_grasp), "suction", PARAMS, 0, T_obj[None], t_joint, np.zeros((0, 3)))
-    assert _path_hits(pick(T_grasp), "suction", PARAMS, 0, np.stack([T_obj, neighbour]), t_joint, np.zeros((0, 3)))
+    assert not _path_hits(pick(T_grasp), "suction", PARAMS, 0, T_obj[None], t_joint.points_m, np.zeros((0, 3)))
+    assert _path_hits(
+        pick(T_grasp), "suction", PARAMS, 0, np.stack([T_obj, neighbour]), t_joint.points_m, np.zeros((0, 3))
+    )
 
 
 def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():

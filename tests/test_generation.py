@@ -213,6 +213,34 @@ def test_physics_mode_settles_a_pile_without_interpenetration_reproducibly(t_joi
     assert max_penetration_mm(t_joint, settled, np.random.default_rng(0)) <= 1.0
 
 
+def test_a_mixed_pile_settles_each_object_with_its_own_mesh(t_joint):
+    """A box and a T-joint dropped side by side, 5 cm above the floor, each settles onto the
+    floor with its own mesh: the lowest vertex of each, placed at its settled pose, lies on the
+    floor (a pose computed with the other kind's mesh would not), and one kind's settle gives
+    what settle gives for that part alone."""
+    from conftest import box_part_model
+
+    from binpick.generation.bin import bin_meshes
+    from binpick.generation.physics import SettleSettings, settle, settle_kinds
+    from binpick.geometry.transforms import make_T
+
+    box = box_part_model((0.06, 0.04, 0.025))
+    g = PARAMS.generate
+    boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
+    half = (g.bin.inner_x_m / 2, g.bin.inner_y_m / 2)
+    meshes = [(box.mesh_vertices_m, box.mesh_faces), (t_joint.mesh_vertices_m, t_joint.mesh_faces)]
+    start = np.stack([make_T(np.eye(3), [-0.08, 0.0, 0.05]), make_T(np.eye(3), [0.08, 0.0, 0.08])])
+    settled, inside = settle_kinds(meshes, np.array([0, 1]), start, boxes, SettleSettings(), half)
+    assert inside.all()
+    for (vertices, _), T in zip(meshes, settled, strict=True):
+        lowest = (vertices @ T[:3, :3].T + T[:3, 3])[:, 2].min()
+        assert abs(lowest) < 0.002, lowest
+    # The box lies on its largest face: its thinnest extent upright.
+    assert abs(abs(settled[0][2, 2]) - 1.0) < 0.01
+    alone, _ = settle(t_joint.mesh_vertices_m, t_joint.mesh_faces, start[1:], boxes, SettleSettings(), half)
+    np.testing.assert_allclose(alone[0][:3, 3], settled[1][:3, 3], atol=1e-3)
+
+
 def test_start_heights_follow_the_chosen_law():
     from binpick.generation.placement import start_height
 

@@ -82,7 +82,7 @@ def settle(
     settings: SettleSettings,
     inner_half_xy_m: tuple[float, float],
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Let objects starting at non-overlapping poses fall and settle in the bin.
+    """Let objects of one part starting at non-overlapping poses fall and settle in the bin.
 
     vertices_m, faces : the part's mesh, model frame, metres
     T_bin_from_model  : (k, 4, 4) start poses, bin frame (z up, floor at z = 0), metres
@@ -92,17 +92,31 @@ def settle(
     inside the bin (above the floor, between the walls).
     The simulation is deterministic for the same inputs.
     """
+    kinds = np.zeros(len(T_bin_from_model), np.int64)
+    return settle_kinds([(vertices_m, faces)], kinds, T_bin_from_model, bin_boxes, settings, inner_half_xy_m)
+
+
+def settle_kinds(
+    meshes: list[tuple[np.ndarray, np.ndarray]],
+    kinds: np.ndarray,
+    T_bin_from_model: np.ndarray,
+    bin_boxes: list[tuple[np.ndarray, np.ndarray]],
+    settings: SettleSettings,
+    inner_half_xy_m: tuple[float, float],
+) -> tuple[np.ndarray, np.ndarray]:
+    """settle for a bin of several kinds of part: meshes (vertices_m, faces) per kind, model
+    frame, metres; kinds (k,) int the kind of each object. Returns as settle does."""
     import pybullet as pb
 
     k = len(T_bin_from_model)
     if k == 0:
         return T_bin_from_model.copy(), np.zeros(0, bool)
+    kinds = np.asarray(kinds, dtype=np.int64)
     # Bodies live in a frame at the centre of the part's box: a CAD origin far from the part
     # would otherwise be the centre of mass, and the point tested for being in the bin.
-    centre = (vertices_m.min(axis=0) + vertices_m.max(axis=0)) / 2.0
-    T_model_from_body = make_T(np.eye(3), centre)
-    T_bin_from_body = T_bin_from_model @ T_model_from_body
-    shape_file = convex_parts_obj(vertices_m - centre, faces)
+    centres = [(v.min(axis=0) + v.max(axis=0)) / 2.0 for v, _ in meshes]
+    T_model_from_body = [make_T(np.eye(3), c) for c in centres]
+    shape_files = [convex_parts_obj(v - c, f) for (v, f), c in zip(meshes, centres, strict=True)]
     client = pb.connect(pb.DIRECT)
     try:
         pb.setGravity(0, 0, -9.81 * SCALE, physicsClientId=client)
@@ -114,15 +128,16 @@ def settle(
             box = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=half.tolist(), physicsClientId=client)
             body = pb.createMultiBody(0.0, box, basePosition=middle.tolist(), physicsClientId=client)
             pb.changeDynamics(body, -1, lateralFriction=settings.friction, physicsClientId=client)
-        shape = pb.createCollisionShape(pb.GEOM_MESH, fileName=shape_file, physicsClientId=client)
+        shapes = [pb.createCollisionShape(pb.GEOM_MESH, fileName=f, physicsClientId=client) for f in shape_files]
         bodies = []
-        for i, T in enumerate(T_bin_from_body):
-            position = (T[:3, 3] + np.array([0.0, 0.0, settings.drop_gap_m * (i + 1)])) * SCALE
+        for i, T in enumerate(T_bin_from_model):
+            T_body = T @ T_model_from_body[kinds[i]]
+            position = (T_body[:3, 3] + np.array([0.0, 0.0, settings.drop_gap_m * (i + 1)])) * SCALE
             body = pb.createMultiBody(
                 1.0,
-                shape,
+                shapes[kinds[i]],
                 basePosition=position.tolist(),
-                baseOrientation=quaternion_xyzw(T[:3, :3]).tolist(),
+                baseOrientation=quaternion_xyzw(T_body[:3, :3]).tolist(),
                 physicsClientId=client,
             )
             pb.changeDynamics(
@@ -146,11 +161,12 @@ def settle(
         for i, b in enumerate(bodies):
             position, q = pb.getBasePositionAndOrientation(b, physicsClientId=client)
             R = np.asarray(pb.getMatrixFromQuaternion(q, physicsClientId=client)).reshape(3, 3)
-            out[i] = make_T(R, np.asarray(position) / SCALE) @ invert_T(T_model_from_body)
+            out[i] = make_T(R, np.asarray(position) / SCALE) @ invert_T(T_model_from_body[kinds[i]])
     finally:
         pb.disconnect(client)
-    centres = out[:, :3, :3] @ centre + out[:, :3, 3]
-    inside = np.all(np.abs(centres[:, :2]) < np.asarray(inner_half_xy_m), axis=1) & (centres[:, 2] > 0.0)
+    centre = np.stack([centres[j] for j in kinds])
+    middles = np.einsum("kij,kj->ki", out[:, :3, :3], centre) + out[:, :3, 3]
+    inside = np.all(np.abs(middles[:, :2]) < np.asarray(inner_half_xy_m), axis=1) & (middles[:, 2] > 0.0)
     return out, inside
 
 

@@ -207,10 +207,12 @@ def _path_hits(
     params: Params,
     target: int,
     T_cam_from_objects: np.ndarray,
-    part: PartModel,
+    object_points_m: np.ndarray | list[np.ndarray],
     bin_points_cam: np.ndarray,
 ) -> bool:
-    """True when the swept gripper enters the true meshes of the others or the bin (or its target too deep)."""
+    """True when the swept gripper enters the true meshes of the others or the bin (or its target
+    too deep). object_points_m: the objects' surface sample (m, 3), model frame: one for all (a
+    bin of one part) or one per object (a mixed bin)."""
     body = swept(
         gripper_primitives(params.pick, kind, pick.width_m),
         max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m),
@@ -219,7 +221,8 @@ def _path_hits(
     if len(bin_points_cam) and signed_distance(transform_points(to_tool, bin_points_cam), body).min() < -PENETRATION_M:
         return True
     for k, T_obj in enumerate(T_cam_from_objects):
-        depth = signed_distance(transform_points(to_tool @ T_obj, part.points_m), body).min()
+        points = object_points_m if isinstance(object_points_m, np.ndarray) else object_points_m[k]
+        depth = signed_distance(transform_points(to_tool @ T_obj, points), body).min()
         if depth < (-TOUCH_M if k == target else -PENETRATION_M):
             return True
     return False
@@ -297,7 +300,7 @@ def _clear_bin(
                 angle_deg,
             )
             continue
-        if _path_hits(first, kind, p, target, T_cam, part, transform_points(scene.T_cam_from_bin, bin_points)):
+        if _path_hits(first, kind, p, target, T_cam, part.points_m, transform_points(scene.T_cam_from_bin, bin_points)):
             tally.collisions += 1
             failures += 1
             continue

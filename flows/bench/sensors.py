@@ -182,7 +182,7 @@ def _test(
                 p,
                 target,
                 scene.T_cam_from_model,
-                part,
+                part.points_m,
                 transform_points(scene.T_cam_from_bin, bins),
             ):
                 good += 1

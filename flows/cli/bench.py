@@ -124,11 +124,17 @@ def bench_picking_cmd(
     tilt_deg_max: float = typer.Option(
         45.0, min=0.0, max=59.0, help="each bin's camera is tilted from the bin's up axis by up to this, degrees"
     ),
+    mix: str = typer.Option(
+        None,
+        help="instead: bins mixing these parts (comma separated, the largest first, e.g. t_joint,zju_three_way_pipe) "
+        "through the mixed scene path: per part pick_success_rate and wrong_part_picks",
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Empty simulated bins one pick at a time through the real scene path; every pick checked
     against the simulator's true state (right part touched, path free). Bins are seen from
-    straight above to tilt_deg_max, per band of tilt in `by_tilt`."""
+    straight above to tilt_deg_max, per band of tilt in `by_tilt`. With --mix: bins of several
+    kinds of part (flows/bench/mix_picking.py)."""
     from binpick.params import load_params
     from flows.bench.picking import DEFAULT_PARTS, bench_picking
 
@@ -137,6 +143,23 @@ def bench_picking_cmd(
     if gripper not in (None, "suction", "jaw"):
         fail(f"--gripper must be suction or jaw, not {gripper!r}")
     root = project_root()
+    if mix:
+        from flows.bench.mix_picking import bench_picking_mix
+
+        mixed = [n.strip() for n in mix.split(",") if n.strip()]
+        write_json(
+            out,
+            bench_picking_mix(
+                load_params(params),
+                mixed,
+                bins,
+                (min_parts, max_parts),
+                checkpoints(root, mixed),
+                gripper,
+                tilt_deg_max=tilt_deg_max,
+            ),
+        )
+        return
     names = part or list(DEFAULT_PARTS)
     try:
         result = bench_picking(
