@@ -67,9 +67,19 @@ class Layout:
     def prefect(self) -> Path:
         return self.data / "prefect"
 
+    @property
+    def models_folder(self) -> Path:
+        """Every part's models (part_folder); a mixed capture's stage depends on all of it."""
+        return self.data / "models"
+
+    @property
+    def networks_folder(self) -> Path:
+        """Every part's network (network_folder); a mixed capture's stage depends on all of it."""
+        return self.data / "fpcc"
+
     # -- per part
     def part_folder(self, part: str) -> Path:
-        return self.data / "models" / part
+        return self.models_folder / part
 
     def part_model(self, part: str) -> Path:
         return self.part_folder(part) / "part.npz"
@@ -88,7 +98,7 @@ class Layout:
         return self.data / "scenes" / part
 
     def network_folder(self, part: str) -> Path:
-        return self.data / "fpcc" / part
+        return self.networks_folder / part
 
     def checkpoint(self, part: str) -> Path:
         """The network the train stage wrote (what the batch stages use)."""

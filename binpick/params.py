@@ -154,11 +154,13 @@ class PartParams(_Strict):
 
 
 class CaptureParams(_Strict):
-    """One capture file to process, and the part that is in it; `truth` optionally names a pose
-    file with the ground truth ('' when there is none, as for every real capture)."""
+    """One capture file to process, and the part that is in it (`part`) or the parts of a mixed
+    bin (`parts`, two or more: binpick/scene/mixed.py); `truth` optionally names a pose file with
+    the ground truth of a one-part capture ('' when there is none, as for every real capture)."""
 
     file: str
-    part: str
+    part: str = ""
+    parts: list[str] = []
     unit: Literal["mm", "m", "in"] = "mm"
     truth: str = ""
     # Text captures: names of the columns (x, y, z, r, g, b, nx, ny, nz; others are ignored).
@@ -177,7 +179,27 @@ class CaptureParams(_Strict):
     @field_validator("part")
     @classmethod
     def _safe_part(cls, part: str) -> str:
-        return check_name(part, "part")
+        return check_name(part, "part") if part else part
+
+    @field_validator("parts")
+    @classmethod
+    def _safe_parts(cls, parts: list[str]) -> list[str]:
+        return [check_name(p, "part") for p in parts]
+
+    @model_validator(mode="after")
+    def _one_part_or_a_mix(self) -> CaptureParams:
+        if bool(self.part) == bool(self.parts):
+            raise ValueError("a capture names its `part`, or the `parts` of a mixed bin, not both and not neither")
+        if self.parts and (len(self.parts) < 2 or len(set(self.parts)) < len(self.parts)):
+            raise ValueError(f"`parts` names two or more different parts, got {self.parts}")
+        if self.parts and self.truth:
+            raise ValueError("a mixed capture (`parts`) takes no `truth` file")
+        return self
+
+    @property
+    def part_names(self) -> list[str]:
+        """The parts in the capture: [part], or the parts of the mix in their order."""
+        return list(self.parts) if self.parts else [self.part]
 
 
 class IngestParams(_Strict):
@@ -837,8 +859,9 @@ class Params(_Strict):
     @model_validator(mode="after")
     def _captures_name_parts(self) -> Params:
         for name, capture in self.captures.items():
-            if capture.part not in self.parts:
-                raise ValueError(f"capture {name!r} names part {capture.part!r}, which is not in parts")
+            for part in capture.part_names:
+                if part not in self.parts:
+                    raise ValueError(f"capture {name!r} names part {part!r}, which is not in parts")
         if self.render_demo.part not in self.parts:
             raise ValueError(f"render_demo.part {self.render_demo.part!r} is not in parts")
         return self
@@ -984,11 +1007,12 @@ def add_parts(path: str | Path, meshes: dict[str, str], unit: str = "auto") -> N
     )
 
 
-def add_captures(path: str | Path, files: dict[str, str], part: str, unit: str = "mm") -> None:
-    """Add captures (name -> file path) of `part` to params.yaml under `captures`, keeping
-    comments; validated before it replaces the file. Optional keys (truth, intrinsics) are left
-    out, as a user would write the entry."""
-    _add_entries(path, "captures", {name: {"file": file, "part": part, "unit": unit} for name, file in files.items()})
+def add_captures(path: str | Path, files: dict[str, str], part: str | list[str], unit: str = "mm") -> None:
+    """Add captures (name -> file path) of `part` (or of the parts of a mixed bin, a list) to
+    params.yaml under `captures`, keeping comments; validated before it replaces the file.
+    Optional keys (truth, intrinsics) are left out, as a user would write the entry."""
+    key: dict[str, str | list[str]] = {"parts": list(part)} if isinstance(part, list) else {"part": part}
+    _add_entries(path, "captures", {name: {"file": file, **key, "unit": unit} for name, file in files.items()})
 
 
 def set_capture_overrides(path: str | Path, capture: str, overrides: dict[str, Any]) -> None:

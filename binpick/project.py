@@ -22,6 +22,7 @@ from binpick.io.pipeline_vars import (
     PipelineVars,
     SetAside,
     StageCapture,
+    StageMixedCapture,
     StagePart,
     load_set_aside,
     read_pipeline_vars_text,
@@ -88,6 +89,12 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
         for n, c in params.captures.items()
         if n not in in_force["captures"] and c.part in parts
     }
+    # A mixed bin runs once every part of it runs.
+    mixed = {
+        n: StageMixedCapture(c.file, tuple(c.parts), c.intrinsics)
+        for n, c in params.captures.items()
+        if c.parts and n not in in_force["captures"] and all(p in parts for p in c.parts)
+    }
     demo = params.captures.get("demo")
     pipeline = PipelineVars(
         parts,
@@ -95,6 +102,7 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
         params.render_demo.part,
         demo.file if demo else DEFAULT_DEMO_FILE,
         (demo.truth or DEFAULT_DEMO_TRUTH) if demo else DEFAULT_DEMO_TRUTH,
+        mixed,
     )
     return pipeline, in_force
 
@@ -136,10 +144,32 @@ def verify_pipeline_vars(root: Path) -> None:
     stale += [
         n
         for n, c in params.captures.items()
-        if (stage_captures.get(n) is None and n not in recorded["captures"] and c.part in stage_parts)
-        or (n in stage_captures and StageCapture(c.file, c.part, c.truth, c.intrinsics).as_vars() != stage_captures[n])
+        if c.part
+        and (
+            (stage_captures.get(n) is None and n not in recorded["captures"] and c.part in stage_parts)
+            or (
+                n in stage_captures
+                and StageCapture(c.file, c.part, c.truth, c.intrinsics).as_vars() != stage_captures[n]
+            )
+        )
     ]
-    stale += [n for n in stage_captures if n not in params.captures]
+    stage_mixed = doc.get("stage_mixed") or {}
+    stale += [
+        n
+        for n, c in params.captures.items()
+        if c.parts
+        and (
+            (stage_mixed.get(n) is None and n not in recorded["captures"] and all(p in stage_parts for p in c.parts))
+            or (
+                n in stage_mixed and StageMixedCapture(c.file, tuple(c.parts), c.intrinsics).as_vars() != stage_mixed[n]
+            )
+        )
+    ]
+    stale += [
+        n
+        for n in [*stage_captures, *stage_mixed]
+        if n not in params.captures or bool(params.captures[n].parts) != (n in stage_mixed)
+    ]
     if stale or (doc.get("stage_demo") or {}).get("part") != params.render_demo.part:
         raise ParamsError(
             f"{root / PIPELINE_VARS} does not match params.yaml ({', '.join(sorted(stale)) or 'render_demo'}): "

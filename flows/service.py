@@ -61,7 +61,7 @@ from pydantic import ValidationError
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
 from binpick.io.digest import file_sha256
-from binpick.io.picks import mixed_picks_document, picks_document
+from binpick.io.picks import picks_document, pose_entries
 from binpick.layout import Layout
 from binpick.params import Params, ServiceParams, load_params
 from binpick.scene.mixed import process_mixed
@@ -346,18 +346,13 @@ class PickService:
         t2 = time.perf_counter()
         pose_format = request.pose_format or first.params.pick.pose_format
         if mixed:
-            doc = mixed_picks_document(
+            doc = result.document(
                 request_id,
                 {name: s.params.pick.gripper for name, s in zip(names, served, strict=True)},
-                {name: len(found) for name, found in result.poses.items()},
-                [(mp.part, mp.pick) for mp in result.picks],
-                result.unpicked,
-                [(lost, kept) for lost, _, kept in result.conflicts],
-                result.up_cam,
                 first.T_base_from_cam,
                 pose_format,
             )
-            posed = [(name, p) for name, found in result.poses.items() for p in found]
+            posed = result.posed()
         else:
             assert result.picks is not None
             doc = picks_document(
@@ -372,14 +367,7 @@ class PickService:
         timings = {"read_s": t1 - t_read, **result.timings_s, "pipeline_s": t2 - t1, "total_s": t2 - t0}
         doc["request_id"] = request_id
         doc["timings_s"] = {k: round(v, 4) for k, v in timings.items()}
-        doc["poses"] = [
-            {
-                **({"part": name} if name is not None else {}),
-                "T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(),
-                "score": round(p.score, 6),
-            }
-            for name, p in posed
-        ]
+        doc["poses"] = pose_entries(posed)
         self.answered += 1
         self.operator.answered(doc)
         self._keeper.keep(folder, path, doc, None if mixed else result, first, unit, frame)

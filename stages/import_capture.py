@@ -93,7 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.name and listed is None:
         raise BinpickError(f"{args.params}: capture {args.name!r} is not listed under 'captures'")
     if listed is not None:
-        params = load_params(args.params, listed.part)  # the part's import_capture overrides apply
+        params = load_params(args.params, listed.part_names[0])  # the part's import_capture overrides apply
     unit = args.unit or (listed.unit if listed else "mm")
     columns = args.columns.split(",") if args.columns else (listed.columns if listed else list(DEFAULT_TEXT_COLUMNS))
     intrinsics = args.intrinsics or (listed.intrinsics if listed else "")

@@ -55,11 +55,13 @@ def test_dvc_outs_are_the_layout_paths():
         "register": {L.poses(CAPTURE), L.scene_recording(CAPTURE), L.scene_metrics(CAPTURE, "register")},
         "label": {L.labelled_capture(PART, CAPTURE), L.scene_metrics(CAPTURE, "label")},
         "pick": {L.picks(CAPTURE), L.picks_recording(CAPTURE), L.scene_metrics(CAPTURE, "pick")},
+        "mixed": {L.picks(CAPTURE), L.scene_metrics(CAPTURE, "mixed")},
     }
     if "verify" in yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]:
         expected["verify"] = {L.verification(PART), L.part_metrics(PART, "verify")}
     stages = yaml.safe_load((ROOT / "dvc.yaml").read_text())["stages"]
     every_layout_path = {rel(p) for paths in expected.values() for p in paths}
+    every_layout_path |= {rel(L.models_folder), rel(L.networks_folder)}  # a mixed capture's deps
     per_part = {s for s in stages if "foreach" in stages[s] and stages[s]["foreach"] == "${stage_parts}"}
     assert set(expected) == {s for s in stages if "foreach" in stages[s]}
     for name, paths in expected.items():

@@ -4,6 +4,8 @@ names each pick's part, in the priority given."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import trimesh
@@ -135,3 +137,64 @@ def test_claimed_points_are_those_on_the_posed_surface():
     far = near + np.array([0.0, 0.0, 0.05])
     points = np.concatenate([near, far])
     assert claimed_points(points, model, T, 0.002).tolist() == list(range(50))
+
+
+def test_a_capture_entry_naming_parts_runs_through_the_mixed_stage(t_joint, box, mixed_scene, tmp_path):
+    """A capture entry with `parts: [box, t_joint]` (the stage reads the parts' built models from
+    the project, as DVC runs it): picks.json names the parts in the entry's order, every pick and
+    pose its part, each part's poses on its own instances; the pipeline plan lists the capture for
+    the mixed stage only, and an entry naming both `part` and `parts` is refused in one line."""
+    import yaml
+
+    from binpick.errors import ParamsError
+    from binpick.io.grasps import save_grasps
+    from binpick.io.part_model import save_part_model
+    from binpick.io.ply import PointCloudData, save_ply
+    from binpick.io.ppf_model import save_ppf_model
+    from binpick.layout import Layout
+    from binpick.params import load_params
+    from binpick.project import plan_pipeline
+    from stages import mixed as mixed_stage
+    from tests.conftest import ROOT
+
+    scene, truth = mixed_scene
+    layout = Layout(tmp_path)
+    for part in (t_joint, box):
+        save_part_model(layout.part_model(part.name), part)
+        ppf = train_ppf(
+            part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), PARAMS.registration
+        )
+        save_ppf_model(layout.ppf_model(part.name), ppf)
+        save_grasps(layout.grasps(part.name), part.name, generate_grasps(part, PARAMS.pick), "generated")
+    (tmp_path / "data/parts").mkdir(parents=True)
+    trimesh.creation.box(extents=BOX_EXTENTS_M).export(tmp_path / "data/parts/box.stl")
+    H, W = scene.labels.shape
+    save_ply(tmp_path / "bin.ply", PointCloudData(xyz=scene.xyz_m.reshape(-1, 3) * 1000.0, rgb=None, shape=(H, W)))
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["parts"]["box"] = {"mesh": "data/parts/box.stl", "unit": "m"}
+    raw["captures"]["bin"] = {"file": "bin.ply", "parts": ["box", "t_joint"], "unit": "mm"}
+    raw["pick"]["T_base_from_cam"] = None  # the gripper's checks only: no arm stands by this bin
+    params_path = tmp_path / "params.yaml"
+    params_path.write_text(yaml.safe_dump(raw, sort_keys=False))
+
+    plan, _ = plan_pipeline(tmp_path, load_params(params_path))
+    assert "bin" in plan.mixed and "bin" not in plan.captures
+    assert plan.mixed["bin"].as_vars()["parts"] == "box,t_joint"
+
+    mixed_stage.run(params_path, "bin", tmp_path / "picks.json", tmp_path / "mixed.json", root=tmp_path)
+    doc = json.loads((tmp_path / "picks.json").read_text())
+    assert doc["parts"] == ["box", "t_joint"] and doc["picks"]
+    assert all(p["part"] in ("box", "t_joint") for p in doc["picks"] + doc["poses"])
+    parts = {"t_joint": t_joint, "box": box}
+    for name, part in parts.items():
+        middle = (part.mesh_vertices_m.min(0) + part.mesh_vertices_m.max(0)) / 2
+        found = [np.asarray(p["T_cam_from_model"]) for p in doc["poses"] if p["part"] == name]
+        centres = [T[:3, :3] @ middle + T[:3, 3] for T in found]
+        for T in truth[name]:  # every instance found by its own part
+            assert min(np.linalg.norm(c - (T[:3, :3] @ middle + T[:3, 3])) for c in centres) < 0.01, name
+    assert len(doc["poses"]) == sum(len(t) for t in truth.values())
+
+    raw["captures"]["bin"]["part"] = "box"
+    params_path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    with pytest.raises(ParamsError, match="not both"):
+        load_params(params_path)

@@ -4,12 +4,14 @@ base frame, and why the other parts have none. Spec: data/README.md#picks."""
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
 from binpick.errors import InputError
 from binpick.io.atomic import write_text
+from binpick.io.poses import PartPose
 from binpick.picking.arm import WAYPOINTS, ArmMotion
 from binpick.picking.plan import Pick, PickPlan
 from binpick.robot.pose_formats import FIELDS, rounded, to_robot
@@ -146,6 +148,19 @@ def mixed_picks_document(
             "n_conflicts": float(len(conflicts)),
         },
     }
+
+
+def pose_entries(posed: Sequence[tuple[str | None, PartPose]]) -> list[dict]:
+    """An answer's `poses`: each (its part's name, None in a one-part answer; the pose), with the
+    pose's T_cam_from_model and score."""
+    return [
+        {
+            **({"part": name} if name is not None else {}),
+            "T_cam_from_model": np.asarray(p.T_cam_from_model).round(9).tolist(),
+            "score": round(p.score, 6),
+        }
+        for name, p in posed
+    ]
 
 
 def save_picks(

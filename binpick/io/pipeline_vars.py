@@ -11,7 +11,7 @@ Spec: data/README.md#pipeline-variables.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -66,17 +66,37 @@ class StageCapture:
 
 
 @dataclass(frozen=True)
+class StageMixedCapture:
+    """A capture of several kinds of part as the `mixed` stage sees it: `parts` joined by commas
+    (DVC interpolates strings only), `intrinsics` '' when absent, `intrinsics_dep` as above."""
+
+    file: str
+    parts: tuple[str, ...]
+    intrinsics: str
+
+    def as_vars(self) -> dict[str, str]:
+        return {
+            "file": self.file,
+            "parts": ",".join(self.parts),
+            "intrinsics": self.intrinsics,
+            "intrinsics_dep": self.intrinsics or self.file,
+        }
+
+
+@dataclass(frozen=True)
 class PipelineVars:
     parts: dict[str, StagePart]
     captures: dict[str, StageCapture]
     demo_part: str
     demo_file: str
     demo_truth: str
+    mixed: dict[str, StageMixedCapture] = field(default_factory=dict)
 
     def as_yaml(self) -> str:
         doc = {
             "stage_parts": {name: part.as_vars() for name, part in sorted(self.parts.items())},
             "stage_captures": {name: c.as_vars() for name, c in sorted(self.captures.items())},
+            "stage_mixed": {name: c.as_vars() for name, c in sorted(self.mixed.items())},
             "stage_demo": {"part": self.demo_part, "file": self.demo_file, "truth": self.demo_truth},
         }
         return _HEADER + yaml.safe_dump(doc, sort_keys=False, default_flow_style=False)

@@ -19,6 +19,7 @@ from scipy.spatial import cKDTree
 
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
+from binpick.io.picks import mixed_picks_document, pose_entries
 from binpick.io.poses import PartPose
 from binpick.params import ImportCaptureParams
 from binpick.picking.plan import Pick, rank_key
@@ -107,6 +108,29 @@ class MixedResult:
     unpicked: dict[str, list[tuple[int, str]]]
     up_cam: np.ndarray  # (3,) the bin's up axis, camera frame (the picks' approach cone's)
     timings_s: dict[str, float] = field(default_factory=dict)
+
+    def posed(self) -> list[tuple[str, PartPose]]:
+        """Every kept pose with its part's name, in the order the answer's pose_index counts."""
+        return [(name, p) for name, found in self.poses.items() for p in found]
+
+    def document(
+        self, capture: str, grippers: dict[str, str], T_base_from_cam: np.ndarray | None, pose_format: str
+    ) -> dict:
+        """The picks.json content (binpick.io.picks.mixed_picks_document) of this answer, with its
+        `poses`; grippers: part -> its gripper, in the parts' order."""
+        doc = mixed_picks_document(
+            capture,
+            grippers,
+            {name: len(found) for name, found in self.poses.items()},
+            [(mp.part, mp.pick) for mp in self.picks],
+            self.unpicked,
+            [(lost, kept) for lost, _, kept in self.conflicts],
+            self.up_cam,
+            T_base_from_cam,
+            pose_format,
+        )
+        doc["poses"] = pose_entries(self.posed())
+        return doc
 
 
 def process_mixed(

@@ -99,12 +99,14 @@ def requests(
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(capture, target)
         name = folder.name.replace("T", "_", 1)[:64]
+        parts = info.get("parts") or info["part"]  # a mixed bin's request names its parts
         try:
-            add_captures(params, {name: target.relative_to(root).as_posix()}, info["part"], info.get("unit", "mm"))
+            add_captures(params, {name: target.relative_to(root).as_posix()}, parts, info.get("unit", "mm"))
         except BinpickError:
             target.unlink(missing_ok=True)
             raise
-        typer.echo(f"added capture {name} ({target.relative_to(root)}, part {info['part']}): `make repro` processes it")
+        shown = f"parts {', '.join(parts)}" if isinstance(parts, list) else f"part {parts}"
+        typer.echo(f"added capture {name} ({target.relative_to(root)}, {shown}): `make repro` processes it")
         return
     for folder in kept[:last]:
         try:
@@ -114,7 +116,8 @@ def requests(
             continue
         t, c = info["timings_s"], info["counts"]
         typer.echo(
-            f"{folder.name}  {info['part']}: {c['n_picks']:.0f} picks of {c['n_parts']:.0f} parts, {t['total_s']:.2f} s"
+            f"{folder.name}  {info.get('part') or ','.join(info.get('parts', []))}: {c['n_picks']:.0f} picks of "
+            f"{c['n_parts']:.0f} parts, {t['total_s']:.2f} s"
         )
 
 
@@ -158,7 +161,7 @@ def fit_bin(
     try:
         p = load_params(params)
         entry, options = listed_capture(p, params, capture, root)
-        settings = load_params(params, entry.part).import_capture_for(capture)
+        settings = load_params(params, entry.part_names[0]).import_capture_for(capture)
         cap = load_capture(root / entry.file, options)
         xyz = cap.xyz_m.reshape(-1, 3)
         valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
@@ -190,12 +193,12 @@ def fit_bin(
         f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
         f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}"
     )
-    part_model = Layout(root).part_model(entry.part)
-    diameter = None
-    if part_model.is_file():
-        from binpick.io.part_model import load_part_model
+    from binpick.io.part_model import load_part_model
 
-        diameter = load_part_model(part_model).diameter_m
+    # The largest part of the capture (of a mixed bin's parts) sets what a plausible bin is.
+    models = [Layout(root).part_model(name) for name in entry.part_names]
+    diameters = [load_part_model(m).diameter_m for m in models if m.is_file()]
+    diameter = max(diameters) if diameters else None
     problems = implausible(box, diameter)
     if problems:
         message = f"{root / entry.file}: the fitted box does not look like a bin: {'; '.join(problems)}"
@@ -329,6 +332,8 @@ def overlay(
 
     root = project_root()
     entry, options = listed_capture(load_params(params), params, capture, root)
+    if entry.parts:
+        fail(f"{params}: capture {capture!r} is a mixed bin; the overlay draws one-part captures (not mixed ones yet)")
     layout = Layout(root)
     picks = layout.picks(capture)
     drawn = overlay_capture(

@@ -99,6 +99,7 @@ def check() -> None:
     typer.echo(
         f"params.yaml is valid: {len(result.pipeline.parts)} parts, {len(result.pipeline.captures)} captures in the "
         "pipeline"
+        + (f", {len(result.pipeline.mixed)} of mixed bins" if result.pipeline.mixed else "")
         + (f"; set aside: {', '.join(aside)}" if aside else "")
         + ("; data/pipeline.yaml updated" if result.vars_changed else "")
     )
