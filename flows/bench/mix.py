@@ -45,6 +45,7 @@ def bench_mix(
     """settings: the project's params; names: the parts of the mix (two or more, the first sets
     the bin, camera and grids); checkpoints: part -> trained FPCC checkpoint (without one, a part
     is registered over the whole scene)."""
+    from flows.bench.mix_picking import mix_settings
     from flows.bench.parts import bench_parts
     from flows.bench.picking import bench_models, picking_settings
 
@@ -57,10 +58,10 @@ def bench_mix(
     parts.sort(key=lambda p: names.index(p.name))
     p = picking_settings(settings, parts[0])
     g = p.generate.model_copy(update={"placement": p.generate.placement.model_copy(update={"mode": "drop"})})
-    # Each part's own models and settings (its grids, as its network was trained at); the bin and
-    # the camera are the first part's.
+    # Each part's own models and grids (as its network was trained at); the bin, the camera and the
+    # import settings that follow the camera (mix_settings) are the first part's.
     models = {
-        part.name: bench_models(part, picking_settings(settings, part), checkpoints.get(part.name)) for part in parts
+        part.name: bench_models(part, mix_settings(settings, part, p), checkpoints.get(part.name)) for part in parts
     }
     rows: dict[str, list[dict[str, float]]] = {part.name: [] for part in parts}
     mixed_s: list[float] = []

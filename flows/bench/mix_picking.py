@@ -109,7 +109,7 @@ def bench_picking_mix(
 
     p = with_gripper(picking_settings(settings, parts[0]))
     models = {
-        q.name: bench_models(q, with_gripper(picking_settings(settings, q)), checkpoints.get(q.name)) for q in parts
+        q.name: bench_models(q, with_gripper(mix_settings(settings, q, p)), checkpoints.get(q.name)) for q in parts
     }
     truths = {q.name: TrueSurface(q, p.pick.suction.cup_radius_m) for q in parts}
     tallies = {q.name: PartTally() for q in parts}
@@ -160,6 +160,16 @@ def bench_picking_mix(
         "cycle_s_median": float(np.median(cycles)) if cycles else 0.0,
         "cycle_s": [round(float(c), 4) for c in cycles],
     }
+
+
+def mix_settings(settings: Params, part: PartModel, first: Params) -> Params:
+    """A part's settings in a mixed bin seen by the first part's camera: its own grids (voxel and
+    normal radius, as its network was trained at), and the import settings that follow the
+    camera's distance and noise (plane threshold, height kept above the floor, range) from the
+    first part's, as a cell's capture-level overrides would set them for every part."""
+    own = picking_settings(settings, part)
+    shared = {k: getattr(first.import_capture, k) for k in ("plane_threshold_m", "keep_above_plane_m", "max_range_m")}
+    return own.model_copy(update={"import_capture": own.import_capture.model_copy(update=shared)})
 
 
 def _keys(t: PartTally) -> dict[str, float]:
@@ -225,15 +235,22 @@ def _clear_mixed_bin(
             result = process_mixed(
                 frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of(0, f"picking-mix-{attempt}")
             )
-            picks = result.picks
         except BinpickError as exc:
             log.warning("the mixed scene path refused the capture: %s", exc)
-            picks = []
+            result = None
+        picks = result.picks if result is not None else []
         cycles.append(time.perf_counter() - t0)
         attempt += 1
         if not picks:
             no_pick += 1
             failures += 1
+            left = ", ".join(f"{np.sum(state.kinds == i)} {q.name}" for i, q in enumerate(parts))
+            why = (
+                "; ".join(f"{part} {i}: {reason}" for part, rows in result.unpicked.items() for i, reason in rows)
+                if result is not None
+                else "refused"
+            )
+            log.info("no pick for %s left (%s)", left, why or "no pose found")
             continue
         first = picks[0]
         i = [q.name for q in parts].index(first.part)
