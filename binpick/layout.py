@@ -93,6 +93,10 @@ class Layout:
     def grasps_recording(self, part: str) -> Path:
         return self.part_folder(part) / "grasps.rrd"
 
+    def distractors(self, part: str) -> Path:
+        """The other parts the part's training scenes mix in (binpick check writes it)."""
+        return self.data / "distractors" / f"{part}.json"
+
     def scenes(self, part: str) -> Path:
         """The part's generated data set (train/, val/, test/)."""
         return self.data / "scenes" / part

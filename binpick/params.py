@@ -360,6 +360,16 @@ class ClutterParams(_Strict):
     camera_tilt_deg_max: float = Field(ge=0, lt=60)
     camera_distance_scale: tuple[float, float]
     noise_scale: tuple[float, float] = Field(description="depth noise scaled by a factor in this range")
+    # Other parts of a mixed bin dropped among the part's own instances (labelled -1, so that the
+    # network learns to leave them alone); a part's own name in the list is skipped, so one list
+    # in the shared section serves every part of the mix.
+    parts: list[str] = []
+    parts_share: float = Field(0.3, ge=0, le=1, description="share of a scene's dropped objects that are other parts")
+
+    @field_validator("parts")
+    @classmethod
+    def _part_names(cls, parts: list[str]) -> list[str]:
+        return [check_name(p, "part") for p in parts]
 
     @model_validator(mode="after")
     def _ranges(self) -> ClutterParams:
@@ -379,11 +389,13 @@ class ClutterParams(_Strict):
                 "wall_height_scale": (1.0, 1.0),
                 "camera_distance_scale": (1.0, 1.0),
                 "noise_scale": (1.0, 1.0),
+                "parts": [],
             }
         )
 
     @property
     def active(self) -> bool:
+        """Whether anything of the random variation is drawn (the other parts are not: see parts)."""
         return bool(self.n_distractors_max or self.camera_tilt_deg_max) or any(
             getattr(self, n) != (1.0, 1.0)
             for n in ("bin_scale", "wall_height_scale", "camera_distance_scale", "noise_scale")
@@ -607,6 +619,11 @@ class PickParams(_Strict):
         [],
         description="a mixed bin (several parts in one request): these parts are picked first, in this order; "
         "the rest, and every part when empty, by `order` whatever the part (a request's own priority wins)",
+    )
+    part_quota: dict[str, int] = Field(
+        {},
+        description="a mixed bin: at most this many picks of a part in one answer (a kit's count of it; 0: none of "
+        "it, its poses stay obstacles); parts not named: no limit (a request's own quota wins)",
     )
     pose_format: Literal["matrix", "ur", "abb", "kuka", "fanuc"] = Field(  # binpick.robot.pose_formats
         "matrix",
@@ -864,6 +881,16 @@ class Params(_Strict):
                     raise ValueError(f"capture {name!r} names part {part!r}, which is not in parts")
         if self.render_demo.part not in self.parts:
             raise ValueError(f"render_demo.part {self.render_demo.part!r} is not in parts")
+        for key, named in (
+            ("pick.part_priority", self.pick.part_priority),
+            ("pick.part_quota", list(self.pick.part_quota)),
+            ("generate.clutter.parts", self.generate.clutter.parts),
+        ):
+            unknown = [n for n in named if n not in self.parts]
+            if unknown:
+                raise ValueError(f"{key} names {', '.join(unknown)}, not in parts")
+        if any(n < 0 for n in self.pick.part_quota.values()):
+            raise ValueError(f"pick.part_quota counts picks: 0 or more, got {self.pick.part_quota}")
         return self
 
 

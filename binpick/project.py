@@ -16,19 +16,23 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from binpick.errors import ParamsError
+from binpick.io.atomic import write_text
 from binpick.io.digest import file_sha256
 from binpick.io.pipeline_vars import (
     PIPELINE_VARS,
+    OtherPart,
     PipelineVars,
     SetAside,
     StageCapture,
     StageMixedCapture,
     StagePart,
+    distractors_text,
     load_set_aside,
     read_pipeline_vars_text,
     save_set_aside,
     write_pipeline_vars,
 )
+from binpick.layout import Layout
 from binpick.params import Params, load_params
 
 log = logging.getLogger(__name__)
@@ -58,6 +62,13 @@ def fingerprint(root: Path, kind: str, name: str, params: Params) -> str:
     return h.hexdigest()
 
 
+def other_parts(root: Path, params: Params, part: str) -> list[OtherPart]:
+    """The other parts the part's training scenes mix in (its generate.clutter.parts, without
+    itself), each with the fingerprint of its entry and mesh."""
+    named = load_params(root / "params.yaml", part).generate.clutter.parts
+    return [OtherPart(n, params.parts[n].mesh, fingerprint(root, "parts", n, params)) for n in named if n != part]
+
+
 def _inside(root: Path, rel: str, where: str) -> None:
     if not (root / rel).resolve().is_relative_to(root.resolve()):
         raise ParamsError(f"{where}: {rel} resolves outside the project {root} (through a link)")
@@ -83,7 +94,11 @@ def plan_pipeline(root: Path, params: Params) -> tuple[PipelineVars, dict[str, d
         }
         for kind in recorded
     }
-    parts = {n: StagePart(p.mesh, p.grasps) for n, p in params.parts.items() if n not in in_force["parts"]}
+    parts = {
+        n: StagePart(p.mesh, p.grasps, Layout(Path()).distractors(n).as_posix() if other_parts(root, params, n) else "")
+        for n, p in params.parts.items()
+        if n not in in_force["parts"]
+    }
     captures = {
         n: StageCapture(c.file, c.part, c.truth, c.intrinsics)
         for n, c in params.captures.items()
@@ -116,6 +131,14 @@ def check_project(root: Path, write: bool = True) -> ProjectCheck:
     params = load_params(root / "params.yaml")
     pipeline, in_force = plan_pipeline(root, params)
     changed = write_pipeline_vars(root, pipeline) if write else pipeline.as_yaml() != read_pipeline_vars_text(root)
+    for name, part in pipeline.parts.items():
+        if part.distractors:
+            text = distractors_text(name, other_parts(root, params, name))
+            path = root / part.distractors
+            if not path.is_file() or path.read_text() != text:
+                changed = True
+                if write:
+                    write_text(path, text)
     for kind, entries in in_force.items():
         for name, entry in entries.items():
             log.warning("%s.%s is set aside (%s): fix its file or entry to retry it", kind, name, entry.reason)
@@ -135,10 +158,26 @@ def verify_pipeline_vars(root: Path) -> None:
         doc = {}
     recorded = load_set_aside(root)
     stage_parts, stage_captures = doc.get("stage_parts") or {}, doc.get("stage_captures") or {}
-    stale = [
-        n
+    planned = {
+        n: StagePart(p.mesh, p.grasps, (stage_parts.get(n) or {}).get("distractors", ""))
         for n, p in params.parts.items()
-        if stage_parts.get(n) != StagePart(p.mesh, p.grasps).as_vars() and n not in recorded["parts"]
+    }
+    stale = [n for n in params.parts if stage_parts.get(n) != planned[n].as_vars() and n not in recorded["parts"]]
+    # A part that mixes others into its scenes: its list names them as they are now.
+    stale += [
+        n
+        for n, p in planned.items()
+        if n in stage_parts
+        and (
+            bool(p.distractors) != bool(other_parts(root, params, n))
+            or (
+                p.distractors
+                and (
+                    not (root / p.distractors).is_file()
+                    or (root / p.distractors).read_text() != distractors_text(n, other_parts(root, params, n))
+                )
+            )
+        )
     ]
     stale += [n for n in stage_parts if n not in params.parts]
     stale += [

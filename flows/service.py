@@ -334,8 +334,12 @@ class PickService:
             try:
                 if mixed:
                     models = {name: s.models for name, s in zip(names, served, strict=True)}
-                    priority = request.priority if request.priority is not None else first.params.pick.part_priority
-                    result: Any = process_mixed(frame.xyz_m, frame.rgb, frame.shape, models, seeds, priority)
+                    pick = first.params.pick
+                    priority = request.priority if request.priority is not None else pick.part_priority
+                    quota = request.quota if request.quota is not None else pick.part_quota
+                    result: Any = process_mixed(
+                        frame.xyz_m, frame.rgb, frame.shape, models, seeds, priority, quota=quota
+                    )
                 else:
                     result = process(frame.xyz_m, frame.rgb, frame.shape, first.models, seeds)
             except BinpickError as exc:

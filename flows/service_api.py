@@ -34,6 +34,12 @@ class PicksRequest(BaseModel):
         description="a mixed bin: these parts are picked first, in this order (the rest by pick.order); default: "
         "pick.part_priority",
     )
+    quota: dict[str, int] | None = Field(
+        None,
+        description="a mixed bin: at most this many picks of a part in the answer (what the kit still needs of it; "
+        "0: none, its poses stay obstacles); as a query parameter part:count pairs, e.g. ring_screw:2,gear_shaft:0; "
+        "default: pick.part_quota",
+    )
     path: str | None = Field(
         None, description="capture file on the service's machine, absolute or relative to the project"
     )
@@ -56,12 +62,24 @@ class PicksRequest(BaseModel):
     def _listed(cls, value: object) -> object:
         return [v.strip() for v in value.split(",") if v.strip()] if isinstance(value, str) else value
 
+    @field_validator("quota", mode="before")
+    @classmethod
+    def _counted(cls, value: object) -> object:
+        if not isinstance(value, str):
+            return value
+        pairs = [v.strip().split(":") for v in value.split(",") if v.strip()]
+        if any(len(pair) != 2 or not pair[1].strip().isdigit() for pair in pairs):
+            raise ValueError(f"quota {value!r}: expected part:count pairs, e.g. ring_screw:2,gear_shaft:0")
+        return {name.strip(): int(count) for name, count in pairs}
+
     @model_validator(mode="after")
     def _one_or_several(self) -> PicksRequest:
         if (self.part is None) == (self.parts is None):
             raise ValueError('a request names its "part", or its "parts" for a mixed bin (not both)')
         if self.parts is not None and not self.parts:
             raise ValueError('"parts" names at least one part')
+        if self.quota is not None and any(n < 0 for n in self.quota.values()):
+            raise ValueError('"quota" counts picks: 0 or more')
         return self
 
     @field_validator("unit")

@@ -69,6 +69,7 @@ def run(params_path: Path, name: str, out: Path, metrics_path: Path | None = Non
             models,
             SceneSeeds.of_capture(params.seed, frame.xyz_m, frame.rgb),
             params.pick.part_priority,
+            quota=params.pick.part_quota,
         )
     except BinpickError as exc:
         raise BinpickError(f"{listed.file}: {exc}") from None

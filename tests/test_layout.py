@@ -14,6 +14,8 @@ ITEM = {
     "mesh": "data/parts/sample_part.stl",
     "grasps": "",
     "grasps_dep": "data/parts/sample_part.stl",
+    "distractors": "",
+    "distractors_dep": "data/parts/sample_part.stl",
     "part": PART,
     "file": "data/captures/c.ply",
     "truth": "",

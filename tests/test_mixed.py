@@ -198,3 +198,61 @@ def test_a_capture_entry_naming_parts_runs_through_the_mixed_stage(t_joint, box,
     params_path.write_text(yaml.safe_dump(raw, sort_keys=False))
     with pytest.raises(ParamsError, match="not both"):
         load_params(params_path)
+
+
+def test_a_quota_keeps_the_first_picks_of_each_part_named_and_leaves_the_rest():
+    """Quota {a: 1, b: 0}: of the list a0 b0 a1 c0 a2 the answer keeps a0 and c0 (c is not
+    named: no limit), in their order; b0, a1, a2 are left over."""
+    from binpick.picking.plan import Pick
+    from binpick.scene.mixed import MixedPick, within_quota
+
+    T = np.eye(4)
+    order = [("a", 0), ("b", 0), ("a", 1), ("c", 0), ("a", 2)]
+    picks = [MixedPick(part, Pick(i, "g", 0, 0.0, T, T, T, 1.0, 0.01, 0.0)) for part, i in order]
+    kept, over = within_quota(picks, {"a": 1, "b": 0})
+    assert [(m.part, m.pick.pose_index) for m in kept] == [("a", 0), ("c", 0)]
+    assert [(m.part, m.pick.pose_index) for m in over] == [("b", 0), ("a", 1), ("a", 2)]
+    assert within_quota(picks, {}) == (picks, [])
+
+
+def test_training_scenes_mix_in_the_other_parts_named_and_dvc_tracks_their_meshes(t_joint, box, tmp_path):
+    """generate.clutter.parts: a pile of T-joints with boxes mixed in holds both, each box a
+    distractor (its 8 corners, not a T-joint instance) and the T-joints the scene's instances; the
+    project lists the boxes for the T-joint's generate stage in a file that changes with the box's
+    mesh, and a stage refuses to run while that list is stale."""
+    import yaml
+
+    from binpick.errors import ParamsError
+    from binpick.generation.scene import _mixed_pile, generate_scene
+    from binpick.io.pipeline_vars import load_distractors
+    from binpick.project import check_project, verify_pipeline_vars
+    from tests.conftest import ROOT
+
+    g = changed(PARAMS.generate, clutter=changed(PARAMS.generate.clutter, parts_share=0.5))
+    own, mixed_in = _mixed_pile(t_joint, [box], 10, g, np.random.default_rng(0), np.random.default_rng(1))
+    assert len(own) + len(mixed_in) == 10 and len(own) >= 2 and len(mixed_in) >= 2
+    assert all(len(m.vertices) == 8 for m in mixed_in)  # boxes, in the bin frame
+    scene = generate_scene(t_joint, g, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), 3, 10, [box])
+    alone = generate_scene(t_joint, g, changed(PARAMS.camera, downscale=4), ViewParams(0.002, 0.006), 3, 10)
+    assert len(scene.T_cam_from_model) < len(alone.T_cam_from_model) == 10
+    assert np.unique(scene.labels[scene.labels >= 0]).size <= len(scene.T_cam_from_model)
+
+    (tmp_path / "data/parts").mkdir(parents=True)
+    (tmp_path / "data/parts/t_joint.stl").write_bytes((ROOT / "data/parts/t_joint.stl").read_bytes())
+    trimesh.creation.box(extents=BOX_EXTENTS_M).export(tmp_path / "data/parts/box.stl")
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["parts"]["box"] = {"mesh": "data/parts/box.stl", "unit": "m"}
+    raw["parts"]["t_joint"]["generate"] = {"clutter": {"parts": ["box", "t_joint"]}}  # itself: skipped
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(raw, sort_keys=False))
+    plan = check_project(tmp_path)
+    listed = plan.pipeline.parts["t_joint"].distractors
+    assert listed and not plan.pipeline.parts["box"].distractors
+    before = load_distractors(tmp_path / listed)
+    assert [o.name for o in before] == ["box"]
+    verify_pipeline_vars(tmp_path)
+    trimesh.creation.box(extents=(0.05, 0.04, 0.025)).export(tmp_path / "data/parts/box.stl")
+    with pytest.raises(ParamsError, match="t_joint"):
+        verify_pipeline_vars(tmp_path)
+    check_project(tmp_path)
+    assert load_distractors(tmp_path / listed)[0].fingerprint != before[0].fingerprint
+    verify_pipeline_vars(tmp_path)

@@ -553,6 +553,18 @@ def test_a_part_trained_later_is_served_after_a_reload_and_a_refused_network_is_
         httpx.post(f"{url}/picks", json={"part": "t_joint", "parts": ["t_joint"], "path": str(capture)}),
     ]
     assert [r.status_code for r in refused] == [404, 400] and "not both" in refused[1].json()["error"]
+    # What the kit still needs: one t_joint, no t_joint_b; the other picks are left, with the reason.
+    kit = httpx.post(
+        f"{url}/picks",
+        params={"parts": "t_joint,t_joint_b", "format": "zdf", "quota": "t_joint:1,t_joint_b:0"},
+        content=capture.read_bytes(),
+        headers={"content-type": "application/octet-stream"},
+        timeout=120,
+    ).json()
+    assert [p["part"] for p in kit["picks"]] == ["t_joint"]
+    assert len(kit["unpicked"]) >= len(answer["picks"]) - 1 and any("quota" in u["reason"] for u in kit["unpicked"])
+    bad = httpx.post(f"{url}/picks", params={"parts": "t_joint,t_joint_b", "quota": "t_joint:many"}, content=b"x")
+    assert bad.status_code == 400 and "part:count" in bad.json()["error"]
 
 
 def test_a_network_is_served_only_when_evaluate_judged_these_bytes(tmp_path):

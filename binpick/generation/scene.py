@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import numpy as np
 import trimesh
@@ -10,7 +11,7 @@ import trimesh
 from binpick.generation.bin import FLOOR_THICKNESS_M, T_bin_from_cam, bin_meshes
 from binpick.generation.camera import apply_sensor_noise, camera_of, render, render_background, visible_fractions
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
-from binpick.generation.physics import SettleSettings, settle
+from binpick.generation.physics import SettleSettings, settle, settle_kinds
 from binpick.generation.placement import place_objects
 from binpick.generation.sensor import apply_sensor_model, intrinsics_of, scaled_model
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T, transform_points
@@ -84,8 +85,11 @@ def generate_scene(
     view: ViewParams,
     seed: int | np.random.SeedSequence,
     n_objects: int | None = None,
+    others: Sequence[PartModel] = (),
 ) -> SyntheticScene:
-    """Place objects (count drawn from the params unless given), then render the scene."""
+    """Place objects (count drawn from the params unless given), then render the scene. others:
+    the other parts of a mixed bin (generate.clutter.parts): about clutter.parts_share of the
+    objects dropped are drawn from them, rendered as distractors (label -1)."""
     rng = np.random.default_rng(seed)
     T_bin_camera, distractors = None, None
     sensor = draw_sensor(generate, stream_generator(seed, SENSOR_STREAM)) if generate.sensor.presets else None
@@ -99,15 +103,54 @@ def generate_scene(
     placement = generate.placement
     if n_objects is None:
         n_objects = int(rng.integers(placement.n_objects_min, placement.n_objects_max + 1))
-    placed = place_objects(part.points_m, n_objects, generate.bin, placement, rng)
-    T_bin_from_model = placed.T_bin_from_model
-    if placement.mode == "physics":
-        T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
+    if others:
+        T_bin_from_model, mixed_in = _mixed_pile(
+            part, others, n_objects, generate, rng, stream_generator(seed, MIX_STREAM)
+        )
+        distractors = [*(distractors or []), *mixed_in]
+    else:
+        T_bin_from_model = place_objects(part.points_m, n_objects, generate.bin, placement, rng).T_bin_from_model
+        if placement.mode == "physics":
+            T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
     return render_scene(part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors, sensor)
+
+
+def _mixed_pile(
+    part: PartModel,
+    others: Sequence[PartModel],
+    n_objects: int,
+    generate: GenerateParams,
+    rng: np.random.Generator,
+    kinds_rng: np.random.Generator,
+) -> tuple[np.ndarray, list[trimesh.Trimesh]]:
+    """A pile of the part with the other parts mixed in: the part's poses (k, 4, 4), bin frame,
+    and the other parts' instances as meshes in the bin frame. Each object is another part with
+    probability clutter.parts_share (which one: uniform), drawn from kinds_rng."""
+    every = [part, *others]
+    other = kinds_rng.random(n_objects) < generate.clutter.parts_share
+    kinds = np.where(other, 1 + kinds_rng.integers(0, len(others), n_objects), 0)
+    placed = place_objects(
+        [q.points_m for q in every], n_objects, generate.bin, generate.placement, rng, kinds.tolist()
+    )
+    T, placed_kinds = placed.T_bin_from_model, np.asarray(placed.kinds, dtype=np.int64)
+    if generate.placement.mode == "physics":
+        boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(generate.bin)]
+        half = (generate.bin.inner_x_m / 2.0, generate.bin.inner_y_m / 2.0)
+        meshes = [(q.mesh_vertices_m, q.mesh_faces) for q in every]
+        settings = SettleSettings(max_time_s=generate.placement.settle_max_s)
+        T, inside = settle_kinds(meshes, placed_kinds, T, boxes, settings, half)
+        T, placed_kinds = T[inside], placed_kinds[inside]
+    mixed_in = [
+        trimesh.Trimesh(every[k].mesh_vertices_m, every[k].mesh_faces, process=False).apply_transform(T_k)
+        for T_k, k in zip(T, placed_kinds, strict=True)
+        if k > 0
+    ]
+    return T[placed_kinds == 0], mixed_in
 
 
 CLUTTER_STREAM = 7_777
 SENSOR_STREAM = 7_778
+MIX_STREAM = 7_779
 
 
 def stream_generator(seed: int | np.random.SeedSequence, stream: int) -> np.random.Generator:

@@ -11,6 +11,7 @@ Spec: data/README.md#pipeline-variables.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,14 +35,49 @@ _HEADER = (
 
 @dataclass(frozen=True)
 class StagePart:
-    """A part as the per-part stages see it: its mesh, its grasp file ('' when generated) and
-    `grasps_dep`, a file DVC can always track (the grasp file, else the mesh)."""
+    """A part as the per-part stages see it: its mesh, its grasp file ('' when generated), its
+    distractor list (the other parts its training scenes mix in, '' when none) and `grasps_dep`,
+    `distractors_dep`, files DVC can always track (the grasp file or the list, else the mesh)."""
 
     mesh: str
     grasps: str = ""
+    distractors: str = ""
 
     def as_vars(self) -> dict[str, str]:
-        return {"mesh": self.mesh, "grasps": self.grasps, "grasps_dep": self.grasps or self.mesh}
+        return {
+            "mesh": self.mesh,
+            "grasps": self.grasps,
+            "grasps_dep": self.grasps or self.mesh,
+            "distractors": self.distractors,
+            "distractors_dep": self.distractors or self.mesh,
+        }
+
+
+@dataclass(frozen=True)
+class OtherPart:
+    """A part another part's training scenes mix in (generate.clutter.parts): its name, mesh and
+    the fingerprint of its params entry and mesh (binpick.project.fingerprint)."""
+
+    name: str
+    mesh: str
+    fingerprint: str
+
+
+def distractors_text(part: str, others: list[OtherPart]) -> str:
+    """The distractor list of a part (data/distractors/<part>.json): DVC tracks this file, so a
+    change to another part's mesh or entry makes the part's scenes be generated again."""
+    return json.dumps({"part": part, "others": [vars(o) for o in others]}, indent=1) + "\n"
+
+
+def load_distractors(path: str | Path) -> list[OtherPart]:
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "distractor list not found (run `binpick check`)")
+    try:
+        doc = json.loads(path.read_text())
+        return [OtherPart(str(o["name"]), str(o["mesh"]), str(o["fingerprint"])) for o in doc["others"]]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(path, f"not a distractor list ({type(exc).__name__}: {exc}); run `binpick check`") from None
 
 
 @dataclass(frozen=True)

@@ -141,12 +141,14 @@ def process_mixed(
     seeds: SceneSeeds,
     priority: list[str] | None = None,
     q_from: np.ndarray | None = None,
+    quota: dict[str, int] | None = None,
 ) -> MixedResult:
     """The scene path on a capture of several kinds of part (the module's docstring). models:
     each part's models (each part's import settings clean the capture for it; the cloud cleaned
     with the finest grid decides which measured points a pose claims);
     priority: parts picked before the others, in that order (the rest by pick.order whatever the
-    part; None or []: all by pick.order)."""
+    part; None or []: all by pick.order); quota: at most this many picks of a part in the list
+    (within_quota; parts not named: no limit)."""
     names = list(models)
     if not names:
         raise ValueError("a mixed capture needs at least one part")
@@ -206,12 +208,31 @@ def process_mixed(
     conflicts = [(flat[i][0], flat[i][1], flat[j][0]) for i, j in lost]
     t3 = time.perf_counter()
     picks, unpicked, up_cam = _picks(clouds, poses, models, priority or [], q_from)
+    picks, over = within_quota(picks, quota or {})
+    for mp in over:
+        unpicked[mp.part].append(
+            (mp.pick.pose_index, f"over the quota of {(quota or {})[mp.part]} {mp.part} an answer holds")
+        )
     t4 = time.perf_counter()
     register_s = t2 - t0 - clean_s - segment_s
     timings = {"clean_s": clean_s, "segment_s": segment_s, "register_s": register_s, "resolve_s": t3 - t2}
     if picks or unpicked:
         timings["pick_s"] = t4 - t3
     return MixedResult(cloud, poses, conflicts, picks, unpicked, up_cam, timings)
+
+
+def within_quota(picks: list[MixedPick], quota: dict[str, int]) -> tuple[list[MixedPick], list[MixedPick]]:
+    """The picks in their order, at most quota[part] of each part named (a kit's count of it; 0:
+    none, its poses stay obstacles), and those left over."""
+    taken: dict[str, int] = {}
+    kept, over = [], []
+    for mp in picks:
+        if mp.part in quota and taken.get(mp.part, 0) >= quota[mp.part]:
+            over.append(mp)
+        else:
+            taken[mp.part] = taken.get(mp.part, 0) + 1
+            kept.append(mp)
+    return kept, over
 
 
 def _inlier_m(m: PartModels) -> float:
