@@ -21,7 +21,6 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.errors import BinpickError
 from binpick.generation.placement import place_objects
 from binpick.generation.scene import render_scene
 from binpick.io.part_model import PartModel
@@ -45,17 +44,10 @@ def bench_mix(
     """settings: the project's params; names: the parts of the mix (two or more, the first sets
     the bin, camera and grids); checkpoints: part -> trained FPCC checkpoint (without one, a part
     is registered over the whole scene)."""
-    from flows.bench.mix_picking import mix_settings
-    from flows.bench.parts import bench_parts
+    from flows.bench.mix_picking import mix_parts, mix_settings
     from flows.bench.picking import bench_models, picking_settings
 
-    if len(names) < 2:
-        raise BinpickError(f"a mix names two or more parts, got {', '.join(names) or 'none'}")
-    parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
-    missing = set(names) - {p.name for p in parts}
-    if missing:
-        raise BinpickError(f"--mix: no benchmark part {', '.join(sorted(missing))} (../shared/data/parts absent?)")
-    parts.sort(key=lambda p: names.index(p.name))
+    parts = mix_parts(settings, names)
     p = picking_settings(settings, parts[0])
     g = p.generate.model_copy(update={"placement": p.generate.placement.model_copy(update={"mode": "drop"})})
     # Each part's own models and grids (as its network was trained at); the bin, the camera and the

@@ -45,6 +45,7 @@ from flows.bench import machine
 from flows.bench.clutter import TILT_DEG_MAX
 from flows.bench.picking import (
     BIN_SAMPLE_SPACING_M,
+    Tally,
     TrueSurface,
     _path_hits,
     _true_touch,
@@ -53,23 +54,6 @@ from flows.bench.picking import (
 )
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class PartTally:
-    """One part's share of a mixed bin's attempts (those whose first pick named it)."""
-
-    attempts: int = 0
-    good: int = 0
-    wrong_part: int = 0
-    missed: int = 0
-    collisions: int = 0
-    settled: int = 0
-    removed: int = 0
-
-    def add(self, other: PartTally) -> None:
-        for k in vars(self):
-            setattr(self, k, getattr(self, k) + getattr(other, k))
 
 
 @dataclass
@@ -93,15 +77,7 @@ def bench_picking_mix(
     """settings: the project's params; names: the parts of the mix (two or more, the first sets
     the bin and camera); checkpoints: part -> trained FPCC checkpoint (without one, a part is
     registered over the whole scene); gripper: overrides pick.gripper."""
-    from flows.bench.parts import bench_parts
-
-    if len(names) < 2:
-        raise BinpickError(f"a mix names two or more parts, got {', '.join(names) or 'none'}")
-    parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
-    missing = set(names) - {q.name for q in parts}
-    if missing:
-        raise BinpickError(f"--mix: no benchmark part {', '.join(sorted(missing))} (../shared/data/parts absent?)")
-    parts.sort(key=lambda q: names.index(q.name))
+    parts = mix_parts(settings, names)
     kind = gripper or settings.pick.gripper
 
     def with_gripper(p: Params) -> Params:
@@ -112,7 +88,7 @@ def bench_picking_mix(
         q.name: bench_models(q, with_gripper(mix_settings(settings, q, p)), checkpoints.get(q.name)) for q in parts
     }
     truths = {q.name: TrueSurface(q, p.pick.suction.cup_radius_m) for q in parts}
-    tallies = {q.name: PartTally() for q in parts}
+    tallies = {q.name: Tally() for q in parts}
     no_pick = 0
     cycles: list[float] = []
     tilts: list[float] = []
@@ -140,7 +116,7 @@ def bench_picking_mix(
                 ", ".join(f"{name} {t.removed} of {t.settled} removed in {t.attempts}" for name, t in one.items()),
                 none,
             )
-    total = PartTally()
+    total = Tally()
     for t in tallies.values():
         total.add(t)
     attempts = total.attempts + no_pick
@@ -162,6 +138,19 @@ def bench_picking_mix(
     }
 
 
+def mix_parts(settings: Params, names: list[str]) -> list[PartModel]:
+    """The benchmark parts of a mix, in the order named (two or more; one error line otherwise)."""
+    from flows.bench.parts import bench_parts
+
+    if len(names) < 2:
+        raise BinpickError(f"a mix names two or more parts, got {', '.join(names) or 'none'}")
+    parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
+    missing = set(names) - {q.name for q in parts}
+    if missing:
+        raise BinpickError(f"--mix: no benchmark part {', '.join(sorted(missing))} (../shared/data/parts absent?)")
+    return sorted(parts, key=lambda q: names.index(q.name))
+
+
 def mix_settings(settings: Params, part: PartModel, first: Params) -> Params:
     """A part's settings in a mixed bin seen by the first part's camera: its own grids (voxel and
     normal radius, as its network was trained at), and the import settings that follow the
@@ -172,11 +161,11 @@ def mix_settings(settings: Params, part: PartModel, first: Params) -> Params:
     return own.model_copy(update={"import_capture": own.import_capture.model_copy(update=shared)})
 
 
-def _keys(t: PartTally) -> dict[str, float]:
+def _keys(t: Tally) -> dict[str, float]:
     return {
         "pick_success_rate": t.good / t.attempts if t.attempts else 0.0,
         "clearance_rate": t.removed / t.settled if t.settled else 0.0,
-        "wrong_part_picks": float(t.wrong_part),
+        "wrong_part_picks": float(t.other_part),
         "missed_picks": float(t.missed),
         "collisions": float(t.collisions),
         "n_attempts": float(t.attempts),
@@ -195,7 +184,7 @@ def _clear_mixed_bin(
     cycles: list[float],
     truths: dict[str, TrueSurface],
     T_bin_from_camera: np.ndarray,
-) -> tuple[dict[str, PartTally], int]:
+) -> tuple[dict[str, Tally], int]:
     """One bin dropped, settled and emptied; each part's tally and the attempts without a pick."""
     rng = np.random.default_rng(seed)
     g = p.generate
@@ -209,7 +198,7 @@ def _clear_mixed_bin(
         meshes, placed.kinds, placed.T_bin_from_model, boxes, SettleSettings(max_time_s=g.placement.settle_max_s), half
     )
     state = MixedBin(settled[inside], np.asarray(placed.kinds, dtype=np.int64)[inside])
-    tallies = {q.name: PartTally(settled=int(np.sum(state.kinds == i))) for i, q in enumerate(parts)}
+    tallies = {q.name: Tally(settled=int(np.sum(state.kinds == i))) for i, q in enumerate(parts)}
     bin_points = np.concatenate(
         [
             trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0]
@@ -266,7 +255,7 @@ def _clear_mixed_bin(
                 for j, q in enumerate(parts)
                 if j != i
             ):
-                tally.wrong_part += 1
+                tally.other_part += 1
                 log.info("the first pick names %s and touches an instance of another part", first.part)
             else:
                 tally.missed += 1

@@ -67,9 +67,14 @@ BIN_SAMPLE_SPACING_M = 0.002
 
 @dataclass
 class Tally:
+    """Attempts and what came of them; missed: first picks that touch no part as a grasp should
+    (the key wrong_part_picks of a one-part bin); other_part: a mixed bin's first picks that touch
+    an instance of another part than the one they name."""
+
     attempts: int = 0
     good: int = 0
-    wrong_part: int = 0
+    missed: int = 0
+    other_part: int = 0
     collisions: int = 0
     no_pick: int = 0
     settled: int = 0
@@ -285,7 +290,7 @@ def _clear_bin(
         first = plan.picks[0]
         target = _true_touch(first, kind, T_cam, truth)
         if target is None:
-            tally.wrong_part += 1
+            tally.missed += 1
             failures += 1
             distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, T_cam, truth)
             log.info(
@@ -384,7 +389,7 @@ def bench_picking(
                     one.removed,
                     one.settled,
                     one.attempts,
-                    one.wrong_part,
+                    one.missed,
                     one.collisions,
                     one.no_pick,
                 )
@@ -415,7 +420,7 @@ def _keys(t: Tally, cycles: list[float], n_bins: int) -> dict[str, float | list[
     return {
         "pick_success_rate": t.good / t.attempts if t.attempts else 0.0,
         "clearance_rate": t.removed / t.settled if t.settled else 0.0,
-        "wrong_part_picks": float(t.wrong_part),
+        "wrong_part_picks": float(t.missed),
         "collisions": float(t.collisions),
         "cycle_s_median": float(np.median(cycles)) if cycles else 0.0,
         "cycle_s": [round(float(c), 4) for c in cycles],  # each cycle, for `binpick bench report`
