@@ -152,13 +152,14 @@ def mix_parts(settings: Params, names: list[str]) -> list[PartModel]:
 
 
 def mix_settings(settings: Params, part: PartModel, first: Params) -> Params:
-    """A part's settings in a mixed bin seen by the first part's camera: its own grids (voxel and
-    normal radius, as its network was trained at), and the import settings that follow the
-    camera's distance and noise (plane threshold, height kept above the floor, range) from the
-    first part's, as a cell's capture-level overrides would set them for every part."""
+    """A part's settings in a mixed bin seen by the first part's camera: its own (grids, plane
+    threshold, height kept above the floor: as its network was trained at), with the range that
+    reaches the first part's camera's bin. The ring screw's own 2 m cut the far half of the gear
+    shaft's bin 1.94 m away; the gear shaft's plane threshold and height above the floor (14 and
+    19 mm) would cut a lying T-joint down to a slab no pass finds."""
     own = picking_settings(settings, part)
-    shared = {k: getattr(first.import_capture, k) for k in ("plane_threshold_m", "keep_above_plane_m", "max_range_m")}
-    return own.model_copy(update={"import_capture": own.import_capture.model_copy(update=shared)})
+    reach = max(own.import_capture.max_range_m, first.import_capture.max_range_m)
+    return own.model_copy(update={"import_capture": own.import_capture.model_copy(update={"max_range_m": reach})})
 
 
 def _keys(t: Tally) -> dict[str, float]:
