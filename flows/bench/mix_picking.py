@@ -31,7 +31,7 @@ from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.physics import SettleSettings, settle_kinds
 from binpick.generation.placement import place_objects
-from binpick.generation.scene import render_scene, tilted_camera
+from binpick.generation.scene import render_scene
 from binpick.geometry.transforms import transform_points
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
@@ -44,12 +44,13 @@ from binpick.view import ViewParams
 from flows.bench import machine
 from flows.bench.clutter import TILT_DEG_MAX
 from flows.bench.picking import (
-    BIN_SAMPLE_SPACING_M,
     Tally,
     TrueSurface,
     _path_hits,
     _true_touch,
     bench_models,
+    bin_surface_points,
+    draw_bin,
     picking_settings,
 )
 
@@ -95,12 +96,7 @@ def bench_picking_mix(
     with tempfile.TemporaryDirectory(prefix="binpick-picking-mix-") as tmp:
         for b in range(n_bins):
             bin_seed = derive_seed(seed, "bench-picking-mix", ",".join(names), b)
-            draw = np.random.default_rng(bin_seed)
-            n = int(draw.integers(parts_per_bin[0], parts_per_bin[1] + 1))
-            tilt_deg = tilt_deg_max * (b + float(draw.uniform())) / n_bins
-            T_bin_from_camera = tilted_camera(
-                p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi))
-            )
+            n, tilt_deg, T_bin_from_camera = draw_bin(bin_seed, b, n_bins, parts_per_bin, tilt_deg_max, p)
             tilts.append(tilt_deg)
             one, none = _clear_mixed_bin(
                 parts, models, p, kind, n, bin_seed, Path(tmp), cycles, truths, T_bin_from_camera
@@ -200,12 +196,7 @@ def _clear_mixed_bin(
     )
     state = MixedBin(settled[inside], np.asarray(placed.kinds, dtype=np.int64)[inside])
     tallies = {q.name: Tally(settled=int(np.sum(state.kinds == i))) for i, q in enumerate(parts)}
-    bin_points = np.concatenate(
-        [
-            trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0]
-            for m in bin_meshes(g.bin)
-        ]
-    )
+    bin_points = bin_surface_points(g.bin)
     view = ViewParams.of_import(p.import_capture)
     capture = folder / "capture.zdf"
     failures = no_pick = attempt = 0

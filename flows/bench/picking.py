@@ -45,7 +45,7 @@ from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
-from binpick.params import Params
+from binpick.params import BinParams, Params
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
 from binpick.picking.gripper import gripper_primitives, signed_distance, swept
 from binpick.registration.model import train_ppf
@@ -233,6 +233,33 @@ def _path_hits(
     return False
 
 
+def bin_surface_points(bin_params: BinParams) -> np.ndarray:
+    """(m, 3) an even sample of the bin's walls and floor, bin frame, BIN_SAMPLE_SPACING_M apart."""
+    return np.concatenate(
+        [
+            trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0]
+            for m in bin_meshes(bin_params)
+        ]
+    )
+
+
+def draw_bin(
+    bin_seed: np.random.SeedSequence,
+    b: int,
+    n_bins: int,
+    parts_per_bin: tuple[int, int],
+    tilt_deg_max: float,
+    p: Params,
+) -> tuple[int, float, np.ndarray]:
+    """Bin b of n_bins: how many parts, the camera's tilt (degrees) and T_bin_from_camera. Tilts
+    spread evenly over the range across the bins, each at a random heading."""
+    draw = np.random.default_rng(bin_seed)
+    n = int(draw.integers(parts_per_bin[0], parts_per_bin[1] + 1))
+    tilt_deg = tilt_deg_max * (b + float(draw.uniform())) / n_bins
+    T_bin_from_camera = tilted_camera(p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi)))
+    return n, tilt_deg, T_bin_from_camera
+
+
 def _clear_bin(
     part: PartModel,
     models: PartModels,
@@ -251,12 +278,7 @@ def _clear_bin(
     T_bin = settle_in_bin(part, placed.T_bin_from_model, g, rng)
     tally = Tally(settled=len(T_bin))
     boxes = [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)]
-    bin_points = np.concatenate(
-        [
-            trimesh.sample.sample_surface_even(m, int(m.area / BIN_SAMPLE_SPACING_M**2), seed=0)[0]
-            for m in bin_meshes(g.bin)
-        ]
-    )
+    bin_points = bin_surface_points(g.bin)
     half = (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0)
     view = ViewParams.of_import(p.import_capture)
     failures = 0
@@ -371,13 +393,7 @@ def bench_picking(
         with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
             for b in range(n_bins):
                 bin_seed = derive_seed(seed, "bench-picking", part.name, b)
-                draw = np.random.default_rng(bin_seed)
-                n = int(draw.integers(parts_per_bin[0], parts_per_bin[1] + 1))
-                # Tilts spread evenly over the range across the bins, each at a random heading.
-                tilt_deg = tilt_deg_max * (b + float(draw.uniform())) / n_bins
-                T_bin_from_camera = tilted_camera(
-                    p.camera.distance_m, np.radians(tilt_deg), float(draw.uniform(0.0, 2.0 * np.pi))
-                )
+                n, tilt_deg, T_bin_from_camera = draw_bin(bin_seed, b, n_bins, parts_per_bin, tilt_deg_max, p)
                 first_cycle = len(cycles)
                 one = _clear_bin(part, models, p, kind, n, bin_seed, Path(tmp), cycles, truth, T_bin_from_camera)
                 log.info(
