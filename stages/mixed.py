@@ -38,9 +38,8 @@ def run(params_path: Path, name: str, out: Path, metrics_path: Path | None = Non
         raise BinpickError(f"{params_path}: capture {name!r} is not listed under 'captures' with `parts`")
     layout = Layout(root)
     models: dict[str, PartModels] = {}
-    grippers: dict[str, str] = {}
-    for part in listed.parts:
-        p = load_params(params_path, part)
+    resolved = {part: load_params(params_path, part) for part in listed.parts}
+    for part, p in resolved.items():
         checkpoint = layout.checkpoint(part)
         loaded = PartModels.load(
             p,
@@ -52,8 +51,8 @@ def run(params_path: Path, name: str, out: Path, metrics_path: Path | None = Non
         )
         # The part's import settings with this capture's own overrides (its sensor's).
         models[part] = replace(loaded, import_params=p.import_capture_for(name))
-        grippers[part] = p.pick.gripper
-    first = load_params(params_path, listed.parts[0])
+    grippers: dict[str, str] = {part: p.pick.gripper for part, p in resolved.items()}
+    first = resolved[listed.parts[0]]
     options = ImportOptions(
         unit=listed.unit,
         columns=tuple(listed.columns),
@@ -78,7 +77,7 @@ def run(params_path: Path, name: str, out: Path, metrics_path: Path | None = Non
     doc = result.document(name, grippers, T_base, first.pick.pose_format)
     metrics: dict[str, float] = {
         "mixed_s": seconds,
-        **{f"{k}": float(v) for k, v in result.timings_s.items()},
+        **{k: float(v) for k, v in result.timings_s.items()},
         **{f"n_poses_{part}": float(len(found)) for part, found in result.poses.items()},
         **doc["counts"],
     }
