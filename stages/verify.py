@@ -17,6 +17,7 @@ from binpick.io.verification import Verification, save_verification
 from binpick.network.checkpoint import read_checkpoint
 from binpick.network.infer import load_segmenter
 from binpick.params import Params, load_params
+from binpick.registration.constants import SUPPORT_MAX_INCIDENCE_DEG
 from binpick.scene.process import PartModels
 from binpick.scene.verification_threshold import calibrate_verification
 from review.tracking import mlflow_run
@@ -69,7 +70,10 @@ def run(
         # threads find can differ between runs, and the DVC metrics hold what a rerun reproduces.
         mlflow.log_metrics({**metrics, **{f"verification_{k}": v for k, v in stats.items()}})
     with atomic_paths(out, metrics_path) as (tmp_out, tmp_metrics):
-        save_verification(tmp_out, Verification(threshold, support, str(read_checkpoint(checkpoint)["sha256"])))
+        save_verification(
+            tmp_out,
+            Verification(threshold, support, str(read_checkpoint(checkpoint)["sha256"]), SUPPORT_MAX_INCIDENCE_DEG),
+        )
         if tmp_metrics is not None:
             write_metrics(tmp_metrics, metrics)
     return metrics

@@ -466,6 +466,26 @@ def test_older_checkpoints_keep_their_verification_thresholds(tmp_path):
     assert chosen_verification(None, load_segmenter(tmp_path / "m.pt", PARAMS.segment)) is None
 
 
+def test_a_support_cut_chosen_with_another_incidence_limit_is_not_used(tmp_path):
+    """A verification.json written with today's incidence limit gives its support cut; one written
+    before the limit (its support counted all facing surface, lower shares) gives the default,
+    and its seen-through cut still applies."""
+    import json
+
+    from binpick.io.verification import Verification, load_verification, save_verification
+    from binpick.registration.constants import DEFAULT_MIN_VISIBLE_SUPPORT, SUPPORT_MAX_INCIDENCE_DEG
+    from binpick.scene.register import with_verification
+
+    params = PARAMS.registration.model_copy(update={"max_seen_through": None, "min_visible_support": None})
+    save_verification(tmp_path / "now.json", Verification(0.38, 0.87, "abc", SUPPORT_MAX_INCIDENCE_DEG))
+    now = with_verification(params, load_verification(tmp_path / "now.json"))
+    assert (now.max_seen_through, now.min_visible_support) == (0.38, 0.87)
+    old = {"max_seen_through": 0.4, "min_visible_support": 0.37, "checkpoint_sha256": "abc"}
+    (tmp_path / "before.json").write_text(json.dumps(old))
+    before = with_verification(params, load_verification(tmp_path / "before.json"))
+    assert (before.max_seen_through, before.min_visible_support) == (0.4, DEFAULT_MIN_VISIBLE_SUPPORT)
+
+
 def test_the_loss_teaches_points_not_of_a_part_to_be_no_centre_and_leaves_ignored_points_out():
     """A part's points (0), a distractor beside it (-1) and unexplained points (-2): the distractor's
     centre scores are pulled to 0 and its embedding pushed from the part's; the ignored points get

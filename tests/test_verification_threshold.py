@@ -38,11 +38,11 @@ def test_a_least_support_cut_keeps_poses_above_it():
 
     # Wrong poses up to 0.45, right ones from 0.85: every cut between does as well, the prior.
     assert cut([0.85, 0.9, 0.97], [0.2, 0.45]) == DEFAULT_MIN_VISIBLE_SUPPORT
-    # A wrong pose at 0.57: the cut goes above it, as near the prior as the right poses allow.
-    t = cut([0.85, 0.9, 0.97], [0.2, 0.57])
-    assert 0.57 < t <= 0.85
-    # Wrong poses up to 0.8 among right ones from 0.83: the bound holds the cut at 0.6.
-    assert cut([0.83, 0.9, 0.97], [0.5, 0.6, 0.8, 0.81]) == SUPPORT_RANGE[1]
+    # A wrong pose at 0.82: the cut goes above it, as near the prior as the right poses allow.
+    t = cut([0.85, 0.9, 0.97], [0.2, 0.82])
+    assert 0.82 < t <= 0.85
+    # Wrong poses from 0.85 up to 0.92 among right ones from 0.93: the bound holds the cut at 0.9.
+    assert cut([0.93, 0.95, 0.97], [0.85, 0.91, 0.92]) == SUPPORT_RANGE[1]
     # No wrong pose seen: the prior, unless it would drop right poses.
     assert cut([0.9], []) == DEFAULT_MIN_VISIBLE_SUPPORT
-    assert cut([0.3, 0.9], []) == 0.3
+    assert cut([0.6, 0.9], []) == 0.6

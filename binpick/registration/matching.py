@@ -91,7 +91,11 @@ def match_segment(
         score = score_pose(model, T, scene_points, inlier, scene_tree)
         rank = score
         if view is not None and cloud_tree is not None:
-            rank = score * visible_support(model, T, view, cloud_tree, inlier) * (1.0 - seen_through(model, T, view))
+            # Finalists are ranked by the support of all their facing surface, grazing included:
+            # the head-on share alone, the verification's, chose worse finalists (bench clutter,
+            # ring screw, 8 scenes: pose recall 0.981 against 1.00).
+            support = visible_support(model, T, view, cloud_tree, inlier, max_incidence_deg=90.0)
+            rank = score * support * (1.0 - seen_through(model, T, view))
         if rank > best_rank:
             best, best_rank = PartPose(T_cam_from_model=T, score=score), rank
     return best

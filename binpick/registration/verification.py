@@ -19,6 +19,7 @@ from binpick.registration.constants import (
     SCORE_STRIDE,
     SEEN_THROUGH_MARGIN_MIN_M,
     SEEN_THROUGH_MARGIN_REL,
+    SUPPORT_MAX_INCIDENCE_DEG,
 )
 from binpick.registration.visibility import DepthView, seen_through_share, visible_support_share
 
@@ -67,11 +68,20 @@ def visible_support(
     scene_tree: KDTree,
     inlier_m: float,
     stride: int = SCORE_STRIDE,
+    max_incidence_deg: float = SUPPORT_MAX_INCIDENCE_DEG,
 ) -> float:
     """Share of the pose's camera-facing surface the camera should have seen (visibility.py)
     with a scene point of scene_tree (a pykdtree of the cleaned cloud) within inlier_m. Hidden
-    means a measurement more than inlier_m in front of the surface."""
-    points = _posed_facing_points(model, T_cam_from_model, stride)
+    means a measurement more than inlier_m in front of the surface. Only surface whose normal is
+    within max_incidence_deg of the ray to the camera counts (constants.py says why)."""
+    facing = _facing(model, T_cam_from_model, stride)
+    points = transform_points(T_cam_from_model, model.dense_points_m[::stride][facing])
+    normals = model.dense_normals[::stride][facing] @ T_cam_from_model[:3, :3].T
+    # cos(incidence) = n . (-p) / |p|, the camera at the origin.
+    head_on = -np.einsum("ij,ij->i", normals, points) >= np.cos(np.radians(max_incidence_deg)) * np.linalg.norm(
+        points, axis=1
+    )
+    points = points[head_on]
     if len(points) == 0:
         return 0.0
     d, _ = scene_tree.query(points, distance_upper_bound=inlier_m)

@@ -19,7 +19,12 @@ from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel
 from binpick.io.verification import Verification
 from binpick.params import RegisterParams
-from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT, Scales
+from binpick.registration.constants import (
+    DEFAULT_MAX_SEEN_THROUGH,
+    DEFAULT_MIN_VISIBLE_SUPPORT,
+    SUPPORT_MAX_INCIDENCE_DEG,
+    Scales,
+)
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
 from binpick.registration.verification import score_pose, seen_through, visible_support
@@ -53,12 +58,14 @@ class Registration:
 def with_verification(params: RegisterParams, chosen: Verification | None) -> RegisterParams:
     """register params with max_seen_through and min_visible_support resolved: the value in
     params, else the one the verify stage chose (verification.json, or an older checkpoint's),
-    else the default (DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT)."""
+    else the default (DEFAULT_MAX_SEEN_THROUGH, DEFAULT_MIN_VISIBLE_SUPPORT). A support cut chosen
+    with another incidence limit than today's measures another share: the default applies."""
     update: dict[str, float] = {}
     if params.max_seen_through is None:
         update["max_seen_through"] = DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen.max_seen_through
     if params.min_visible_support is None:
-        least = chosen.min_visible_support if chosen is not None else None
+        current = chosen is not None and chosen.support_incidence_deg == SUPPORT_MAX_INCIDENCE_DEG
+        least = chosen.min_visible_support if chosen is not None and current else None
         update["min_visible_support"] = DEFAULT_MIN_VISIBLE_SUPPORT if least is None else least
     return params.model_copy(update=update) if update else params
 
