@@ -138,6 +138,22 @@ def test_poses_where_the_camera_saw_through_are_dropped(t_joint, models):
     assert result.n_unsupported == 0 and min(p.visible_support for p in result.poses) > 0.8
 
 
+def test_poses_on_points_the_network_calls_no_parts_are_dropped(t_joint, models):
+    """The network's foreground head and the geometry must agree: with one part's points marked
+    "no part", its pose is dropped and the others kept; with every part's points marked a part's,
+    none is dropped."""
+    scene, xyz, shape = _capture(t_joint, seed=31, n_objects=6)
+    cloud = clean(xyz, None, shape, models.import_params, seed=0)
+    labels = scene.labels.reshape(-1)[cloud.pixel_index].astype(np.int32)
+    params = changed(models.register_params, mode="segments")
+    every = register(cloud, labels, models.ppf, params, seed=0, is_part=labels >= 0)
+    assert every.n_not_part == 0 and len(every.poses) >= 3
+    target = every.poses[0].segment
+    marked = register(cloud, labels, models.ppf, params, seed=0, is_part=(labels >= 0) & (labels != target))
+    assert marked.n_not_part == 1
+    assert sorted(p.segment for p in marked.poses) == sorted(p.segment for p in every.poses if p.segment != target)
+
+
 def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_folder, models, tmp_path):
     """Every step draws its seeds from the capture's content: the import and register stages, run
     on the capture file under any name, give the poses the in-process path (the service's) gave."""

@@ -88,6 +88,25 @@ def visible_support(
     return visible_support_share(points, np.isfinite(d), view, inlier_m)
 
 
+def part_share(
+    model: PPFModel,
+    T_cam_from_model: np.ndarray,
+    scene_tree: KDTree,
+    is_part: np.ndarray,
+    inlier_m: float,
+    stride: int = SCORE_STRIDE,
+) -> float:
+    """Share of the scene points on the pose (the nearest cloud point of scene_tree, a pykdtree of
+    the cleaned cloud, within inlier_m of each camera-facing model point) that the network calls a
+    part's (is_part (n,) bool, per point of that cloud); 1 when no point lies on it."""
+    points = _posed_facing_points(model, T_cam_from_model, stride)
+    if len(points) == 0:
+        return 1.0
+    d, nearest = scene_tree.query(points, distance_upper_bound=inlier_m)
+    on_pose = np.unique(nearest[np.isfinite(d)])
+    return float(np.mean(is_part[on_pose])) if len(on_pose) else 1.0
+
+
 def _posed_facing_points(model: PPFModel, T_cam_from_model: np.ndarray, stride: int) -> np.ndarray:
     """(k, 3) camera frame, metres: the dense model points (every stride-th) facing the camera at
     this pose, moved to it."""

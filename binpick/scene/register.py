@@ -27,7 +27,7 @@ from binpick.registration.constants import (
 )
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
-from binpick.registration.verification import score_pose, seen_through, visible_support
+from binpick.registration.verification import part_share, score_pose, seen_through, visible_support
 from binpick.registration.visibility import DepthView
 
 log = logging.getLogger(__name__)
@@ -53,6 +53,7 @@ class Registration:
     per_instance_ms: list[float]
     n_seen_through: int = 0  # poses dropped: too much of their surface where the camera saw through
     n_unsupported: int = 0  # poses dropped: too little of their surface in view measured
+    n_not_part: int = 0  # poses dropped: the network calls most of the points on them no part's
 
 
 def with_verification(params: RegisterParams, chosen: Verification | None) -> RegisterParams:
@@ -162,12 +163,14 @@ def register(
     # Verification against what the camera saw: a pose whose surface lies where the sensor saw
     # through it (a cup fitted into a box wall, a part floating before the wall behind a desk),
     # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
-    # cylinder, its gear in the air), is not there, whatever its fit to the points near it.
+    # cylinder, its gear in the air), is not there, whatever its fit to the points near it. Nor
+    # is one on points the network calls no part's (a cup fitted onto a carton face): the
+    # geometry and the network must both say so.
     resolved = with_verification(params, None)
     limit, least = resolved.max_seen_through, resolved.min_visible_support
     assert limit is not None and least is not None  # with_verification resolves both
     kept_poses = []
-    n_unsupported = 0
+    n_unsupported = n_not_part = 0
     inlier_m = Scales.of(ppf, params).inlier_m
     for pose in poses:
         share = seen_through(ppf, pose.T_cam_from_model, view)
@@ -177,23 +180,26 @@ def register(
         if support < least:
             n_unsupported += 1
             continue
+        if (
+            is_part is not None
+            and part_share(ppf, pose.T_cam_from_model, cloud_tree, is_part, inlier_m) < params.min_part_share
+        ):
+            n_not_part += 1
+            continue
         kept_poses.append(replace(pose, seen_through=share, visible_support=support))
+    n_seen_through = len(poses) - len(kept_poses) - n_unsupported - n_not_part
     if len(kept_poses) < len(poses):
         log.info(
             "dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface "
-            "in view measured",
+            "in view measured, %d on points the network calls no part's",
             len(poses) - len(kept_poses),
             len(poses),
-            len(poses) - len(kept_poses) - n_unsupported,
+            n_seen_through,
             n_unsupported,
+            n_not_part,
         )
     return Registration(
-        kept_poses,
-        n_segments,
-        n_duplicates,
-        per_instance_ms,
-        len(poses) - len(kept_poses) - n_unsupported,
-        n_unsupported,
+        kept_poses, n_segments, n_duplicates, per_instance_ms, n_seen_through, n_unsupported, n_not_part
     )
 
 
