@@ -65,8 +65,11 @@ def with_verification(params: RegisterParams, chosen: Verification | None) -> Re
     if params.max_seen_through is None:
         update["max_seen_through"] = DEFAULT_MAX_SEEN_THROUGH if chosen is None else chosen.max_seen_through
     if params.min_visible_support is None:
-        current = chosen is not None and chosen.support_incidence_deg == SUPPORT_MAX_INCIDENCE_DEG
-        least = chosen.min_visible_support if chosen is not None and current else None
+        least = (
+            chosen.min_visible_support
+            if chosen is not None and chosen.support_incidence_deg == SUPPORT_MAX_INCIDENCE_DEG
+            else None
+        )
         update["min_visible_support"] = DEFAULT_MIN_VISIBLE_SUPPORT if least is None else least
     return params.model_copy(update=update) if update else params
 
