@@ -35,7 +35,8 @@ from binpick.io.part_model import PartModel
 from binpick.io.picks import picks_document, write_picks_document
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
-from binpick.params import DEFAULT_DENSITY_KG_M3, Params
+from binpick.params import Params
+from binpick.part.model import density_kg_m3
 from binpick.robot.arm import load_arm
 from binpick.robot.trajectory import JointLimits
 from binpick.scene.process import PartModels, SceneResult, process
@@ -131,7 +132,7 @@ def simulated_cell(params: Params, part: PartModel, n_parts: int, seed: int) -> 
         params.pick,
         params.pick.gripper,
         part,
-        params.parts[part.name].density_kg_m3 if part.name in params.parts else DEFAULT_DENSITY_KG_M3,
+        density_kg_m3(params, part.name),
         [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)],
         (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0),
         g.bin.wall_height_m,

@@ -18,6 +18,7 @@ from binpick.io.part_model import load_part_model
 from binpick.io.picks import save_picks
 from binpick.io.poses import load_poses
 from binpick.params import Params, load_params
+from binpick.part.model import density_kg_m3
 from binpick.scene.pick import pick
 from review.pick_recording import write_pick_recording
 from review.tracking import mlflow_run
@@ -51,6 +52,7 @@ def run(
         params.pick,
         params.import_capture_for(name if name in params.captures else None),
         params.cell,
+        density_kg_m3=density_kg_m3(params, part.name),
     )
     pick_s = time.perf_counter() - t0
     metrics = {"pick_s": pick_s, **plan.counts()}

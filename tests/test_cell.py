@@ -3,6 +3,7 @@ of ur_rtde's Python API, and the physics of a hold; each recovers a known answer
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 
@@ -150,6 +151,12 @@ def test_the_real_arm_is_sent_the_plan_and_its_vacuum_is_read():
     assert all(m[6:] == [pytest.approx(1.55), pytest.approx(0.625), 0.0] for move in fake.moves for m in move)
     assert fake.outputs == [(1, True), (1, False)] and fake.host == "10.0.0.5"
     assert robot.joints() == pytest.approx([0.1] * 6)
+    # A part carried at half the speed (the gripper's hold): the moves after the grasp at half the
+    # speed and a quarter of the acceleration, the way down at the full.
+    slow = FakeRTDE(vacuum=[True, True])
+    assert execute_pick(_robot(slow), dataclasses.replace(_motion(), carry_share=0.5)) == "placed"
+    assert all(m[6:] == [pytest.approx(1.55), pytest.approx(0.625), 0.0] for m in slow.moves[0])
+    assert all(m[6:] == [pytest.approx(0.775), pytest.approx(0.15625), 0.0] for m in slow.moves[1])
 
 
 def test_no_vacuum_at_the_grasp_and_a_lost_part_and_a_stop_are_named():

@@ -35,8 +35,9 @@ class Robot(Protocol):
         """(6,) the arm's joint angles now."""
         ...
 
-    def move(self, path: list[np.ndarray]) -> None:
-        """Through the configurations in order (straight joint lines, at rest at each); raises
+    def move(self, path: list[np.ndarray], share: float = 1.0) -> None:
+        """Through the configurations in order (straight joint lines, at rest at each) at `share`
+        of the joint speed (share^2 of the acceleration: the same motion, slower); raises
         RobotStopped when the arm stops on its own."""
         ...
 
@@ -93,7 +94,8 @@ def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:
             robot.release()
             robot.move([motion.q[motion.path[at - 1]]])  # back out along the approach
             return NO_GRIP
-        robot.move([motion.q[name] for name in motion.path[at + 1 :]])
+        # Carrying the part: no faster than the gripper's hold allows (binpick/robot/payload.py).
+        robot.move([motion.q[name] for name in motion.path[at + 1 :]], motion.carry_share)
         if not robot.holding():
             robot.release()
             return GRASP_LOST
@@ -143,11 +145,12 @@ class URRobot:
     def joints(self) -> np.ndarray:
         return np.asarray(self.receive.getActualQ(), dtype=float)
 
-    def move(self, path: list[np.ndarray]) -> None:
+    def move(self, path: list[np.ndarray], share: float = 1.0) -> None:
         if not path:
             return
         # Blend 0: the arm stops at each configuration, the path the plan checked.
-        moves = [[*map(float, q), self.speed, self.acceleration, 0.0] for q in path]
+        speed, acceleration = self.speed * share, self.acceleration * share**2
+        moves = [[*map(float, q), speed, acceleration, 0.0] for q in path]
         if not self.control.moveJ(moves):
             raise RobotStopped(self._why_stopped())
 

@@ -27,7 +27,9 @@ from binpick.generation.physics import SCALE, TIME_STEP_S, convex_parts_obj, qua
 from binpick.geometry.transforms import invert_T, make_T, transform_points
 from binpick.io.part_model import PartModel
 from binpick.params import CellParams, PickParams
+from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion
+from binpick.picking.gripper import holding_force_n
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.trajectory import JointLimits, motion
 
@@ -84,7 +86,7 @@ class SimulatedCell:
             pb.GEOM_MESH, fileName=convex_parts_obj(vertices - self.centre_m, part.mesh_faces), physicsClientId=c
         )
         mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
-        self.mass_kg = abs(float(mesh.volume)) * density_kg_m3
+        self.mass_kg = part_mass_kg(part, density_kg_m3)
         self.rays = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
         self.parts: list[int | None] = []
         for T in np.asarray(T_bin_from_parts, dtype=float):
@@ -178,12 +180,14 @@ class SimulatedCell:
     def joints(self) -> np.ndarray:
         return self.q.copy()
 
-    def move(self, path: list[np.ndarray]) -> None:
-        """Through the configurations along ruckig's motions, stepping the world; what the arm or the
-        tool touches collects in `touched`, a held part that tears off is let go."""
+    def move(self, path: list[np.ndarray], share: float = 1.0) -> None:
+        """Through the configurations along ruckig's motions (at `share` of the joint speed),
+        stepping the world; what the arm or the tool touches collects in `touched`, a held part
+        that tears off is let go."""
+        limits = self.limits.scaled(share)
         for q_next in path:
             self._aim(q_next)
-            trajectory = motion(self.q, q_next, self.limits)
+            trajectory = motion(self.q, q_next, limits)
             steps = max(1, int(np.ceil(trajectory.duration / TIME_STEP_S)))
             for s in range(1, steps + 1):
                 q, qd, _ = trajectory.at_time(min(s * TIME_STEP_S, trajectory.duration))
@@ -393,13 +397,8 @@ class SimulatedCell:
             parentFrameOrientation=quaternion_xyzw(T_tcp_from_body[:3, :3]).tolist(),
             physicsClientId=c,
         )
-        force = (
-            self.pick.suction.holding_force_n
-            if self.kind == "suction"
-            else 2.0 * np.tan(np.radians(self.pick.jaw.friction_deg)) * self.pick.jaw.grip_force_n
-        )
         # Forces in the scaled world: kg * (m * SCALE) / s^2.
-        self.hold_force = float(force) * SCALE
+        self.hold_force = holding_force_n(self.pick, self.kind) * SCALE
         pb.changeConstraint(self.constraint, maxForce=self.hold_force, physicsClientId=c)
         self.hold = held
         return held

@@ -6,7 +6,7 @@ import numpy as np
 import trimesh
 
 from binpick.io.part_model import PartModel
-from binpick.params import SymmetryParams
+from binpick.params import DEFAULT_DENSITY_KG_M3, Params, SymmetryParams
 
 # The built-in part: a T-joint pipe fitting, in millimetres like most CAD exports.
 DEFAULT_PART_NAME = "t_joint"
@@ -221,3 +221,14 @@ def make_part_model(
         source_unit=source_unit,
         watertight=bool(mesh_m.is_watertight),
     )
+
+
+def density_kg_m3(params: Params, name: str) -> float:
+    """The part's material density (parts.<name>.density_kg_m3; DEFAULT_DENSITY_KG_M3 for a part
+    the params do not list)."""
+    return params.parts[name].density_kg_m3 if name in params.parts else DEFAULT_DENSITY_KG_M3
+
+
+def part_mass_kg(part: PartModel, density: float) -> float:
+    """The part's mass: its CAD mesh's enclosed volume (m^3) times the density (kg/m^3)."""
+    return abs(float(trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False).volume)) * density

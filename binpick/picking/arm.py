@@ -35,17 +35,21 @@ from binpick.registration.visibility import DepthView
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.clearance import collides, near_planes, obstacle_view
 from binpick.robot.configuration import JOINT_LIMIT, SINGULAR, UNREACHABLE, choose_configuration, ur_singularity_margin
+from binpick.robot.payload import Payload, carry_share, point_accelerations
 from binpick.robot.trajectory import JointLimits, duration_s, line_samples, path_duration_s
 
 WAYPOINTS = ("lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
 # Reasons the arm refuses a grasp (beside robot.configuration's unreachable, joint limit, singular).
-HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE = (
+HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE, TOO_HEAVY = (
     "arm hits the bin wall",
     "arm hits the scene",
     "arm hits the table",
     "place unreachable with this grasp",
+    "too heavy for the gripper",
 )
-ARM_REASONS = frozenset({UNREACHABLE, JOINT_LIMIT, SINGULAR, HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE})
+ARM_REASONS = frozenset(
+    {UNREACHABLE, JOINT_LIMIT, SINGULAR, HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE, TOO_HEAVY}
+)
 # A colliding link point this near a wall plane of the capture hit the bin wall.
 WALL_BAND_M = 0.03
 # Consecutive configurations of the short moves in the bin (5-20 cm) turn no joint further than this:
@@ -65,13 +69,16 @@ class ArmMotion:
     the tool's axis it chose (degrees, from the grasp's own), the tool's pose at the place
     (T_base_from_place_tcp), the motion's seconds at the scaled joint limits and the path: the
     waypoints in the order the arm moves through them from where it starts (straight joint
-    lines, stopping at each)."""
+    lines, stopping at each); carry_share: the share of the joint speed from the grasp on, where
+    the gripper holds the part (binpick/robot/payload.py; 1: the part's weight unknown or light
+    enough for the full speed)."""
 
     q: dict[str, np.ndarray]
     turn_deg: float
     T_base_from_place_tcp: np.ndarray
     motion_s: float
     path: tuple[str, ...]
+    carry_share: float = 1.0
 
 
 def turned(T: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -142,11 +149,13 @@ class ArmPlanner:
         tool_points_tcp: np.ndarray | None = None,
         tool_clearance_m: float = 0.0,
         check_path: bool = True,
+        payload: Payload | None = None,
     ) -> None:
         """tool_points_tcp: (n, 3) the gripper's surface, tool frame, checked on the moves to the
         pre-grasp and from the lift on (tool_clearance_m: pick.clearance_m; along the approach the
         gripper check has it); check_path False: the grasp's own turn only, its path not checked
-        (today's hand-over of a gripper-only pick to the arm, the cell benchmark's baseline)."""
+        (today's hand-over of a gripper-only pick to the arm, the cell benchmark's baseline);
+        payload: the part's mass and the gripper's hold (None: unknown, the carry at full speed)."""
         self.arm, self.cell = arm, cell
         self.T_base_from_cam = np.asarray(T_base_from_cam, dtype=float)
         self.T_cam_from_base = invert_T(self.T_base_from_cam)
@@ -162,6 +171,7 @@ class ArmPlanner:
         T = np.asarray(cell.T_flange_from_tcp, dtype=float)
         self.tool_points_flange = tool @ T[:3, :3].T + T[:3, 3]
         self.tool_clearance_m = tool_clearance_m
+        self.payload = payload
 
     def configuration(self, T_base_from_tcp: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, str | None]:
         """The arm's configuration (6,) with the tool at T_base_from_tcp nearest q_ref, or NaN and why
@@ -199,6 +209,8 @@ class ArmPlanner:
         part, whose centre is centre_m, model frame), the tool turned about its axis (turns_for)
         to the turn the arm reaches with the least motion from q_from whose place is reachable
         and whose path is clear; else why none is (the commonest reason)."""
+        if self.payload is not None and not self.payload.lifts():
+            return TOO_HEAVY
         reasons: Counter[str] = Counter()
         # The turns ranked by the move to their grasp configuration; the rest of a turn's motion is
         # worked out only when it comes up (most picks take the first).
@@ -243,13 +255,32 @@ class ArmPlanner:
                 if hit is None:
                     names = pick_side + place_side
                     path = [q_from] + [q[name] for name in names]
-                    seconds = path_duration_s(path, self.limits)
-                    return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names)
+                    at = names.index("grasp") + 1
+                    share = self._carry_share(path[at:], turned(T_model_from_tool, angle), centre_m)
+                    if share is None:
+                        reasons[TOO_HEAVY] += 1
+                        break
+                    seconds = path_duration_s(path[: at + 1], self.limits) + path_duration_s(
+                        path[at:], self.limits.scaled(share)
+                    )
+                    return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names, share)
             if not placed:
                 reasons[PLACE_UNREACHABLE] += 1
             elif hit is not None:
                 reasons[hit] += 1
         return reasons.most_common(1)[0][0] if reasons else UNREACHABLE
+
+    def _carry_share(
+        self, carry: list[np.ndarray], T_model_from_tool: np.ndarray, centre_m: np.ndarray
+    ) -> float | None:
+        """The share of the joint speed at which the gripper holds the part (its centre, model
+        frame, held by the grasp T_model_from_tool) along the carry's waypoints; 1 without a
+        payload, None when no share down to payload.MIN_CARRY_SHARE does."""
+        if self.payload is None:
+            return 1.0
+        T_flange_from_model = np.asarray(self.cell.T_flange_from_tcp, dtype=float) @ invert_T(T_model_from_tool)
+        centre_flange = T_flange_from_model[:3, :3] @ np.asarray(centre_m, dtype=float) + T_flange_from_model[:3, 3]
+        return carry_share(point_accelerations(self.arm, carry, self.limits, centre_flange), self.payload)
 
     def _clear_pick_side(
         self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray

@@ -75,6 +75,14 @@ def jaw_primitives(j: JawParams, opening_m: float) -> list[Primitive]:
     ]
 
 
+def holding_force_n(params: PickParams, kind: str) -> float:
+    """The most the gripper holds a part with, newtons: the suction cup's rated holding force, or
+    the jaws' friction (two pads, tan(friction_deg) times the closing force each)."""
+    if kind == "suction":
+        return float(params.suction.holding_force_n)
+    return float(2.0 * np.tan(np.radians(params.jaw.friction_deg)) * params.jaw.grip_force_n)
+
+
 def gripper_primitives(params: PickParams, kind: str, width_m: float = 0.0) -> list[Primitive]:
     """The gripper of `kind` ('suction' or 'jaw', opened for a grasp of width_m) at its grasp pose."""
     if kind == "suction":

@@ -272,6 +272,7 @@ def _picks(
             m.cell_params,
             q_from,
             extra_obstacles_m=obstacles,
+            density_kg_m3=m.density_kg_m3,
         )
         unpicked[name] = list(plan.unpicked)
         up_cam = plan.up_cam

@@ -9,12 +9,14 @@ from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
 from binpick.io.poses import PartPose
-from binpick.params import CellParams, ImportCaptureParams, PickParams
+from binpick.params import DEFAULT_DENSITY_KG_M3, CellParams, ImportCaptureParams, PickParams
+from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmPlanner
-from binpick.picking.gripper import gripper_primitives, surface_points
+from binpick.picking.gripper import gripper_primitives, holding_force_n, surface_points
 from binpick.picking.plan import PickPlan, plan_picks
 from binpick.registration.visibility import DepthView
 from binpick.robot.arm import load_arm
+from binpick.robot.payload import Payload
 
 # The gripper's surface is sampled this finely for the arm's check of its moves outside the approach.
 TOOL_SAMPLE_SPACING_M = 0.005
@@ -30,6 +32,7 @@ def pick(
     cell: CellParams | None = None,
     q_from: np.ndarray | None = None,
     extra_obstacles_m: np.ndarray | None = None,
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
 ) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
@@ -37,7 +40,8 @@ def pick(
     the camera's place in the base frame (pick.T_base_from_cam), each pick is checked for the
     whole arm (binpick/picking/arm.py), starting from q_from (default: the cell's home).
     extra_obstacles_m (k, 3), camera frame: more obstacles (another kind of part's posed body in
-    a mixed bin, binpick/scene/mixed.py)."""
+    a mixed bin, binpick/scene/mixed.py). density_kg_m3: the part's material; with the gripper's
+    hold it sets how fast the arm may carry the part, or that it cannot (binpick/robot/payload.py)."""
     seen = DepthView(cloud.seen_depth_m, cloud.seen_K)
     planner = None
     if cell is not None and cell.arm is not None and params.T_base_from_cam is not None:
@@ -51,6 +55,7 @@ def pick(
             params.retreat_distance_m,
             surface_points(gripper_primitives(params, grasps.kind, params.jaw.opening_max_m), TOOL_SAMPLE_SPACING_M),
             params.clearance_m,
+            payload=Payload(part_mass_kg(part, density_kg_m3), holding_force_n(params, grasps.kind)),
         )
         q_from = np.asarray(cell.home_q_rad if q_from is None else q_from, dtype=float)
     captured = seen.points_m()

@@ -17,7 +17,8 @@ from binpick.io.poses import PartPose
 from binpick.io.ppf_model import PPFModel, load_ppf_model
 from binpick.io.verification import Verification, load_verification
 from binpick.network.infer import Segmenter, load_segmenter
-from binpick.params import CellParams, ImportCaptureParams, Params, PickParams, RegisterParams
+from binpick.params import DEFAULT_DENSITY_KG_M3, CellParams, ImportCaptureParams, Params, PickParams, RegisterParams
+from binpick.part.model import density_kg_m3
 from binpick.picking.plan import PickPlan
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
@@ -42,6 +43,7 @@ class PartModels:
     grasps: GraspSet | None = None  # None: no picks
     pick_params: PickParams | None = None
     cell_params: CellParams | None = None  # None: picks checked for the gripper only
+    density_kg_m3: float = DEFAULT_DENSITY_KG_M3  # the part's material: its weight on the gripper
 
     @classmethod
     def load(
@@ -61,8 +63,9 @@ class PartModels:
         if segmenter is None and register_params.mode != "whole_scene":
             log.info("no network for the part: registration over the whole scene")
             register_params = register_params.model_copy(update={"mode": "whole_scene"})
+        part = load_part_model(part_model)
         return cls(
-            part=load_part_model(part_model),
+            part=part,
             ppf=load_ppf_model(ppf_model),
             segmenter=segmenter,
             import_params=params.import_capture,
@@ -70,6 +73,7 @@ class PartModels:
             grasps=load_grasps(grasps)[params.pick.gripper] if grasps is not None else None,
             pick_params=params.pick,
             cell_params=params.cell,
+            density_kg_m3=density_kg_m3(params, part.name),
         )
 
 
@@ -135,6 +139,7 @@ def process(
             models.import_params,
             models.cell_params,
             q_from,
+            density_kg_m3=models.density_kg_m3,
         )
     t4 = time.perf_counter()
     labels = segments.labels if segments is not None else np.full(len(cloud.points_m), -1, np.int32)

@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, Execution
 from binpick.cell.simulation import SimulatedCell
@@ -47,7 +46,9 @@ from binpick.geometry.transforms import invert_T, make_T
 from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
-from binpick.params import DEFAULT_DENSITY_KG_M3, CellParams, Params
+from binpick.params import CellParams, Params
+from binpick.part.model import density_kg_m3 as part_density
+from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion, ArmPlanner
 from binpick.registration.visibility import DepthView
 from binpick.robot.arm import load_arm
@@ -331,8 +332,8 @@ def bench_cell(
             }
         )
         models = bench_models(part, p, checkpoints.get(part.name))
-        density = density_kg_m3 or (p.parts[part.name].density_kg_m3 if part.name in p.parts else DEFAULT_DENSITY_KG_M3)
-        arm_models = dataclasses.replace(models, cell_params=layout.cell)
+        density = density_kg_m3 or part_density(p, part.name)
+        arm_models = dataclasses.replace(models, cell_params=layout.cell, density_kg_m3=density)
         bare = layout.cell.model_copy(update={"joint_limit_margin_deg": 0.0, "min_singularity": 0.0})
         baseline = ArmPlanner(
             load_arm(layout.cell.arm or "ur5e"),
@@ -380,7 +381,7 @@ def bench_cell(
             "failures": dict(arm_tally.failures),
             **{f"baseline_{k}": v for k, v in _keys(base_tally, base_cycles, n_bins).items()},
             "baseline_failures": dict(base_tally.failures),
-            "mass_kg": density * abs(trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False).volume),
+            "mass_kg": part_mass_kg(part, density),
             "bin_inner_m": [p.generate.bin.inner_x_m, p.generate.bin.inner_y_m],
             "base_to_bin_centre_m": float(np.linalg.norm(layout.T_bin_from_base[:2, 3])),
         }

@@ -46,6 +46,7 @@ from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
 from binpick.params import BinParams, Params
+from binpick.part.model import density_kg_m3
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
 from binpick.picking.gripper import gripper_primitives, signed_distance, swept
 from binpick.registration.model import train_ppf
@@ -138,6 +139,7 @@ def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartMod
         ),
         grasps,
         p.pick,
+        density_kg_m3=density_kg_m3(p, part.name),
     )
 
 
