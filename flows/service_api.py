@@ -116,6 +116,10 @@ class ArmOfPick(BaseModel):
     place_tcp_base: Matrix4 = Field(description="T_base_from_tcp at the place")
     motion_s: float = Field(description="seconds of arm motion from the start to the place at cell.speed_scaling")
     path: list[str] = Field(description="the waypoints in the order the arm moves through them from where it starts")
+    carry_share: float = Field(
+        description="share of the joint speed (its square of the acceleration) from the grasp on, so that the gripper "
+        "holds the part's weight and the motion's forces (1: full speed)"
+    )
 
 
 class RobotPoses(BaseModel):

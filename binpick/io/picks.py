@@ -67,6 +67,7 @@ def _pick_entry(
             "place_tcp_base": _T(motion.T_base_from_place_tcp),
             "motion_s": round(motion.motion_s, 6),
             "path": list(motion.path),
+            "carry_share": round(motion.carry_share, 6),
         }
     if pose_format != "matrix":
         robot = {k: rounded(to_robot(T_base @ v, pose_format), pose_format) for k, v in cam.items()}

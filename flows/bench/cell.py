@@ -240,6 +240,15 @@ def _clear_bin(
             tally.wall_s += done.motion_s
             tally.motion_s.append(done.motion_s)
             hidden_s = max(0.0, done.motion_s - done.out_of_view_s)
+            log.debug(
+                "%s attempt %d: perception %.2f s, motion %.2f s (out of view from %.2f s), carry at %.2f of the speed",
+                part.name,
+                tally.attempts,
+                perception_s,
+                done.motion_s,
+                done.out_of_view_s,
+                motion.carry_share,
+            )
             q = sim.joints()
             good = _judge(done, tally)
             if recording is not None:
