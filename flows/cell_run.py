@@ -26,7 +26,7 @@ from typing import Protocol
 
 import numpy as np
 
-from binpick.cell.robot import ARM_STOPPED, MAX_FAILURES_IN_A_ROW, Robot, URRobot, execute_pick
+from binpick.cell.robot import ARM_STOPPED, MAX_FAILURES_IN_A_ROW, PICKS_PER_CAPTURE, Robot, URRobot, execute_pick
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError, NothingAboveTheFloor
 from binpick.io.atomic import write_text
@@ -178,7 +178,13 @@ def run_cell(
         digest = capture_digest(capture.xyz_m, capture.rgb)
         try:
             result: SceneResult | None = process(
-                capture.xyz_m, capture.rgb, capture.shape, models, SceneSeeds.of_capture_digest(params.seed, digest), q
+                capture.xyz_m,
+                capture.rgb,
+                capture.shape,
+                models,
+                SceneSeeds.of_capture_digest(params.seed, digest),
+                q,
+                PICKS_PER_CAPTURE,
             )
             refused = None
         except NothingAboveTheFloor as exc:

@@ -30,7 +30,7 @@ from binpick.picking.gripper import (
     signed_distance,
     swept,
 )
-from binpick.picking.plan import BIN, CAPTURED, plan_picks
+from binpick.picking.plan import BIN, CAPTURED, NOT_PLANNED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -403,6 +403,27 @@ def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
         pick_settings.model_copy(update={"order": ["score", "height"]}),
     )
     assert [p.pose_index for p in by_score.picks] == [1, 0, 2]
+
+
+def test_only_the_picks_asked_for_are_planned_and_they_are_the_first_of_the_full_list(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
+    low_good, low_bad = lying(-0.06, 0.0), lying(0.06, 0.0)
+    high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
+    T = np.stack([low_bad, low_good, high])
+    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    args = (grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR)
+    for order, first_two in ((["height", "score", "clearance"], [2, 1]), (["score", "height"], [1, 0])):
+        settings = pick_settings.model_copy(update={"order": order})
+        full = plan_picks(T, np.array([0.4, 0.9, 0.3]), *args, settings)
+        for n in (1, 2):
+            few = plan_picks(T, np.array([0.4, 0.9, 0.3]), *args, settings, max_picks=n)
+            assert [p.pose_index for p in few.picks] == first_two[:n]
+            assert [p.T_cam_from_grasp.tolist() for p in few.picks] == [
+                p.T_cam_from_grasp.tolist() for p in full.picks[:n]
+            ]
+            # The others are listed, by pose, as not planned; fewer grasps were tried.
+            assert few.unpicked == sorted((i, NOT_PLANNED) for i in {0, 1, 2} - set(first_two[:n]))
+            assert few.n_candidates < full.n_candidates
 
 
 def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, pick_settings):

@@ -58,6 +58,9 @@ class Robot(Protocol):
 
 # A cell (and the benchmarks' simulated one) gives a bin up after this many failed attempts in a row.
 MAX_FAILURES_IN_A_ROW = 3
+# A cell executes the first pick of a capture and captures again: only that many are planned (the
+# arm's plan is most of the pick step's time in a full bin).
+PICKS_PER_CAPTURE = 1
 
 
 @dataclass

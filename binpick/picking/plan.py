@@ -76,6 +76,8 @@ CARRIED_GRID_M = 0.01
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
+# A part left unplanned: picks ranked before it were all that were asked for (max_picks).
+NOT_PLANNED = "not planned: enough picks rank before it"
 # A bin box's floor is the support plane unless the plane found in the capture agrees with it
 # within these (then the measured plane is used: it is where the parts lie today).
 BIN_PLANE_AGREEMENT_DEG = 10.0
@@ -189,6 +191,7 @@ def plan_picks(
     seen_through: np.ndarray | None = None,
     arm: ArmPlanner | None = None,
     q_from: np.ndarray | None = None,
+    max_picks: int | None = None,
 ) -> PickPlan:
     """Picks for the detected parts.
 
@@ -202,6 +205,11 @@ def plan_picks(
                        None: not measured, trusted)
     arm              : the whole arm's check of a grasp the gripper check kept (None: the gripper
                        only); q_from (6,) the configuration the arm starts each pick from
+    max_picks        : only the first this many picks are wanted (a cell executes one per capture):
+                       parts are tried in the order their ranking's known keys give (trusted,
+                       pick.order up to `clearance`), and once that many are found the parts that
+                       can no longer rank before them are left unplanned (listed in unpicked as
+                       NOT_PLANNED); None: every part
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -253,7 +261,15 @@ def plan_picks(
         if seen_through is None
         else np.asarray(seen_through, dtype=np.float64).reshape(n_parts)
     )
-    for i in range(n_parts):
+    trusted = ~(shares > params.max_seen_through)
+    known = [_known_keys(bool(trusted[i]), float(heights[i]), float(scores[i]), params) for i in range(n_parts)]
+    order = sorted(range(n_parts), key=lambda k: (known[k], k))
+    for n_done, i in enumerate(order):
+        if max_picks is not None and len(picks) >= max_picks:
+            last = sorted(picks, key=lambda p: rank_key(p, params))[max_picks - 1]
+            if known[i] > known[last.pose_index]:
+                unpicked.extend((k, NOT_PLANNED) for k in order[n_done:])
+                break
         T = T_cam_from_model[i]
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
@@ -315,7 +331,7 @@ def plan_picks(
                 float(scores[i]),
                 clearance,
                 float(heights[i]),
-                not shares[i] > params.max_seen_through,
+                bool(trusted[i]),
                 motion,
             )
             break
@@ -341,6 +357,9 @@ def plan_picks(
                 )
             )
     picks.sort(key=lambda p: rank_key(p, params))
+    # Parts were tried in rank order; their refusals are listed by pose.
+    unpicked.sort(key=lambda u: u[0])
+    rejected.sort(key=lambda r: r.pose_index)
     return PickPlan(picks, unpicked, rejected, up, n_tried)
 
 
@@ -356,19 +375,27 @@ def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
 
 def rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
     """A pick's place in the order to take them (smaller first): trusted first, then pick.order."""
-    keys = []
+    return (*_order_keys(pick.trusted, pick.height_m, pick.score, pick.clearance_m, params), pick.pose_index)
+
+
+def _order_keys(
+    trusted: bool, height_m: float, score: float, clearance_m: float, params: PickParams
+) -> tuple[float, ...]:
+    keys = [0.0 if trusted else 1.0]
     for k in params.order:
         if k == "height":
-            keys.append(
-                -np.floor(pick.height_m / params.height_tolerance_m)
-                if params.height_tolerance_m > 0
-                else -pick.height_m
-            )
+            keys.append(-np.floor(height_m / params.height_tolerance_m) if params.height_tolerance_m > 0 else -height_m)
         elif k == "score":
-            keys.append(-pick.score)
+            keys.append(-score)
         else:
-            keys.append(-pick.clearance_m)
-    return (0 if pick.trusted else 1, *keys, pick.pose_index)
+            keys.append(-clearance_m)
+    return tuple(keys)
+
+
+def _known_keys(trusted: bool, height_m: float, score: float, params: PickParams) -> tuple[float, ...]:
+    """The ranking's keys known before a part's grasps are checked: up to its clearance."""
+    keys = _order_keys(trusted, height_m, score, 0.0, params)
+    return keys[: 1 + params.order.index("clearance")] if "clearance" in params.order else keys
 
 
 def _collisions(

@@ -33,6 +33,7 @@ def pick(
     q_from: np.ndarray | None = None,
     extra_obstacles_m: np.ndarray | None = None,
     density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
+    max_picks: int | None = None,
 ) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
@@ -41,7 +42,8 @@ def pick(
     whole arm (binpick/picking/arm.py), starting from q_from (default: the cell's home).
     extra_obstacles_m (k, 3), camera frame: more obstacles (another kind of part's posed body in
     a mixed bin, binpick/scene/mixed.py). density_kg_m3: the part's material; with the gripper's
-    hold it sets how fast the arm may carry the part, or that it cannot (binpick/robot/payload.py)."""
+    hold it sets how fast the arm may carry the part, or that it cannot (binpick/robot/payload.py).
+    max_picks: only the first this many picks are planned (plan_picks; None: every part's)."""
     seen = DepthView(cloud.seen_depth_m, cloud.seen_K)
     planner = None
     if cell is not None and cell.arm is not None and params.T_base_from_cam is not None:
@@ -80,4 +82,5 @@ def pick(
         shares,
         planner,
         q_from,
+        max_picks,
     )

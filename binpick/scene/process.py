@@ -110,10 +110,11 @@ def process(
     models: PartModels,
     seeds: SceneSeeds,
     q_from: np.ndarray | None = None,
+    max_picks: int | None = None,
 ) -> SceneResult:
     """clean, segment (unless the models have no segmenter), register and (when the models carry
     grasps) pick one capture; q_from: the arm's joint angles when the arm is checked (default:
-    cell.home_q_rad)."""
+    cell.home_q_rad); max_picks: only the first this many picks planned (a cell executes one)."""
     t0 = time.perf_counter()
     cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
     t1 = time.perf_counter()
@@ -140,6 +141,7 @@ def process(
             models.cell_params,
             q_from,
             density_kg_m3=models.density_kg_m3,
+            max_picks=max_picks,
         )
     t4 = time.perf_counter()
     labels = segments.labels if segments is not None else np.full(len(cloud.points_m), -1, np.int32)

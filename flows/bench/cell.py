@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, Execution
+from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, PICKS_PER_CAPTURE, Execution
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
@@ -203,7 +203,13 @@ def _clear_bin(
             frame = load_capture(capture, ImportOptions("mm"))
             try:
                 result = process(
-                    frame.xyz_m, frame.rgb, frame.shape, models, SceneSeeds.of(0, f"cell-{tally.attempts}"), q
+                    frame.xyz_m,
+                    frame.rgb,
+                    frame.shape,
+                    models,
+                    SceneSeeds.of(0, f"cell-{tally.attempts}"),
+                    q,
+                    PICKS_PER_CAPTURE,
                 )
                 plan = result.picks
             except BinpickError as exc:
