@@ -77,6 +77,26 @@ def test_ransac_finds_the_largest_plane_the_same_way_every_time():
         assert np.array_equal(again, first) and np.array_equal(again_inliers, inliers)
 
 
+def test_a_fan_of_rows_through_the_camera_is_not_taken_for_the_floor():
+    """A floor 0.8 m away (40 % of the points) and a plane through the camera holding more (the
+    points of a few image rows): the largest plane is the fan; planes at least the camera's
+    least range away leave the floor, the plane that was built."""
+    rng = np.random.default_rng(5)
+    floor = np.column_stack(
+        [rng.uniform(-0.3, 0.3, 4000), rng.uniform(-0.3, 0.3, 4000), 0.8 + rng.normal(0, 0.0005, 4000)]
+    )
+    # The fan: rays from the camera (the origin) within the plane y = 0.2 z, ending on parts at
+    # 0.4-0.75 m.
+    z = rng.uniform(0.4, 0.75, 6000)
+    fan = np.column_stack([rng.uniform(-0.3, 0.3, 6000) * z, 0.2 * z, z])
+    pts = np.vstack([floor, fan])
+    largest, _ = fit_plane_ransac(pts, 0.003, 1000, seed=1)
+    assert abs(largest[3]) < 1e-3
+    plane, inliers = fit_plane_ransac(pts, 0.003, 1000, seed=1, min_distance_m=0.2)
+    assert abs(abs(plane[2]) - 1.0) < 1e-3 and abs(abs(plane[3]) - 0.8) < 1e-3
+    assert inliers[:4000].mean() > 0.99
+
+
 def test_voxel_downsample_keeps_one_point_per_voxel():
     pts = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002], [0.011, 0.0, 0.0], [0.0, 0.0, 0.025]])
     idx = voxel_downsample_indices(pts, 0.01)

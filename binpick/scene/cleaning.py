@@ -184,7 +184,12 @@ def clean_capture(
     floor = np.full(4, np.nan)
     removed_floor = 0
     plane, inliers = fit_plane_ransac(
-        pts, params.plane_threshold_m, params.plane_ransac_iterations, seed, params.plane_ransac_confidence
+        pts,
+        params.plane_threshold_m,
+        params.plane_ransac_iterations,
+        seed,
+        params.plane_ransac_confidence,
+        min_distance_m=params.min_range_m,
     )
     if plane[3] < 0:  # orient the normal toward the camera at the origin
         plane = -plane

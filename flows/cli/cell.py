@@ -168,7 +168,12 @@ def fit_bin(
         pts = xyz[valid]
         grid = pts[view_grid(pts, ViewParams(max(settings.voxel_size_m, 0.002), settings.normal_radius_m))]
         floor, inliers = fit_plane_ransac(
-            grid, settings.plane_threshold_m, settings.plane_ransac_iterations, p.seed, settings.plane_ransac_confidence
+            grid,
+            settings.plane_threshold_m,
+            settings.plane_ransac_iterations,
+            p.seed,
+            settings.plane_ransac_confidence,
+            min_distance_m=settings.min_range_m,
         )
         if floor[3] < 0:
             floor = -floor
