@@ -47,6 +47,7 @@ from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
 from binpick.picking.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
+from binpick.picking.lift import lift_blockers
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
     NOISE_NEIGHBOURS,
@@ -58,6 +59,7 @@ from binpick.picking.measured import (
     local_noise_m,
     point_spacing_m,
 )
+from binpick.picking.ranking import known_keys, rank_key
 
 # Clearance is measured up to this far (a gripper in free space reports this).
 CLEARANCE_CAP_M = 0.05
@@ -76,6 +78,8 @@ CARRIED_GRID_M = 0.01
 # Obstacle sources in reasons and counts.
 CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
+# A grasp whose part, pulled out, pushes into something ahead of it (binpick/picking/lift.py).
+LIFTS_INTO = "the part lifts into "
 # A part left unplanned: picks ranked before it were all that were asked for (max_picks).
 NOT_PLANNED = "not planned: enough picks rank before it"
 # A bin box's floor is the support plane unless the plane found in the capture agrees with it
@@ -226,7 +230,11 @@ def plan_picks(
     )
     # Every k-th point of the (evenly spread) sample, k the points per PART_OBSTACLE_GRID_M square
     # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
-    model_sample = part_points[:: max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
+    stride = max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))
+    model_sample = part_points[::stride]
+    model_normals = np.asarray(part_normals, dtype=np.float64).reshape(-1, 3)[::stride]
+    # The part's way out is checked across the sample's spacing (its silhouette has no gaps).
+    lift_radius = max(PART_OBSTACLE_GRID_M, params.clearance_m)
     posed = [transform_points(T, model_sample) for T in T_cam_from_model]
     # The part as the arm carries it out of the bin, about a centimetre between points.
     carried_sample = part_points[:: max(1, int((CARRIED_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
@@ -262,7 +270,7 @@ def plan_picks(
         else np.asarray(seen_through, dtype=np.float64).reshape(n_parts)
     )
     trusted = ~(shares > params.max_seen_through)
-    known = [_known_keys(bool(trusted[i]), float(heights[i]), float(scores[i]), params) for i in range(n_parts)]
+    known = [known_keys(bool(trusted[i]), float(heights[i]), float(scores[i]), params) for i in range(n_parts)]
     order = sorted(range(n_parts), key=lambda k: (known[k], k))
     for n_done, i in enumerate(order):
         if max_picks is not None and len(picks) >= max_picks:
@@ -274,7 +282,7 @@ def plan_picks(
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
         own = np.zeros(len(obstacles), bool)
-        noise_m = 0.0
+        noise_m, limit = 0.0, params.own_points_m
         if len(captured):
             near = captured_near(tree, len(captured), centres[i], reach)
             if len(near):
@@ -283,6 +291,12 @@ def plan_picks(
                 limit = max(params.own_points_m, OWN_NOISE_SIGMAS * noise_m)
                 own[near[(off_surface <= limit) & (nearest <= limit + own_of.spacing_m)]] = True
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
+        normals_cam = model_normals @ T[:3, :3].T
+        near_lift = (
+            np.asarray(tree.query_ball_point(centres[i], 3.0 * reach + back), dtype=np.int64)
+            if tree is not None
+            else np.zeros(0, np.int64)
+        )
         cos_approach = tools[:, :3, 2] @ -up if len(tools) else np.zeros(0)
         in_cone = cos_approach >= cos_cone - 1e-12
         # Beyond the cone, only when nothing within it is free (a part leaning on a wall, whose
@@ -309,6 +323,17 @@ def plan_picks(
             if hit:
                 causes.update(hit)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(hit))))
+                continue
+            # The part itself, back out along the approach and up a diameter, must come free.
+            moves = [(-T_tool[:3, 2], params.retreat_distance_m), (up, 2.0 * reach)]
+            ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
+            blockers = lift_blockers(
+                posed[i], normals_cam, moves, obstacles[ahead], source[ahead], lift_radius, lift_radius + 2.0 * limit
+            )
+            if blockers:
+                dragged = {LIFTS_INTO + _name(CAPTURED if b == -1 else BIN if b == -2 else str(b)) for b in blockers}
+                causes.update(dragged)
+                rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(dragged))))
                 continue
             motion = None
             if arm is not None and q_from is not None:
@@ -371,31 +396,6 @@ def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, 3] += offset
     return out
-
-
-def rank_key(pick: Pick, params: PickParams) -> tuple[float, ...]:
-    """A pick's place in the order to take them (smaller first): trusted first, then pick.order."""
-    return (*_order_keys(pick.trusted, pick.height_m, pick.score, pick.clearance_m, params), pick.pose_index)
-
-
-def _order_keys(
-    trusted: bool, height_m: float, score: float, clearance_m: float, params: PickParams
-) -> tuple[float, ...]:
-    keys = [0.0 if trusted else 1.0]
-    for k in params.order:
-        if k == "height":
-            keys.append(-np.floor(height_m / params.height_tolerance_m) if params.height_tolerance_m > 0 else -height_m)
-        elif k == "score":
-            keys.append(-score)
-        else:
-            keys.append(-clearance_m)
-    return tuple(keys)
-
-
-def _known_keys(trusted: bool, height_m: float, score: float, params: PickParams) -> tuple[float, ...]:
-    """The ranking's keys known before a part's grasps are checked: up to its clearance."""
-    keys = _order_keys(trusted, height_m, score, 0.0, params)
-    return keys[: 1 + params.order.index("clearance")] if "clearance" in params.order else keys
 
 
 def _collisions(

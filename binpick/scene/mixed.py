@@ -22,7 +22,8 @@ from binpick.io.cloud import CleanCloud
 from binpick.io.picks import mixed_picks_document, pose_entries
 from binpick.io.poses import PartPose
 from binpick.params import ImportCaptureParams
-from binpick.picking.plan import Pick, rank_key
+from binpick.picking.plan import Pick
+from binpick.picking.ranking import rank_key
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
 from binpick.scene.process import PartModels

@@ -1,0 +1,71 @@
+"""Whether a grasped part comes out of the heap free: the part, moved back along the approach and
+then up, must not push into anything that lies ahead of it (a neighbour lying across it, a part
+hooked through it, the bin's rim over it). The gripper check sweeps the tool; this sweeps the
+part it holds, which the arm's check sees only from the lift on.
+
+Frames: the camera's; metres.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# A point of the part's surface leads a move when its outward normal makes at most this angle with
+# the move's direction (about 80 degrees): the side walls parallel to the move do not push into a
+# neighbour that merely touches them.
+LEADING_COS = 0.17
+# An obstacle point counts only this many of them ahead of the part: noise above a surface (a few
+# stray points the part's own did not take) is not a neighbour.
+MIN_BLOCKING_POINTS = 5
+
+
+def lift_blockers(
+    surface_m: np.ndarray,
+    normals: np.ndarray,
+    moves: list[tuple[np.ndarray, float]],
+    obstacles_m: np.ndarray,
+    sources: np.ndarray,
+    radius_m: float,
+    contact_m: float,
+) -> set[int]:
+    """The sources of the obstacles the part runs into on its way out.
+
+    surface_m (n, 3), normals (n, 3): the part's surface sample at its pose and outward normals;
+    moves: (direction (3,), unit; distance m) in order, each starting where the last ended;
+    obstacles_m (k, 3) with sources (k,) int: what may lie in the way (the part's own measured
+    points and its own model already left out); radius_m: how close, across the move, an obstacle
+    point must pass a leading surface point to be run into; contact_m: an obstacle point less than
+    this ahead of the part at the start is in contact with it (parts in a heap touch) or is the
+    part's own surface measured with noise (on a sloped face the surface ahead of a point rises
+    within radius_m across): not run into.
+    """
+    surface_m = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
+    obstacles_m = np.asarray(obstacles_m, dtype=np.float64).reshape(-1, 3)
+    sources = np.asarray(sources).reshape(-1)
+    hit = np.zeros(len(obstacles_m), bool)
+    offset = np.zeros(3)
+    for direction, distance_m in moves:
+        u = np.asarray(direction, dtype=np.float64) / np.linalg.norm(direction)
+        leading = surface_m[np.asarray(normals) @ u >= LEADING_COS] + offset
+        offset = offset + u * distance_m
+        if len(leading) == 0 or len(obstacles_m) == 0 or distance_m <= 0:
+            continue
+        # Only what lies ahead of the part's rearmost leading point, and across the move: both
+        # projected onto the plane normal to it, paired within radius_m there.
+        along = obstacles_m @ u
+        candidates = np.flatnonzero(along > float(np.min(leading @ u)) + contact_m)
+        if len(candidates) == 0:
+            continue
+        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        basis = np.stack([e1, np.cross(u, e1)], axis=1)
+        pairs = cKDTree(leading @ basis).sparse_distance_matrix(
+            cKDTree(obstacles_m[candidates] @ basis), radius_m, output_type="ndarray"
+        )
+        if len(pairs) == 0:
+            continue
+        ahead = along[candidates[pairs["j"]]] - leading[pairs["i"]] @ u
+        hit[candidates[pairs["j"][(ahead > contact_m) & (ahead <= distance_m + contact_m)]]] = True
+    found, counts = np.unique(sources[hit], return_counts=True)
+    return {int(s) for s, n in zip(found, counts, strict=True) if n >= MIN_BLOCKING_POINTS}

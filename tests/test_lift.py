@@ -1,0 +1,52 @@
+"""The grasped part's way out of the heap (binpick/picking/lift.py): a neighbour lying across it
+is run into, one touching its side or lying behind the move is not; known answers from boxes
+placed by hand."""
+
+from __future__ import annotations
+
+import numpy as np
+import trimesh
+
+from binpick.picking.lift import lift_blockers
+
+UP = np.array([0.0, 0.0, 1.0])  # this test's frame: z up (the camera's frame is any rigid turn of it)
+RADIUS_M, CONTACT_M = 0.003, 0.011
+
+
+def box_surface(extents: tuple[float, float, float], centre: tuple[float, float, float], n: int = 6000):
+    mesh = trimesh.creation.box(extents=extents)
+    mesh.apply_translation(centre)
+    points, faces = trimesh.sample.sample_surface_even(mesh, n, seed=1)
+    return np.asarray(points), mesh.face_normals[faces]
+
+
+def blockers(obstacles: list[np.ndarray], moves=None) -> set[int]:
+    part, normals = box_surface((0.06, 0.04, 0.02), (0.0, 0.0, 0.01))
+    sources = np.concatenate([np.full(len(o), k) for k, o in enumerate(obstacles)])
+    return lift_blockers(
+        part, normals, moves or [(UP, 0.05), (UP, 0.1)], np.concatenate(obstacles), sources, RADIUS_M, CONTACT_M
+    )
+
+
+def test_a_neighbour_lying_across_the_part_is_run_into_and_one_beside_it_is_not():
+    # A bar across the part's top, resting on it (its top surface 2 cm up), and a box touching
+    # the part's side, as tall: only the bar is in the way up.
+    across, _ = box_surface((0.02, 0.12, 0.02), (0.0, 0.0, 0.03))
+    beside, _ = box_surface((0.06, 0.04, 0.02), (0.0, 0.0401, 0.01))
+    assert blockers([across, beside]) == {0}
+    # Without the bar: free.
+    assert blockers([beside]) == set()
+
+
+def test_what_lies_behind_or_beyond_the_move_is_not_run_into():
+    # The floor under the part and a bar 0.3 m above it (beyond the 0.15 m the part travels).
+    floor = np.column_stack([np.random.default_rng(2).uniform(-0.1, 0.1, (4000, 2)), np.full(4000, -0.001)])
+    high, _ = box_surface((0.02, 0.12, 0.02), (0.0, 0.0, 0.33))
+    assert blockers([floor, high]) == set()
+    # The same bar 0.1 m up is within the move.
+    low, _ = box_surface((0.02, 0.12, 0.02), (0.0, 0.0, 0.13))
+    assert blockers([floor, low]) == {1}
+    # Moved sideways (along x) first, out from under a shelf over half the part, then up: free.
+    shelf, _ = box_surface((0.1, 0.1, 0.01), (-0.06, 0.0, 0.05))
+    assert blockers([shelf]) == {0}
+    assert blockers([shelf], [(np.array([1.0, 0.0, 0.0]), 0.08), (UP, 0.1)]) == set()
