@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import re
 import tempfile
 import time
 from collections import Counter
@@ -222,7 +223,7 @@ def _clear_bin(
             hidden_s = 0.0
             if plan is None or not plan.picks:
                 failures += 1
-                why = Counter(reason.split(":")[0] for _, reason in plan.unpicked) if plan is not None else None
+                why = Counter(_leading_cause(reason) for _, reason in plan.unpicked) if plan is not None else None
                 tally.failures[f"no pick ({why.most_common(1)[0][0]})" if why else "no pick"] += 1
                 if recording is not None:
                     recording.attempt(tally.attempts, part, poses[keep], None, "no pick")
@@ -268,6 +269,16 @@ def _clear_bin(
         if recording is not None:
             recording.close()
     return tally
+
+
+def _leading_cause(reason: str) -> str:
+    """An unpicked part's reason cut to its kind and its commonest cause ('no grasp in reach the arm
+    can execute: too heavy for the gripper (12), unreachable (2)' -> '...: too heavy for the
+    gripper'), so that the tally's keys say what stopped the picks without their counts."""
+    head, _, causes = reason.partition(": ")
+    first = re.sub(r" \(\d+\)$", "", causes.split(", ")[0].split("; ")[0]).removeprefix("with ")
+    first = re.sub(r"part \d+$", "a detected part", first)  # which one differs from capture to capture
+    return f"{head}: {first}" if first else head
 
 
 def _judge(done: Execution, tally: Tally) -> bool:
