@@ -373,12 +373,18 @@ def test_a_pose_with_too_much_surface_seen_through_is_picked_last(box_part, pick
     assert [(p.pose_index, p.trusted) for p in unknown.picks] == [(0, True), (1, True)]  # highest first
 
 
-def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
+def two_low_parts_and_a_high_one(box_part, pick_settings):
+    """The suction grasps, and poses (3, 4, 4): two parts on the floor, one 3 cm higher; what the
+    camera sees of them."""
     grasps = suction_grasps(box_part, pick_settings)
     low_good, low_bad = lying(-0.06, 0.0), lying(0.06, 0.0)
     high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
     T = np.stack([low_bad, low_good, high])
-    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    return grasps, T, np.concatenate([seen_surface(t, box_part) for t in T])
+
+
+def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
+    grasps, T, captured = two_low_parts_and_a_high_one(box_part, pick_settings)
     plan = plan_picks(
         T,
         np.array([0.4, 0.9, 0.3]),
@@ -406,11 +412,7 @@ def test_parts_come_highest_first_then_by_score(box_part, pick_settings):
 
 
 def test_only_the_picks_asked_for_are_planned_and_they_are_the_first_of_the_full_list(box_part, pick_settings):
-    grasps = suction_grasps(box_part, pick_settings)
-    low_good, low_bad = lying(-0.06, 0.0), lying(0.06, 0.0)
-    high = make_T(low_good[:3, :3], np.array([0.0, 0.06, 0.5 - EXTENTS[2] / 2 - 0.03]))
-    T = np.stack([low_bad, low_good, high])
-    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    grasps, T, captured = two_low_parts_and_a_high_one(box_part, pick_settings)
     args = (grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR)
     for order, first_two in ((["height", "score", "clearance"], [2, 1]), (["score", "height"], [1, 0])):
         settings = pick_settings.model_copy(update={"order": order})

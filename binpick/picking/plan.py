@@ -209,11 +209,9 @@ def plan_picks(
                        None: not measured, trusted)
     arm              : the whole arm's check of a grasp the gripper check kept (None: the gripper
                        only); q_from (6,) the configuration the arm starts each pick from
-    max_picks        : only the first this many picks are wanted (a cell executes one per capture):
-                       parts are tried in the order their ranking's known keys give (trusted,
-                       pick.order up to `clearance`), and once that many are found the parts that
-                       can no longer rank before them are left unplanned (listed in unpicked as
-                       NOT_PLANNED); None: every part
+    max_picks        : only the first this many picks are wanted (a cell executes one): parts are
+                       tried in the order of the ranking's keys known before their grasps (up to
+                       clearance); those that can no longer rank first are NOT_PLANNED; None: all
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -291,12 +289,7 @@ def plan_picks(
                 limit = max(params.own_points_m, OWN_NOISE_SIGMAS * noise_m)
                 own[near[(off_surface <= limit) & (nearest <= limit + own_of.spacing_m)]] = True
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
-        normals_cam = model_normals @ T[:3, :3].T
-        near_lift = (
-            np.asarray(tree.query_ball_point(centres[i], 3.0 * reach + back), dtype=np.int64)
-            if tree is not None
-            else np.zeros(0, np.int64)
-        )
+        near_lift = None  # what may lie in the part's way out, gathered once a grasp gets that far
         cos_approach = tools[:, :3, 2] @ -up if len(tools) else np.zeros(0)
         in_cone = cos_approach >= cos_cone - 1e-12
         # Beyond the cone, only when nothing within it is free (a part leaning on a wall, whose
@@ -326,12 +319,15 @@ def plan_picks(
                 continue
             # The part itself, back out along the approach and up a diameter, must come free.
             moves = [(-T_tool[:3, 2], params.retreat_distance_m), (up, 2.0 * reach)]
+            if near_lift is None:
+                normals_cam = model_normals @ T[:3, :3].T
+                near_lift = np.asarray(tree.query_ball_point(centres[i], 3 * reach + back) if tree else [], np.int64)
             ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
             blockers = lift_blockers(
                 posed[i], normals_cam, moves, obstacles[ahead], source[ahead], lift_radius, lift_radius + 2.0 * limit
             )
             if blockers:
-                dragged = {LIFTS_INTO + _name(CAPTURED if b == -1 else BIN if b == -2 else str(b)) for b in blockers}
+                dragged = {LIFTS_INTO + _name(_source(b)) for b in blockers}
                 causes.update(dragged)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(dragged))))
                 continue
@@ -392,6 +388,10 @@ def _name(cause: str) -> str:
     return f"part {cause}" if cause.isdigit() else cause
 
 
+def _source(s: int) -> str:  # an obstacle's source as a cause
+    return CAPTURED if s == -1 else BIN if s == -2 else str(int(s))
+
+
 def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, 3] += offset
@@ -415,7 +415,7 @@ def _collisions(
         # may look CLEARANCE_CAP_M far (tens of thousands of points), only for a grasp that passes.
         d, src = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, clearance_m)
         for s in np.unique(src[d < clearance_m]):
-            hit.add(CAPTURED if s == -1 else BIN if s == -2 else str(int(s)))
+            hit.add(_source(s))
         # The clearance by widening searches: a nearest point found within a search's margin is
         # the nearest of all (every point within the margin is gathered), so the wide, costly
         # search runs only for a grasp with nothing near it, and none beyond the floor's distance.
