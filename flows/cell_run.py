@@ -26,7 +26,16 @@ from typing import Protocol
 
 import numpy as np
 
-from binpick.cell.robot import ARM_STOPPED, MAX_FAILURES_IN_A_ROW, PICKS_PER_CAPTURE, Robot, URRobot, execute_pick
+from binpick.cell.retries import FailedGrips
+from binpick.cell.robot import (
+    ARM_STOPPED,
+    MAX_FAILURES_IN_A_ROW,
+    NO_GRIP,
+    PICKS_PER_CAPTURE,
+    Robot,
+    URRobot,
+    execute_pick,
+)
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError, NothingAboveTheFloor
 from binpick.io.atomic import write_text
@@ -160,6 +169,7 @@ def run_cell(
     folder.mkdir(parents=True, exist_ok=True)
     stop = stop or threading.Event()
     failures, placed, cycle = 0, 0, 0
+    failed_grips = FailedGrips()  # parts left alone until nothing else is left (binpick/cell/retries.py)
     ended = "stopped"
     while True:
         if stop.is_set() or layout.cell_stop.exists():
@@ -185,6 +195,7 @@ def run_cell(
                 SceneSeeds.of_capture_digest(params.seed, digest),
                 q,
                 PICKS_PER_CAPTURE,
+                failed_grips.centres_m(),
             )
             refused = None
         except NothingAboveTheFloor as exc:
@@ -230,6 +241,8 @@ def run_cell(
             t1 = time.perf_counter()
             state = execute_pick(robot, first.arm, first.width_m)
             record["move_s"] = round(time.perf_counter() - t1, 4)
+            if state == NO_GRIP:
+                failed_grips.failed(result.registration.poses[first.pose_index].T_cam_from_model, models.part.centre_m)
         record["state"] = state
         write_text(here / "cycle.json", json.dumps(record, indent=1) + "\n")
         log.info("cycle %d: %s", cycle - 1, state)
@@ -242,6 +255,8 @@ def run_cell(
         elif state == ARM_STOPPED:
             ended = "arm stopped: look at the arm before running again"
             break
+        elif state == NO_PICK and failed_grips.retry():
+            log.info("no other pick: the parts the gripper failed to hold are tried again")
         else:
             failures += 1
     summary = RunSummary(folder, cycle, placed, ended)

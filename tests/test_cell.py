@@ -16,6 +16,7 @@ from binpick.errors import BinpickError
 from binpick.layout import Layout
 from binpick.params import load_params
 from binpick.picking.arm import ArmMotion
+from binpick.picking.plan import GRIP_FAILED
 from binpick.robot.trajectory import JointLimits
 
 PARAMS = load_params(ROOT / "params.yaml", "t_joint")
@@ -71,6 +72,38 @@ def test_a_stop_request_ends_the_run_before_the_next_cycle(tmp_path, models):
     stop.set()
     Layout(tmp_path).cell_stop.unlink()
     assert run_cell(tmp_path, PARAMS, "t_joint", None, Untouched(), models, stop=stop).ended == "stop requested"  # type: ignore[arg-type]
+
+
+def test_a_part_the_gripper_failed_to_hold_is_left_alone_in_the_next_cycle(tmp_path, t_joint, models):
+    from flows.cell_run import run_cell, simulated_cell
+
+    sim, camera = simulated_cell(PARAMS, t_joint, 3, seed=4)
+
+    class NoSealOnce:
+        """The simulated robot, its vacuum failing at the first grasp (the part is not touched)."""
+
+        def __init__(self):
+            self.failed = False
+
+        def grip(self, width_m):
+            if not self.failed:
+                self.failed = True
+                return False
+            return sim.grip(width_m)
+
+        def __getattr__(self, name):
+            return getattr(sim, name)
+
+    summary = run_cell(tmp_path, PARAMS, "t_joint", NoSealOnce(), camera, models, max_cycles=2)  # type: ignore[arg-type]
+    sim.close()
+    first, second = sorted(p for p in summary.folder.iterdir() if p.is_dir())
+    assert json.loads((first / "cycle.json").read_text())["state"] == NO_GRIP
+    assert json.loads((second / "cycle.json").read_text())["state"] == "placed"
+    tried, then = (json.loads((c / "picks.json").read_text()) for c in (first, second))
+    assert [u["reason"] for u in then["unpicked"]].count(GRIP_FAILED) == 1
+    # The second pick went to another part: its grasp lies a part's width away from the first.
+    grasp = [np.asarray(d["picks"][0]["camera"]["grasp"])[:3, 3] for d in (tried, then)]
+    assert np.linalg.norm(grasp[0] - grasp[1]) > 0.02
 
 
 class FakeRTDE:

@@ -30,7 +30,7 @@ from binpick.picking.gripper import (
     signed_distance,
     swept,
 )
-from binpick.picking.plan import BIN, CAPTURED, NOT_PLANNED, plan_picks
+from binpick.picking.plan import BIN, CAPTURED, GRIP_FAILED, NOT_PLANNED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -641,3 +641,17 @@ def test_pick_settings_refuse_a_fallback_cone_narrower_than_the_cone(tmp_path):
     path.write_text(text.replace("fallback_cone_deg: 65.0", "fallback_cone_deg: 30.0"))
     with pytest.raises(ParamsError, match="fallback_cone_deg"):
         load_params(path)
+
+
+def test_a_part_the_gripper_failed_to_hold_is_not_picked_and_still_blocks_its_neighbour(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
+    target = lying(0.0, 0.0)
+    above = make_T(target[:3, :3], target[:3, 3] - np.array([0.0, 0.0, 0.045]))  # across the target's top
+    free = lying(0.12, 0.0)
+    T = np.stack([target, above, free])
+    captured = np.concatenate([seen_surface(t, box_part) for t in T])
+    args = (grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured, FLOOR, pick_settings)
+    plan = plan_picks(T, np.array([0.9, 0.5, 0.7]), *args, skip=np.array([False, True, False]))
+    assert [p.pose_index for p in plan.picks] == [2]
+    reasons = dict(plan.unpicked)
+    assert reasons[1] == GRIP_FAILED and "part 1" in reasons[0]  # still an obstacle to the one below

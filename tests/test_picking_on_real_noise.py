@@ -10,11 +10,11 @@ import pytest
 from conftest import box_part_model
 from pykdtree.kdtree import KDTree
 
-from binpick.cell.bin_box import BinBox
+from binpick.cell.bin_box import BinBox, support_frame
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.io.grasps import GraspSet, tool_frame
 from binpick.picking.measured import image_coordinates, local_noise_m
-from binpick.picking.plan import UNSEEN, plan_picks, support_frame
+from binpick.picking.plan import UNSEEN, plan_picks
 
 EXTENTS = np.array([0.06, 0.05, 0.02])
 FLOOR = np.array([0.0, 0.0, -1.0, 0.6])  # a Kinect-class camera 0.6 m above the floor

@@ -1,5 +1,6 @@
 """The bin as a box, the one type for it: fitted to a capture (cell/bin_fit.py), given in params
-(import_capture's region of interest), and an obstacle to the gripper (picking/plan.py)."""
+(import_capture's region of interest), an obstacle to the gripper (picking/plan.py), and the up
+axis picks approach along (support_frame)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,11 @@ import numpy as np
 
 from binpick.geometry.transforms import transform_points
 from binpick.params import ImportCaptureParams
+
+# A bin box's floor is the support plane unless the plane found in the capture agrees with it
+# within these (then the measured plane is used: it is where the parts lie today).
+BIN_PLANE_AGREEMENT_DEG = 10.0
+BIN_PLANE_AGREEMENT_M = 0.02
 
 
 @dataclass(frozen=True)
@@ -52,3 +58,37 @@ class BinBox:
                 f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
                 faces.append(f)
         return transform_points(self.T_cam_from_bin, np.concatenate(faces))
+
+
+def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """up (3,) unit, camera frame, and the support plane (4,) with that normal (None when there is none).
+
+    With a bin box, up is the box's z axis (toward the camera) and the plane its floor (bin
+    frame z = 0), unless the plane found in the capture agrees with that floor within
+    BIN_PLANE_AGREEMENT_DEG and BIN_PLANE_AGREEMENT_M: on an oblique view the plane found may be
+    the table beside the box, or a wall. Without one, the plane found, else the camera's -z.
+    """
+    plane = np.asarray(floor_plane, dtype=np.float64)
+    found = None
+    if plane.shape == (4,) and np.all(np.isfinite(plane)):
+        n = plane[:3] / np.linalg.norm(plane[:3])
+        d = plane[3] / np.linalg.norm(plane[:3])
+        if d < 0:  # the normal toward the camera (origin): n . 0 + d > 0
+            n, d = -n, -d
+        found = np.append(n, d)
+    if bin_box is not None:
+        T = np.asarray(bin_box.T_cam_from_bin, dtype=np.float64)
+        up, origin = T[:3, 2] / np.linalg.norm(T[:3, 2]), T[:3, 3]
+        if -up @ origin < 0:  # toward the camera
+            up = -up
+        box_plane = np.append(up, -up @ origin)
+        if (
+            found is not None
+            and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG))
+            and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M
+        ):
+            return found[:3], found
+        return up, box_plane
+    if found is not None:
+        return found[:3], found
+    return np.array([0.0, 0.0, -1.0]), None

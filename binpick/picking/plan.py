@@ -40,7 +40,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from binpick.cell.bin_box import BinBox
+from binpick.cell.bin_box import BinBox, support_frame
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.grasps import GraspSet
@@ -82,10 +82,8 @@ UNSEEN = "contact not where the camera measured the part"
 LIFTS_INTO = "the part lifts into "
 # A part left unplanned: picks ranked before it were all that were asked for (max_picks).
 NOT_PLANNED = "not planned: enough picks rank before it"
-# A bin box's floor is the support plane unless the plane found in the capture agrees with it
-# within these (then the measured plane is used: it is where the parts lie today).
-BIN_PLANE_AGREEMENT_DEG = 10.0
-BIN_PLANE_AGREEMENT_M = 0.02
+# A part the cell's grip failed on a moment ago, left alone for now (binpick/cell/retries.py).
+GRIP_FAILED = "the gripper failed to hold it in an earlier attempt"
 
 
 @dataclass(frozen=True)
@@ -147,40 +145,6 @@ def thin(points: np.ndarray, grid_m: float) -> np.ndarray:
     return points[voxel_downsample_indices(points, grid_m)]
 
 
-def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-    """up (3,) unit, camera frame, and the support plane (4,) with that normal (None when there is none).
-
-    With a bin box, up is the box's z axis (toward the camera) and the plane its floor (bin
-    frame z = 0), unless the plane found in the capture agrees with that floor within
-    BIN_PLANE_AGREEMENT_DEG and BIN_PLANE_AGREEMENT_M: on an oblique view the plane found may be
-    the table beside the box, or a wall. Without one, the plane found, else the camera's -z.
-    """
-    plane = np.asarray(floor_plane, dtype=np.float64)
-    found = None
-    if plane.shape == (4,) and np.all(np.isfinite(plane)):
-        n = plane[:3] / np.linalg.norm(plane[:3])
-        d = plane[3] / np.linalg.norm(plane[:3])
-        if d < 0:  # the normal toward the camera (origin): n . 0 + d > 0
-            n, d = -n, -d
-        found = np.append(n, d)
-    if bin_box is not None:
-        T = np.asarray(bin_box.T_cam_from_bin, dtype=np.float64)
-        up, origin = T[:3, 2] / np.linalg.norm(T[:3, 2]), T[:3, 3]
-        if -up @ origin < 0:  # toward the camera
-            up = -up
-        box_plane = np.append(up, -up @ origin)
-        if (
-            found is not None
-            and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG))
-            and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M
-        ):
-            return found[:3], found
-        return up, box_plane
-    if found is not None:
-        return found[:3], found
-    return np.array([0.0, 0.0, -1.0]), None
-
-
 def plan_picks(
     T_cam_from_model: np.ndarray,
     scores: np.ndarray,
@@ -196,6 +160,7 @@ def plan_picks(
     arm: ArmPlanner | None = None,
     q_from: np.ndarray | None = None,
     max_picks: int | None = None,
+    skip: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the detected parts.
 
@@ -212,6 +177,7 @@ def plan_picks(
     max_picks        : only the first this many picks are wanted (a cell executes one): parts are
                        tried in the order of the ranking's keys known before their grasps (up to
                        clearance); those that can no longer rank first are NOT_PLANNED; None: all
+    skip             : (p,) bool, parts not to pick now (GRIP_FAILED); they stay obstacles
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -276,6 +242,9 @@ def plan_picks(
             if known[i] > known[last.pose_index]:
                 unpicked.extend((k, NOT_PLANNED) for k in order[n_done:])
                 break
+        if skip is not None and skip[i]:
+            unpicked.append((i, GRIP_FAILED))
+            continue
         T = T_cam_from_model[i]
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).

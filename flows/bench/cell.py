@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.cell.retries import FailedGrips
 from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, PICKS_PER_CAPTURE, Execution
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError
@@ -191,6 +192,7 @@ def _clear_bin(
     q = np.asarray(layout.cell.home_q_rad, dtype=float)
     hidden_s = 0.0  # perception that fits in the previous motion after the arm left the view
     failures = 0
+    failed_grips = FailedGrips()  # parts left alone until nothing else is left, as in binpick cell run
     try:
         while failures < MAX_FAILURES_IN_A_ROW:
             inside = sim.in_bin()
@@ -211,6 +213,7 @@ def _clear_bin(
                     SceneSeeds.of(0, f"cell-{tally.attempts}"),
                     q,
                     PICKS_PER_CAPTURE,
+                    failed_grips.centres_m(),
                 )
                 plan = result.picks
             except BinpickError as exc:
@@ -221,6 +224,8 @@ def _clear_bin(
             tally.attempts += 1
             tally.wall_s += max(0.0, perception_s - hidden_s)
             hidden_s = 0.0
+            if plan is not None and not plan.picks and failed_grips.retry():
+                continue  # no other pick: the parts the gripper failed to hold are tried again
             if plan is None or not plan.picks:
                 failures += 1
                 why = Counter(_leading_cause(reason) for _, reason in plan.unpicked) if plan is not None else None
@@ -261,6 +266,8 @@ def _clear_bin(
             if recording is not None:
                 touched = f", touched {' and '.join(sorted(done.touched))}" if done.touched else ""
                 recording.attempt(tally.attempts, part, poses[keep], motion, f"{done.outcome}{touched}")
+            if done.outcome in ("no seal", "no hold"):  # what the robot's vacuum sensor or jaws tell
+                failed_grips.failed(result.registration.poses[first.pose_index].T_cam_from_model, part.centre_m)
             tally.removed += int(done.outcome in ("placed", "misplaced"))
             tally.lost += sim.remove_outside()
             failures = 0 if good else failures + 1

@@ -1,0 +1,56 @@
+"""Parts a grip failed on: a cell does not send the arm to the same part at once again.
+
+When the gripper holds nothing at the grasp (the suction cup found no seal, the jaws closed on
+air), the pose it was sent to was wrong or the grasp does not hold on that part as it lies. The
+next capture sees the same part where it was, usually posed the same way, so the same pick
+would fail again: in the simulated cell a T-joint posed 3 mm and 20 degrees off failed three
+times in a row and stopped a bin half full. The part is left alone, an obstacle like any other,
+until no other part can be picked; then it is tried again (the heap around it has changed, and
+with it what the camera sees of it).
+
+Camera frame, metres (the camera is fixed over the bin, so a spot in its frame stays put).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+# A pose is the part a grip failed on when its centre lies within this share of the part's
+# diameter of where that part's centre was (the same part posed again moves by millimetres; two
+# parts' centres lie further apart than that unless they interpenetrate).
+SAME_PART_SHARE = 0.2
+
+
+@dataclass
+class FailedGrips:
+    """The centres (camera frame) of the parts a grip failed on since the last retry."""
+
+    _spots: list[np.ndarray] = field(default_factory=list)
+
+    def failed(self, T_cam_from_model: np.ndarray, centre_m: np.ndarray) -> None:
+        """A grip failed on the part posed at T_cam_from_model (4, 4); centre_m (3,) the part's
+        centre in its model frame."""
+        T = np.asarray(T_cam_from_model, dtype=np.float64)
+        self._spots.append(T[:3, :3] @ np.asarray(centre_m, dtype=np.float64) + T[:3, 3])
+
+    def retry(self) -> bool:
+        """No other part could be picked: the parts left alone are tried again. Whether there were any."""
+        had, self._spots = bool(self._spots), []
+        return had
+
+    def centres_m(self) -> np.ndarray:
+        """(k, 3) the centres of the parts to leave alone now."""
+        return np.array(self._spots, dtype=np.float64).reshape(-1, 3)
+
+
+def near_failed(centres_m: np.ndarray, failed_m: np.ndarray, diameter_m: float) -> np.ndarray:
+    """(p,) bool: which of the posed parts' centres (p, 3) lie within SAME_PART_SHARE of the part's
+    diameter of a failed part's centre (k, 3); same frame, metres."""
+    centres = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
+    failed = np.asarray(failed_m, dtype=np.float64).reshape(-1, 3)
+    if len(centres) == 0 or len(failed) == 0:
+        return np.zeros(len(centres), dtype=bool)
+    distance = np.linalg.norm(centres[:, None, :] - failed[None, :, :], axis=2)
+    return np.asarray(np.min(distance, axis=1) <= SAME_PART_SHARE * diameter_m)

@@ -1,0 +1,32 @@
+"""A part the gripper failed to hold is left alone until nothing else can be picked: the same part
+posed again is recognised, a neighbour is not."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from binpick.cell.retries import SAME_PART_SHARE, FailedGrips, near_failed
+from binpick.geometry.transforms import make_T
+
+DIAMETER_M = 0.075
+CENTRE_M = np.array([0.0, 0.005, 0.0])  # the part's centre in its model frame
+
+
+def centre_cam(T: np.ndarray) -> np.ndarray:
+    return T[:3, :3] @ CENTRE_M + T[:3, 3]
+
+
+def test_the_same_part_posed_again_is_left_alone_and_its_neighbour_is_not():
+    T_failed = make_T(Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix(), np.array([0.1, -0.05, 0.8]))
+    grips = FailedGrips()
+    grips.failed(T_failed, CENTRE_M)
+    # Posed again 3 mm and 20 degrees (about the model's x axis) off; a neighbour beside it.
+    again = T_failed @ make_T(Rotation.from_euler("x", 20, degrees=True).as_matrix(), np.array([0.003, 0.0, 0.0]))
+    beside = make_T(T_failed[:3, :3], T_failed[:3, 3] + np.array([1.5 * SAME_PART_SHARE * DIAMETER_M, 0.0, 0.0]))
+    centres = np.array([centre_cam(again), centre_cam(beside)])
+    assert near_failed(centres, grips.centres_m(), DIAMETER_M).tolist() == [True, False]
+    # No other pick: the parts left alone are tried again, once.
+    assert grips.retry() and len(grips.centres_m()) == 0
+    assert not grips.retry()
+    assert near_failed(centres, grips.centres_m(), DIAMETER_M).tolist() == [False, False]
