@@ -181,3 +181,19 @@ def test_the_place_pose_is_the_target_composed_with_the_grasp():
         part = T @ invert_T(grasp)
         assert np.allclose(part[:3, :3] @ centre + part[:3, 3], target[:3, 3])
         assert np.allclose(T[:3, 2], [0.0, 0.0, -1.0])
+
+
+def test_a_drop_zones_turn_lets_the_wrist_swing_with_the_base():
+    # A grasp straight down over the camera's centre (base x = 0.45 m); the drop zone (params:
+    # base (0.1, 0.45)) lies about 70 degrees around the base from it. Any turn of the tool there
+    # will do: the quickest leaves wrist 3 where the lift had it (within half a turn step of the
+    # place's candidates, 15 degrees), where the tool's heading kept in the world would turn it
+    # back by the base's swing.
+    T_cam_from_tool = make_T(np.eye(3), np.array([0.0, 0.0, 0.45]))
+    plan = _planner(np.zeros((0, 3)), np.zeros((0, 4))).plan(
+        T_cam_from_tool, np.eye(4), "suction", np.zeros(3), np.asarray(PARAMS.cell.home_q_rad)
+    )
+    assert not isinstance(plan, str), plan
+    swing = np.angle(np.exp(1j * (plan.q["place"] - plan.q["lift"])))
+    assert abs(swing[0]) > np.radians(60.0)
+    assert abs(swing[5]) <= np.radians(15.0) + 1e-6
