@@ -4,8 +4,10 @@ colliding pick.
 
 Per part: bins of 10-20 parts settled as in `bench picking` (a plain bin, the camera straight above
 it); the arm (cell.arm) stands beside the bin's long side with its base at the floor's height, the
-place is a drop zone beside the bin's short side (cell.place's kind and tolerances). Until the bin
-is empty or 3 attempts in a row fail: render what the camera sees, run the real scene path in
+place is a drop zone beside the bin's short side, level with its middle (cell.place's kind and
+tolerances). Until the bin is empty or 3 attempts in a row fail (a part the gripper failed to hold
+is left alone until nothing else can be picked, as in `binpick cell run`): render what the camera
+sees, run the real scene path in
 process (import, segmentation when the part has a trained network, registration, picks with the
 arm's check) and execute the first pick in physics from where the arm is. A pick is good when the
 part arrives at the place within tolerance, nothing else left the bin with it and neither the arm
@@ -113,18 +115,16 @@ class CellLayout:
 
 def cell_layout(p: Params) -> CellLayout:
     """The arm beside the bin's long side (base x toward the bin), the camera straight above the
-    floor's centre, a drop zone beside the bin's short side."""
+    floor's centre, a drop zone beside the bin's short side, level with its middle."""
     b = p.generate.bin
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # base x along the bin's y
     T_bin_from_base = make_T(R, np.array([0.0, -(b.inner_y_m / 2.0 + b.wall_thickness_m + BASE_GAP_M), 0.0]))
     T_base_from_bin = invert_T(T_bin_from_base)
     T_bin_from_camera = T_bin_from_cam(p.camera.distance_m)
+    # Level with the bin's middle, as a cell is laid out for a short swing: the base turns 20 to
+    # 95 degrees from a part to the place (level with the base it turned 55 to 125).
     place_bin = np.array(
-        [
-            -(b.inner_x_m / 2.0 + b.wall_thickness_m + PLACE_GAP_M),
-            T_bin_from_base[1, 3],
-            b.wall_height_m + PLACE_HEIGHT_M,
-        ]
+        [-(b.inner_x_m / 2.0 + b.wall_thickness_m + PLACE_GAP_M), 0.0, b.wall_height_m + PLACE_HEIGHT_M]
     )
     place = p.cell.place.model_copy(
         update={
