@@ -185,7 +185,7 @@ def test_the_place_pose_is_the_target_composed_with_the_grasp():
 
 def test_a_drop_zones_turn_lets_the_wrist_swing_with_the_base():
     # A grasp straight down over the camera's centre (base x = 0.45 m); the drop zone (params:
-    # base (0.1, 0.45)) lies about 70 degrees around the base from it. Any turn of the tool there
+    # base (0.1, 0.45)) lies about 78 degrees around the base from it. Any turn of the tool there
     # will do: the quickest leaves wrist 3 where the lift had it (within half a turn step of the
     # place's candidates, 15 degrees), where the tool's heading kept in the world would turn it
     # back by the base's swing.
