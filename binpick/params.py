@@ -610,7 +610,9 @@ class PickParams(_Strict):
         "(null: never)",
     )
     pregrasp_distance_m: float = Field(ge=0, description="the pre-grasp pose: this far back along the approach")
-    retreat_distance_m: float = Field(ge=0, description="the post-grasp pose: this far back along the approach")
+    retreat_distance_m: float = Field(
+        ge=0, description="the post-grasp pose: this far back along the approach (or up the bin: picking/lift.py)"
+    )
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(

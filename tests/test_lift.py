@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from binpick.picking.lift import lift_blockers
+from binpick.picking.lift import lift_blockers, way_outs
 
 UP = np.array([0.0, 0.0, 1.0])  # this test's frame: z up (the camera's frame is any rigid turn of it)
 RADIUS_M, CONTACT_M = 0.003, 0.011
@@ -50,3 +50,12 @@ def test_what_lies_behind_or_beyond_the_move_is_not_run_into():
     shelf, _ = box_surface((0.1, 0.1, 0.01), (-0.06, 0.0, 0.05))
     assert blockers([shelf]) == {0}
     assert blockers([shelf], [(np.array([1.0, 0.0, 0.0]), 0.08), (UP, 0.1)]) == set()
+
+
+def test_a_tilted_approach_may_also_leave_straight_up_and_a_vertical_one_only_back():
+    tilted = np.array([0.0, np.sin(np.radians(40.0)), -np.cos(np.radians(40.0))])
+    back, up = way_outs(tilted, UP)
+    assert np.allclose(back, -tilted) and np.allclose(up, UP)
+    # Within a few degrees of straight down the two ways are one.
+    (only,) = way_outs(np.array([0.0, np.sin(np.radians(3.0)), -np.cos(np.radians(3.0))]), UP)
+    assert only[2] > 0.99

@@ -30,7 +30,8 @@ from binpick.picking.gripper import (
     signed_distance,
     swept,
 )
-from binpick.picking.plan import BIN, CAPTURED, GRIP_FAILED, NOT_PLANNED, plan_picks
+from binpick.picking.obstacles import BIN, CAPTURED
+from binpick.picking.plan import GRIP_FAILED, NOT_PLANNED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -655,3 +656,72 @@ def test_a_part_the_gripper_failed_to_hold_is_not_picked_and_still_blocks_its_ne
     assert [p.pose_index for p in plan.picks] == [2]
     reasons = dict(plan.unpicked)
     assert reasons[1] == GRIP_FAILED and "part 1" in reasons[0]  # still an obstacle to the one below
+
+
+def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straight_up(box_part, pick_settings):
+    """A box leaning 40 degrees (its face toward +y): its only grasps in a 45-degree cone come in
+    40 degrees from straight down. A taller block stands 3.5 cm off its side along +y, out of the
+    tool's way but in the part's: pulled back along the approach the part moves 3.2 cm along
+    +y and runs into it. Straight up it comes free: the pick leaves that way (its post-grasp
+    pose retreat_distance_m above the grasp). A bar over the part blocks both ways."""
+    R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(40))
+    lowest = transform_points(make_T(R, np.zeros(3)), box_part.points_m)[:, 2].max()
+    T = make_T(R, np.array([0.0, 0.0, 0.5 - lowest]))  # resting on the floor
+    block = trimesh.creation.box(extents=(0.06, 0.02, 0.03))
+    block.apply_translation((0.0, 0.035, 0.5 - 0.015))
+    block_top = block.vertices[:, 2].min() + 1e-4
+    top = trimesh.sample.sample_surface_even(block, 4000, seed=1)[0]
+    top = top[top[:, 2] < block_top]
+    cones = pick_settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": None})
+    grasps = suction_grasps(box_part, cones)
+
+    def plan(captured):
+        return plan_picks(
+            T[None],
+            np.array([0.9]),
+            grasps,
+            box_part.points_m,
+            box_part.normals,
+            box_part.centre_m,
+            captured,
+            FLOOR,
+            cones,
+        )
+
+    (pick,) = plan(np.concatenate([seen_surface(T, box_part), top])).picks
+    assert np.degrees(np.arccos(pick.T_cam_from_grasp[2, 2])) == pytest.approx(40.0, abs=1e-6)
+    assert np.allclose(pick.retreat_cam, [0.0, 0.0, -1.0])
+    assert np.allclose(
+        pick.T_cam_from_postgrasp[:3, 3], pick.T_cam_from_grasp[:3, 3] + [0.0, 0.0, -cones.retreat_distance_m]
+    )
+    # Without the block the part leaves back along the approach, as the gripper came in.
+    (free,) = plan(seen_surface(T, box_part)).picks
+    assert np.allclose(free.retreat_cam, -free.T_cam_from_grasp[:3, 2])
+    # A bar of measured points 1 cm over the part's low (-y) edge: in the way both ways out.
+    edge = seen_surface(T, box_part)
+    a, b = np.meshgrid(np.linspace(-0.04, 0.04, 80), np.linspace(-0.02, -0.01, 10))
+    bar_z = edge[np.abs(edge[:, 1] + 0.015) < 0.005, 2].min() - 0.01
+    bar = np.column_stack([a.ravel(), b.ravel(), np.full(a.size, bar_z)])
+    blocked = plan(np.concatenate([edge, top, bar]))
+    assert not blocked.picks and "the part lifts into captured points" in blocked.unpicked[0][1]
+
+
+def test_a_tool_moved_off_its_axis_hits_what_lies_on_its_way_and_not_beside_it(pick_settings):
+    from scipy.spatial import cKDTree
+
+    from binpick.picking.gripper import suction_primitives
+    from binpick.picking.obstacles import moved_tool_hits
+
+    tool = suction_primitives(pick_settings.suction)  # the tool body: 15 mm radius, 2-17 cm behind the lip
+    points = np.array([[0.03, 0.0, -0.05], [0.03, 0.03, -0.05], [0.09, 0.0, -0.05]])
+    sources = np.array([-1, 3, -2])
+
+    def hits(offset):
+        return moved_tool_hits(
+            tool, np.eye(4), np.asarray(offset), cKDTree(points), points, sources, 0, np.zeros(3, bool), 0.002
+        )
+
+    # Moved 5 cm along x: through the first point, 3 cm from the second's line, 2.5 cm short of the third.
+    assert hits([0.05, 0.0, 0.0]) == {CAPTURED}
+    assert hits([0.08, 0.0, 0.0]) == {CAPTURED, BIN}
+    assert hits([0.0, 0.0, -0.05]) == set()

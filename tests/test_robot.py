@@ -197,3 +197,21 @@ def test_a_drop_zones_turn_lets_the_wrist_swing_with_the_base():
     swing = np.angle(np.exp(1j * (plan.q["place"] - plan.q["lift"])))
     assert abs(swing[0]) > np.radians(60.0)
     assert abs(swing[5]) <= np.radians(15.0) + 1e-6
+
+
+def test_a_grasp_left_straight_up_puts_the_arms_post_grasp_above_it():
+    # A grasp tilted 40 degrees from straight down; the gripper check chose to leave it straight up
+    # the camera's -z (the bin's up axis here), not back along the tilted approach.
+    arm = load_arm("ur5e")
+    T_cam_from_tool = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(40.0)), np.array([0.0, 0.0, 0.45]))
+    planner = _planner(np.zeros((0, 3)), np.zeros((0, 4)))
+    home = np.asarray(PARAMS.cell.home_q_rad)
+    up = planner.plan(T_cam_from_tool, np.eye(4), "suction", np.zeros(3), home, retreat_cam=np.array([0.0, 0.0, -1.0]))
+    back = planner.plan(T_cam_from_tool, np.eye(4), "suction", np.zeros(3), home)
+    assert not isinstance(up, str) and not isinstance(back, str)
+    T_flange_from_tcp = np.asarray(PARAMS.cell.T_flange_from_tcp)
+    for planned, offset_cam in ((up, [0.0, 0.0, -0.05]), (back, -0.05 * T_cam_from_tool[:3, 2])):
+        grasp = arm.flange_pose(planned.q["grasp"]) @ T_flange_from_tcp
+        post = arm.flange_pose(planned.q["postgrasp"]) @ T_flange_from_tcp
+        assert np.allclose(post[:3, 3] - grasp[:3, 3], T_BASE_FROM_CAM[:3, :3] @ offset_cam, atol=1e-6)
+        assert np.allclose(post[:3, :3], grasp[:3, :3], atol=1e-6)  # moved, not turned

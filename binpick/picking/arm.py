@@ -12,7 +12,9 @@ The motion of one pick, through the named configurations (ArmMotion.path, the fi
 whose path is clear):
 from (home or the last place) -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
 from -> lift -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
-where lift is the post-grasp pose raised by cell.lift_m along the base's vertical; place_above is
+where postgrasp is the grasp moved back along the approach (or straight up the bin, where the
+gripper check chose that way out: picking/lift.py), lift the post-grasp pose raised by
+cell.lift_m along the base's vertical; place_above is
 left out at a drop zone (the part is let go from above). The target part itself is not an obstacle
 of the links (the tool meets it; the gripper check has the tool), and the arm's base link is left
 out (it stands beside the bin and does not move). The held part is checked (a sample about a
@@ -204,11 +206,16 @@ class ArmPlanner:
         centre_m: np.ndarray,
         q_from: np.ndarray,
         part_points_m: np.ndarray | None = None,
+        retreat_cam: np.ndarray | None = None,
     ) -> ArmMotion | str:
         """The motion for the grasp of gripper `kind` at T_cam_from_tool (T_model_from_tool on the
         part, whose centre is centre_m, model frame), the tool turned about its axis (turns_for)
         to the turn the arm reaches with the least motion from q_from whose place is reachable
-        and whose path is clear; else why none is (the commonest reason)."""
+        and whose path is clear; else why none is (the commonest reason). retreat_cam (3,): the
+        way the tool leaves the grasp, camera frame, unit (None: back along the approach)."""
+        if retreat_cam is None:
+            retreat_cam = -np.asarray(T_cam_from_tool, dtype=float)[:3, 2]
+        retreat_base = self.T_base_from_cam[:3, :3] @ np.asarray(retreat_cam, dtype=float)
         if self.payload is not None and not self.payload.lifts():
             return TOO_HEAVY
         reasons: Counter[str] = Counter()
@@ -224,7 +231,7 @@ class ArmPlanner:
         # The pick side (to the grasp and up to the lift) and the place side (from the lift on) are
         # checked apart: a turn whose pick side is blocked is not tried again for every place.
         for _, angle, q_grasp in sorted(reachable, key=lambda c: c[0])[:MAX_TURNS_CHECKED]:
-            q = self._in_bin(T_cam_from_tool, angle, q_grasp)
+            q = self._in_bin(T_cam_from_tool, angle, q_grasp, retreat_base)
             if isinstance(q, str):
                 reasons[q] += 1
                 continue
@@ -286,12 +293,12 @@ class ArmPlanner:
         self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray
     ) -> tuple[str, ...] | str:
         """The waypoints from q_from down to the grasp and up out of the bin, the first order whose
-        path is clear (straight to the pre-grasp, else down from the lift; out back along the
-        approach to the post-grasp, then up to the lift); or why neither is.
+        path is clear (straight to the pre-grasp, else down from the lift; out to the post-grasp,
+        then up to the lift); or why neither is.
         Unchecked (check_path False): the pick as today's pick list hands it over."""
         if not self.check_path:
             return ("pregrasp", "grasp", "postgrasp")
-        # Out along the approach first, whatever its direction: a joint-space line straight from the
+        # Out to the post-grasp first, whatever its direction: a joint-space line straight from the
         # grasp to the lift strays sideways by centimetres and drags the part along its neighbours.
         out = ("postgrasp", "lift")
         hit = None
@@ -302,13 +309,15 @@ class ArmPlanner:
         assert hit is not None
         return hit
 
-    def _in_bin(self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray) -> dict[str, np.ndarray] | str:
-        """The configurations at the pre-grasp, post-grasp and lift with the tool turned by angle, on
-        the branch of the grasp's (q_grasp), with it; or why there are none."""
+    def _in_bin(
+        self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray, retreat_base: np.ndarray
+    ) -> dict[str, np.ndarray] | str:
+        """The configurations at the pre-grasp, post-grasp (retreat_base (3,) the way there from the
+        grasp, base frame, unit) and lift with the tool turned by angle, on the branch of the
+        grasp's (q_grasp), with it; or why there are none."""
         grasp = self.T_base_from_cam @ turned(T_cam_from_tool, angle)
-        approach = grasp[:3, 2]
-        poses = {"grasp": grasp, "pregrasp": _back(grasp, approach * self.pregrasp_m)}
-        poses["postgrasp"] = _back(grasp, approach * self.retreat_m)
+        poses = {"grasp": grasp, "pregrasp": _back(grasp, grasp[:3, 2] * self.pregrasp_m)}
+        poses["postgrasp"] = _back(grasp, -retreat_base * self.retreat_m)
         poses["lift"] = raised(poses["postgrasp"], self.cell.lift_m)
         q: dict[str, np.ndarray] = {"grasp": q_grasp}
         for name, ref in (("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp")):
@@ -390,7 +399,7 @@ class ArmPlanner:
 
 def _tool_checked(names: tuple[str, ...]) -> list[bool]:
     """Per segment of a path (from its start through names): whether the tool is checked on it;
-    not from the pre-grasp down to the grasp and back out to the lift (the gripper check's)."""
+    not from the pre-grasp down to the grasp and out to the lift (the gripper check's)."""
     starts = ("from", *names[:-1])
     along_approach = {("pregrasp", "grasp"), ("grasp", "postgrasp"), ("grasp", "lift"), ("postgrasp", "lift")}
     return [(a, b) not in along_approach for a, b in zip(starts, names, strict=True)]

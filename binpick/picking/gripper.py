@@ -95,6 +95,17 @@ def swept(primitives: list[Primitive], back_m: float) -> list[Primitive]:
     return [p.extended_back(back_m) for p in primitives]
 
 
+def translated_poses(T: np.ndarray, offset_m: np.ndarray, step_m: float) -> np.ndarray:
+    """(k, 4, 4) the pose T (4, 4) moved along offset_m (3,, T's parent frame) in k even steps of
+    at most step_m, the last at the full offset (T itself not among them): the tool's positions
+    on a move out that is not along its own axis (where `swept` does not apply)."""
+    offset_m = np.asarray(offset_m, dtype=np.float64)
+    k = max(1, int(np.ceil(np.linalg.norm(offset_m) / step_m)))
+    out = np.repeat(np.asarray(T, dtype=np.float64)[None], k, axis=0)
+    out[:, :3, 3] += np.outer(np.arange(1, k + 1) / k, offset_m)
+    return out
+
+
 def signed_distance(points_tool: np.ndarray, primitives: list[Primitive]) -> np.ndarray:
     """(n,) signed distance of points (n, 3), tool frame, to the union of the primitives:
     negative inside, metres."""

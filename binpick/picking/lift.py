@@ -1,7 +1,8 @@
 """Whether a grasped part comes out of the heap free: the part, moved back along the approach and
-then up, must not push into anything that lies ahead of it (a neighbour lying across it, a part
-hooked through it, the bin's rim over it). The gripper check sweeps the tool; this sweeps the
-part it holds, which the arm's check sees only from the lift on.
+then up (or, the approach tilted, straight up), must not push into anything that lies ahead of
+it (a neighbour lying across it, a part hooked through it, the bin's rim over it). The gripper
+check sweeps the tool; this sweeps the part it holds, which the arm's check sees only from the
+lift on.
 
 Frames: the camera's; metres.
 """
@@ -18,6 +19,21 @@ LEADING_COS = 0.17
 # An obstacle point counts only this many of them ahead of the part: noise above a surface (a few
 # stray points the part's own did not take) is not a neighbour.
 MIN_BLOCKING_POINTS = 5
+# An approach within this angle of the bin's down axis (cosine; about 5 degrees) leaves along the
+# approach only: straight up is the same way out.
+SAME_WAY_COS = 0.996
+
+
+def way_outs(approach: np.ndarray, up: np.ndarray) -> list[np.ndarray]:
+    """The directions (unit, the frame of approach (3,) and up (3,)) a grasped part may leave by,
+    first choice first: back along the approach, retracing the path the gripper check cleared on
+    the way in; then, when the approach is tilted, straight up the bin's axis. Pulled back along
+    a tilted approach a part is dragged sideways through its neighbours: on the ring screw's
+    curved faces (approaches up to 49 degrees from the vertical) every grasp of a heap of 10-20
+    did, though nothing lay above the parts."""
+    back = -np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
+    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    return [back] if float(back @ up) >= SAME_WAY_COS else [back, up]
 
 
 def lift_blockers(

@@ -7,12 +7,15 @@ A grasp on a detected part is kept when
   plane's normal toward the camera; the bin box's up axis when the bin is given; the camera's -z
   when there is neither), or, for a part none of
   whose grasps within that cone is kept, within fallback_cone_deg (tried after them), and
-- the gripper, swept along its approach from the pre-grasp pose to the grasp and back to the
-  post-grasp pose, stays clearance_m away from: the captured points (everything the camera
+- the gripper, swept along its approach from the pre-grasp pose to the grasp and back out to the
+  post-grasp pose (or up to it, see below), stays clearance_m away from: the captured points (everything the camera
   measured, floor and walls included, except the target's own points: those within own_points_m
   of its posed model's surface), the bin (the support plane, and the given box's walls and floor when
   the bin is given in params), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
+and the part it holds comes out of the heap free (picking/lift.py): back along the approach, or,
+that dragging it into a neighbour and the approach tilted, straight up the bin's axis (the tool's
+way up checked too; the post-grasp pose then lies above the grasp),
 and its contact is where the camera measured a surface: under a suction cup the captured points
 lie on the contact plane (within the seal tolerance, widened by the noise the capture shows
 about the pose) and the plane they span faces the cup,
@@ -46,8 +49,8 @@ from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
-from binpick.picking.gripper import covering_spheres, gripper_primitives, lowest_height, signed_distance, swept
-from binpick.picking.lift import lift_blockers
+from binpick.picking.gripper import gripper_primitives, swept
+from binpick.picking.lift import lift_blockers, way_outs
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
     NOISE_NEIGHBOURS,
@@ -59,12 +62,9 @@ from binpick.picking.measured import (
     local_noise_m,
     point_spacing_m,
 )
+from binpick.picking.obstacles import moved_tool_hits, source_name, tool_collisions
 from binpick.picking.ranking import known_keys, rank_key
 
-# Clearance is measured up to this far (a gripper in free space reports this).
-CLEARANCE_CAP_M = 0.05
-# ... by searches this wide first (then up to the cap), the nearest found in the first that finds one.
-CLEARANCE_SEARCH_M = (0.01, 0.02)
 # Obstacle points are thinned to a grid of this share of the clearance (at least 1 mm): closer
 # points add nothing a gripper of millimetres could slip between.
 OBSTACLE_GRID_M = 0.001
@@ -75,8 +75,6 @@ PART_OBSTACLE_GRID_M = 0.003
 # The held part's sample on the arm's way out spaced about this (the walls it must clear are
 # centimetres thick).
 CARRIED_GRID_M = 0.01
-# Obstacle sources in reasons and counts.
-CAPTURED, BIN, FLOOR = "captured points", "bin", "floor"
 UNSEEN = "contact not where the camera measured the part"
 # A grasp whose part, pulled out, pushes into something ahead of it (binpick/picking/lift.py).
 LIFTS_INTO = "the part lifts into "
@@ -105,6 +103,14 @@ class Pick:
     height_m: float
     trusted: bool = True  # the pose's seen-through share within max_seen_through (or not measured)
     arm: ArmMotion | None = None  # the arm's motion when the arm was checked (picking/arm.py)
+
+    @property
+    def retreat_cam(self) -> np.ndarray:
+        """(3,) unit: the way the tool leaves the grasp, to the post-grasp pose (back along the
+        approach, or straight up the bin: picking/lift.py)."""
+        out = self.T_cam_from_postgrasp[:3, 3] - self.T_cam_from_grasp[:3, 3]
+        norm = float(np.linalg.norm(out))
+        return out / norm if norm > 0 else -self.T_cam_from_grasp[:3, 2]
 
 
 @dataclass(frozen=True)
@@ -281,28 +287,52 @@ def plan_picks(
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
             body = swept(gripper_primitives(params, grasps.kind, float(grasps.width_m[g])), back)
-            hit, clearance = _collisions(body, T_tool, tree, obstacles, source, i, own, plane, params.clearance_m)
+            hit, clearance = tool_collisions(body, T_tool, tree, obstacles, source, i, own, plane, params.clearance_m)
             if hit:
                 causes.update(hit)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(hit))))
                 continue
-            # The part itself, back out along the approach and up a diameter, must come free.
-            moves = [(-T_tool[:3, 2], params.retreat_distance_m), (up, 2.0 * reach)]
+            # The part itself, out of the heap and up a diameter, must come free (lift.py).
             if near_lift is None:
                 normals_cam = model_normals @ T[:3, :3].T
                 near_lift = np.asarray(tree.query_ball_point(centres[i], 3 * reach + back) if tree else [], np.int64)
             ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
-            blockers = lift_blockers(
-                posed[i], normals_cam, moves, obstacles[ahead], source[ahead], lift_radius, lift_radius + 2.0 * limit
-            )
-            if blockers:
-                dragged = {LIFTS_INTO + _name(_source(b)) for b in blockers}
+            retreat: np.ndarray | None = None
+            dragged: set[str] = set()
+            for k, direction in enumerate(way_outs(T_tool[:3, 2], up)):
+                if k > 0 and tree is not None:
+                    # Off the tool's axis its own way out is not in the swept check above.
+                    tool_hit = moved_tool_hits(
+                        gripper_primitives(params, grasps.kind, float(grasps.width_m[g])),
+                        T_tool,
+                        params.retreat_distance_m * direction,
+                        tree,
+                        obstacles,
+                        source,
+                        i,
+                        own,
+                        params.clearance_m,
+                    )
+                    if tool_hit:
+                        dragged |= tool_hit
+                        continue
+                moves = [(direction, params.retreat_distance_m), (up, 2.0 * reach)]
+                blockers = lift_blockers(
+                    posed[i], normals_cam, moves, obstacles[ahead], source[ahead], lift_radius, lift_radius + 2 * limit
+                )
+                if not blockers:
+                    retreat = direction
+                    break
+                dragged |= {LIFTS_INTO + _name(source_name(b)) for b in blockers}
+            if retreat is None:
                 causes.update(dragged)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(dragged))))
                 continue
             motion = None
             if arm is not None and q_from is not None:
-                planned = arm.plan(T_tool, grasps.T_model_from_tool[g], grasps.kind, centre_m, q_from, carried_sample)
+                planned = arm.plan(
+                    T_tool, grasps.T_model_from_tool[g], grasps.kind, centre_m, q_from, carried_sample, retreat
+                )
                 if isinstance(planned, str):
                     causes[planned] += 1
                     rejected.append(Rejected(i, grasps.ids[g], T_tool, planned))
@@ -317,7 +347,7 @@ def plan_picks(
                 float(grasps.width_m[g]),
                 _moved(T_tool, -params.pregrasp_distance_m * approach),
                 T_tool,
-                _moved(T_tool, -params.retreat_distance_m * approach),
+                _moved(T_tool, params.retreat_distance_m * retreat),
                 float(scores[i]),
                 clearance,
                 float(heights[i]),
@@ -357,63 +387,7 @@ def _name(cause: str) -> str:
     return f"part {cause}" if cause.isdigit() else cause
 
 
-def _source(s: int) -> str:  # an obstacle's source as a cause
-    return CAPTURED if s == -1 else BIN if s == -2 else str(int(s))
-
-
 def _moved(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
     out = T.copy()
     out[:3, 3] += offset
     return out
-
-
-def _collisions(
-    body, T_cam_from_tool, tree, obstacles, source, target, own, plane, clearance_m
-) -> tuple[set[str], float]:
-    """What the swept gripper comes within clearance_m of, and its clearance (capped; only
-    computed when nothing is hit: a refused grasp's clearance is never used)."""
-    hit: set[str] = set()
-    clearance = CLEARANCE_CAP_M
-    if plane is not None:
-        low = lowest_height(body, T_cam_from_tool, plane)
-        clearance = min(clearance, low)
-        if low < clearance_m:
-            hit.add(FLOOR)
-    if tree is not None:
-        # Hits first, from the few points within clearance_m of the body; the clearance, which
-        # may look CLEARANCE_CAP_M far (tens of thousands of points), only for a grasp that passes.
-        d, src = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, clearance_m)
-        for s in np.unique(src[d < clearance_m]):
-            hit.add(_source(s))
-        # The clearance by widening searches: a nearest point found within a search's margin is
-        # the nearest of all (every point within the margin is gathered), so the wide, costly
-        # search runs only for a grasp with nothing near it, and none beyond the floor's distance.
-        if not hit:
-            for margin in (*CLEARANCE_SEARCH_M, clearance):
-                margin = min(margin, clearance)
-                d, _ = _obstacle_distances(body, T_cam_from_tool, tree, obstacles, source, target, own, margin)
-                if len(d) and float(d.min()) <= margin:
-                    clearance = float(d.min())
-                    break
-                if margin >= clearance:
-                    break
-    return hit, float(clearance)
-
-
-def _obstacle_distances(
-    body, T_cam_from_tool, tree, obstacles, source, target, own, margin_m
-) -> tuple[np.ndarray, np.ndarray]:
-    """Signed distances (k,) to the placed body of the obstacle points that may lie within
-    margin_m of it (all of those, and some farther), with their sources (k,); the target's own
-    points and its own model excluded."""
-    centres, radii = covering_spheres(body, margin_m)
-    mark = np.zeros(len(obstacles), bool)  # the union of the spheres' points
-    for n in tree.query_ball_point(transform_points(T_cam_from_tool, centres), radii):
-        mark[n] = True
-    near = np.flatnonzero(mark)
-    src = source[near]
-    keep = (src != target) & ~own[near]
-    near, src = near[keep], src[keep]
-    if len(near) == 0:
-        return np.zeros(0), src
-    return signed_distance(transform_points(invert_T(T_cam_from_tool), obstacles[near]), body), src

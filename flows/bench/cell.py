@@ -238,7 +238,14 @@ def _clear_bin(
                 motion: ArmMotion | str = first.arm if first.arm is not None else "no arm plan"
             else:
                 T_model_from_tool = models.grasps.T_model_from_tool[first.grasp_index]  # type: ignore[union-attr]
-                motion = baseline.plan(first.T_cam_from_grasp, T_model_from_tool, p.pick.gripper, part.centre_m, q)
+                motion = baseline.plan(
+                    first.T_cam_from_grasp,
+                    T_model_from_tool,
+                    p.pick.gripper,
+                    part.centre_m,
+                    q,
+                    retreat_cam=first.retreat_cam,
+                )
             if isinstance(motion, str):
                 # A plan the robot cannot execute: the controller refuses it, the cell stops.
                 tally.unreachable_sent += 1

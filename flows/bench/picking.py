@@ -48,7 +48,8 @@ from binpick.layout import Layout
 from binpick.params import BinParams, Params
 from binpick.part.model import density_kg_m3
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
-from binpick.picking.gripper import gripper_primitives, signed_distance, swept
+from binpick.picking.gripper import gripper_primitives, signed_distance, swept, translated_poses
+from binpick.picking.obstacles import TOOL_STEP_M
 from binpick.registration.model import train_ppf
 from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
@@ -218,20 +219,30 @@ def _path_hits(
     bin_points_cam: np.ndarray,
 ) -> bool:
     """True when the swept gripper enters the true meshes of the others or the bin (or its target
-    too deep). object_points_m: the objects' surface sample (m, 3), model frame: one for all (a
+    too deep), swept along its approach and, where the pick leaves another way (straight up), along
+    that too. object_points_m: the objects' surface sample (m, 3), model frame: one for all (a
     bin of one part) or one per object (a mixed bin)."""
-    body = swept(
-        gripper_primitives(params.pick, kind, pick.width_m),
-        max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m),
-    )
-    to_tool = invert_T(pick.T_cam_from_grasp)
-    if len(bin_points_cam) and signed_distance(transform_points(to_tool, bin_points_cam), body).min() < -PENETRATION_M:
-        return True
-    for k, T_obj in enumerate(T_cam_from_objects):
-        points = object_points_m if isinstance(object_points_m, np.ndarray) else object_points_m[k]
-        depth = signed_distance(transform_points(to_tool @ T_obj, points), body).min()
-        if depth < (-TOUCH_M if k == target else -PENETRATION_M):
+    tool = gripper_primitives(params.pick, kind, pick.width_m)
+    body = swept(tool, max(params.pick.pregrasp_distance_m, params.pick.retreat_distance_m))
+    placed = [(body, pick.T_cam_from_grasp, True)]
+    out = pick.T_cam_from_postgrasp[:3, 3] - pick.T_cam_from_grasp[:3, 3]
+    if np.linalg.norm(np.cross(out, pick.T_cam_from_grasp[:3, 2])) > 1e-6:
+        # The target moves with the tool there: only the others and the bin are in its way.
+        placed += [(tool, T, False) for T in translated_poses(pick.T_cam_from_grasp, out, TOOL_STEP_M)]
+    for shape, T_cam_from_tool, with_target in placed:
+        to_tool = invert_T(T_cam_from_tool)
+        if (
+            len(bin_points_cam)
+            and signed_distance(transform_points(to_tool, bin_points_cam), shape).min() < -PENETRATION_M
+        ):
             return True
+        for k, T_obj in enumerate(T_cam_from_objects):
+            if k == target and not with_target:
+                continue
+            points = object_points_m if isinstance(object_points_m, np.ndarray) else object_points_m[k]
+            depth = signed_distance(transform_points(to_tool @ T_obj, points), shape).min()
+            if depth < (-TOUCH_M if k == target else -PENETRATION_M):
+                return True
     return False
 
 
