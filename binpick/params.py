@@ -613,6 +613,11 @@ class PickParams(_Strict):
     retreat_distance_m: float = Field(
         ge=0, description="the post-grasp pose: this far back along the approach (or up the bin: picking/lift.py)"
     )
+    leave_straight_up: bool = Field(
+        False,
+        description="a grasp tilted from the bin's down axis whose part, pulled back along the approach, drags into "
+        "a neighbour may leave straight up the bin instead, the tool's way up checked (picking/lift.py)",
+    )
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(

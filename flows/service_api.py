@@ -97,7 +97,11 @@ class PosesOfPick(BaseModel):
 
 
 class ArmJoints(BaseModel):
-    lift: list[float] = Field(description="the post-grasp pose raised by cell.lift_m (the approach comes down from it)")
+    pregrasp_above: list[float] = Field(
+        description="the pre-grasp pose raised by cell.lift_m (an approach that does not go straight to the pre-grasp "
+        "comes down from it)"
+    )
+    lift: list[float] = Field(description="the post-grasp pose raised by cell.lift_m")
     pregrasp: list[float]
     grasp: list[float]
     postgrasp: list[float]
@@ -108,7 +112,8 @@ class ArmJoints(BaseModel):
 class ArmOfPick(BaseModel):
     joints_rad: ArmJoints = Field(
         description="the arm's joint angles (base, shoulder, elbow, wrist 1, 2, 3) at each waypoint; the pick moves "
-        "from the start through lift, pregrasp, grasp, postgrasp, lift, place_above, place in straight joint lines"
+        "from the start through pregrasp (or pregrasp_above, pregrasp), grasp, postgrasp, lift, place_above, place in "
+        "straight joint lines"
     )
     turn_deg: float = Field(
         description="the tool turned about its axis from the grasp's own (the poses above include it)"

@@ -59,3 +59,6 @@ def test_a_tilted_approach_may_also_leave_straight_up_and_a_vertical_one_only_ba
     # Within a few degrees of straight down the two ways are one.
     (only,) = way_outs(np.array([0.0, np.sin(np.radians(3.0)), -np.cos(np.radians(3.0))]), UP)
     assert only[2] > 0.99
+    # Not allowed (pick.leave_straight_up false): back only, however tilted.
+    (back_only,) = way_outs(tilted, UP, straight_up=False)
+    assert np.allclose(back_only, -tilted)

@@ -663,7 +663,8 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     40 degrees from straight down. A taller block stands 3.5 cm off its side along +y, out of the
     tool's way but in the part's: pulled back along the approach the part moves 3.2 cm along
     +y and runs into it. Straight up it comes free: the pick leaves that way (its post-grasp
-    pose retreat_distance_m above the grasp). A bar over the part blocks both ways."""
+    pose retreat_distance_m above the grasp) where pick.leave_straight_up allows it. A bar over the
+    part blocks both ways."""
     R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi) @ axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(40))
     lowest = transform_points(make_T(R, np.zeros(3)), box_part.points_m)[:, 2].max()
     T = make_T(R, np.array([0.0, 0.0, 0.5 - lowest]))  # resting on the floor
@@ -672,10 +673,12 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     block_top = block.vertices[:, 2].min() + 1e-4
     top = trimesh.sample.sample_surface_even(block, 4000, seed=1)[0]
     top = top[top[:, 2] < block_top]
-    cones = pick_settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": None})
+    cones = pick_settings.model_copy(
+        update={"approach_cone_deg": 45.0, "fallback_cone_deg": None, "leave_straight_up": True}
+    )
     grasps = suction_grasps(box_part, cones)
 
-    def plan(captured):
+    def plan(captured, settings=cones):
         return plan_picks(
             T[None],
             np.array([0.9]),
@@ -685,7 +688,7 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
             box_part.centre_m,
             captured,
             FLOOR,
-            cones,
+            settings,
         )
 
     (pick,) = plan(np.concatenate([seen_surface(T, box_part), top])).picks
@@ -694,6 +697,11 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     assert np.allclose(
         pick.T_cam_from_postgrasp[:3, 3], pick.T_cam_from_grasp[:3, 3] + [0.0, 0.0, -cones.retreat_distance_m]
     )
+    # Not allowed to leave straight up (the default): no pick, the part drags into the block.
+    back_only = plan(
+        np.concatenate([seen_surface(T, box_part), top]), cones.model_copy(update={"leave_straight_up": False})
+    )
+    assert not back_only.picks and "the part lifts into captured points" in back_only.unpicked[0][1]
     # Without the block the part leaves back along the approach, as the gripper came in.
     (free,) = plan(seen_surface(T, box_part)).picks
     assert np.allclose(free.retreat_cam, -free.T_cam_from_grasp[:3, 2])

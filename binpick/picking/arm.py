@@ -11,10 +11,11 @@ T_a_from_b maps b coordinates to a. Motion is in joint space along straight line
 The motion of one pick, through the named configurations (ArmMotion.path, the first of these
 whose path is clear):
 from (home or the last place) -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
-from -> lift -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
+from -> pregrasp_above -> pregrasp -> grasp -> postgrasp -> lift -> [place_above ->] place
 where postgrasp is the grasp moved back along the approach (or straight up the bin, where the
-gripper check chose that way out: picking/lift.py), lift the post-grasp pose raised by
-cell.lift_m along the base's vertical; place_above is
+gripper check chose that way out: picking/lift.py), lift the post-grasp pose and pregrasp_above
+the pre-grasp pose raised by cell.lift_m along the base's vertical (the same pose when the part
+leaves back along the approach: the tool comes down and goes up one line); place_above is
 left out at a drop zone (the part is let go from above). The target part itself is not an obstacle
 of the links (the tool meets it; the gripper check has the tool), and the arm's base link is left
 out (it stands beside the bin and does not move). The held part is checked (a sample about a
@@ -40,7 +41,7 @@ from binpick.robot.configuration import JOINT_LIMIT, SINGULAR, UNREACHABLE, choo
 from binpick.robot.payload import Payload, carry_share, point_accelerations
 from binpick.robot.trajectory import JointLimits, duration_s, line_samples, path_duration_s
 
-WAYPOINTS = ("lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
+WAYPOINTS = ("pregrasp_above", "lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
 # Reasons the arm refuses a grasp (beside robot.configuration's unreachable, joint limit, singular).
 HITS_WALL, HITS_SCENE, HITS_TABLE, PLACE_UNREACHABLE, TOO_HEAVY = (
     "arm hits the bin wall",
@@ -293,7 +294,7 @@ class ArmPlanner:
         self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray
     ) -> tuple[str, ...] | str:
         """The waypoints from q_from down to the grasp and up out of the bin, the first order whose
-        path is clear (straight to the pre-grasp, else down from the lift; out to the post-grasp,
+        path is clear (straight to the pre-grasp, else down from above it; out to the post-grasp,
         then up to the lift); or why neither is.
         Unchecked (check_path False): the pick as today's pick list hands it over."""
         if not self.check_path:
@@ -302,7 +303,10 @@ class ArmPlanner:
         # grasp to the lift strays sideways by centimetres and drags the part along its neighbours.
         out = ("postgrasp", "lift")
         hit = None
-        for names in (("pregrasp", "grasp", *out), ("lift", "pregrasp", "grasp", *out)):
+        # Down from straight above the pre-grasp, not from the lift: after a grasp left straight
+        # up, the lift lies over the grasp, and a line from it to the pre-grasp swings the tool
+        # sideways into the target (the arm's check leaves the target to the gripper check).
+        for names in (("pregrasp", "grasp", *out), ("pregrasp_above", "pregrasp", "grasp", *out)):
             hit = self.path_hit([q_from] + [q[name] for name in names], _tool_checked(names))
             if hit is None:
                 return names
@@ -313,14 +317,16 @@ class ArmPlanner:
         self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray, retreat_base: np.ndarray
     ) -> dict[str, np.ndarray] | str:
         """The configurations at the pre-grasp, post-grasp (retreat_base (3,) the way there from the
-        grasp, base frame, unit) and lift with the tool turned by angle, on the branch of the
-        grasp's (q_grasp), with it; or why there are none."""
+        grasp, base frame, unit), lift and above the pre-grasp with the tool turned by angle, on the
+        branch of the grasp's (q_grasp), with it; or why there are none."""
         grasp = self.T_base_from_cam @ turned(T_cam_from_tool, angle)
         poses = {"grasp": grasp, "pregrasp": _back(grasp, grasp[:3, 2] * self.pregrasp_m)}
         poses["postgrasp"] = _back(grasp, -retreat_base * self.retreat_m)
         poses["lift"] = raised(poses["postgrasp"], self.cell.lift_m)
+        poses["pregrasp_above"] = raised(poses["pregrasp"], self.cell.lift_m)
         q: dict[str, np.ndarray] = {"grasp": q_grasp}
-        for name, ref in (("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp")):
+        steps = (("pregrasp", "grasp"), ("postgrasp", "grasp"), ("lift", "postgrasp"), ("pregrasp_above", "pregrasp"))
+        for name, ref in steps:
             q[name], why = self.configuration(poses[name], q[ref])
             if why:
                 return why

@@ -24,16 +24,16 @@ MIN_BLOCKING_POINTS = 5
 SAME_WAY_COS = 0.996
 
 
-def way_outs(approach: np.ndarray, up: np.ndarray) -> list[np.ndarray]:
+def way_outs(approach: np.ndarray, up: np.ndarray, straight_up: bool = True) -> list[np.ndarray]:
     """The directions (unit, the frame of approach (3,) and up (3,)) a grasped part may leave by,
     first choice first: back along the approach, retracing the path the gripper check cleared on
-    the way in; then, when the approach is tilted, straight up the bin's axis. Pulled back along
+    the way in; then, when straight_up and the approach is tilted, straight up the bin's axis. Pulled back along
     a tilted approach a part is dragged sideways through its neighbours: on the ring screw's
     curved faces (approaches up to 49 degrees from the vertical) every grasp of a heap of 10-20
     did, though nothing lay above the parts."""
     back = -np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    return [back] if float(back @ up) >= SAME_WAY_COS else [back, up]
+    return [back] if not straight_up or float(back @ up) >= SAME_WAY_COS else [back, up]
 
 
 def lift_blockers(

@@ -13,9 +13,9 @@ A grasp on a detected part is kept when
   of its posed model's surface), the bin (the support plane, and the given box's walls and floor when
   the bin is given in params), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
-and the part it holds comes out of the heap free (picking/lift.py): back along the approach, or,
-that dragging it into a neighbour and the approach tilted, straight up the bin's axis (the tool's
-way up checked too; the post-grasp pose then lies above the grasp),
+and the part it holds comes out of the heap free (picking/lift.py): back along the approach, or
+(leave_straight_up), that dragging it into a neighbour and the approach tilted, straight up the
+bin's axis (the tool's way up checked too; the post-grasp pose then lies above the grasp),
 and its contact is where the camera measured a surface: under a suction cup the captured points
 lie on the contact plane (within the seal tolerance, widened by the noise the capture shows
 about the pose) and the plane they span faces the cup,
@@ -299,7 +299,7 @@ def plan_picks(
             ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
             retreat: np.ndarray | None = None
             dragged: set[str] = set()
-            for k, direction in enumerate(way_outs(T_tool[:3, 2], up)):
+            for k, direction in enumerate(way_outs(T_tool[:3, 2], up, params.leave_straight_up)):
                 if k > 0 and tree is not None:
                     # Off the tool's axis its own way out is not in the swept check above.
                     tool_hit = moved_tool_hits(
