@@ -225,6 +225,21 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settin
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
 
 
+def plan_one_box(T, grasps, box_part, captured, settings):
+    """The pick plan of one box posed at T (score 0.9) among the captured points, over FLOOR."""
+    return plan_picks(
+        T[None],
+        np.array([0.9]),
+        grasps,
+        box_part.points_m,
+        box_part.normals,
+        box_part.centre_m,
+        captured,
+        FLOOR,
+        settings,
+    )
+
+
 def test_a_gripper_into_a_neighbour_is_refused(box_part, pick_settings):
     grasps = suction_grasps(box_part, pick_settings)
     target = lying(0.0, 0.0)
@@ -524,17 +539,7 @@ def test_a_leaning_part_is_taken_from_the_fallback_cone_only_when_the_cone_has_n
 
     def plan(fallback_deg):
         cones = pick_settings.model_copy(update={"approach_cone_deg": 45.0, "fallback_cone_deg": fallback_deg})
-        return plan_picks(
-            T[None],
-            np.array([0.9]),
-            grasps,
-            box_part.points_m,
-            box_part.normals,
-            box_part.centre_m,
-            captured,
-            FLOOR,
-            cones,
-        )
+        return plan_one_box(T, grasps, box_part, captured, cones)
 
     (pick,) = plan(60.0).picks
     assert pick.T_cam_from_grasp[:3, 2] == pytest.approx(-at_50, abs=1e-6)
@@ -679,17 +684,7 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     grasps = suction_grasps(box_part, cones)
 
     def plan(captured, settings=cones):
-        return plan_picks(
-            T[None],
-            np.array([0.9]),
-            grasps,
-            box_part.points_m,
-            box_part.normals,
-            box_part.centre_m,
-            captured,
-            FLOOR,
-            settings,
-        )
+        return plan_one_box(T, grasps, box_part, captured, settings)
 
     (pick,) = plan(np.concatenate([seen_surface(T, box_part), top])).picks
     assert np.degrees(np.arccos(pick.T_cam_from_grasp[2, 2])) == pytest.approx(40.0, abs=1e-6)
