@@ -229,3 +229,22 @@ def test_the_cup_lifts_a_part_within_its_holding_force_and_loses_a_heavier_one(t
         outcomes[density] = sim.execute(plan.picks[0].arm, sim.joints()).outcome
         sim.close()
     assert outcomes == {2700.0: "placed", 2700.0 * 40: "dropped"}
+
+
+def test_backing_out_of_a_grip_that_did_not_seal_is_not_a_touch(t_joint, models):
+    """The vacuum fails at the grasp: the cup leaves the part it stood on, back to the pre-grasp.
+    The judge names the pick "no seal" and nothing touched (it had counted the part the cup left)."""
+    from binpick.scene.process import process
+    from binpick.seeding import SceneSeeds
+    from flows.cell_run import simulated_cell
+
+    sim, camera = simulated_cell(PARAMS, t_joint, 1, seed=2)
+    capture = camera.grab()
+    plan = process(capture.xyz_m, None, capture.shape, models, SceneSeeds.of(0, "hold"), sim.joints()).picks
+    assert plan is not None and plan.picks and plan.picks[0].arm is not None
+    sim.grip = lambda width_m: False  # type: ignore[method-assign]
+    done = sim.execute(plan.picks[0].arm, sim.joints())
+    left = int(sim.in_bin().sum())
+    sim.close()
+    assert done.outcome == "no seal" and done.touched == set()
+    assert left == 1

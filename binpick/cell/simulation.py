@@ -224,9 +224,15 @@ class SimulatedCell:
         self.clock_s += self._dwell(self.cell.robot.release_s)
 
     def _aim(self, q_next: np.ndarray) -> None:
-        """The part the tool comes down on, when this move ends at a part's surface: the tool may
-        touch it (a bellows cup gives), and no other."""
-        aimed = self._part_at(self.tcp_pose(q_next)) if self.hold is None else None
+        """The part the tool comes down on, when this move ends at a part's surface, or leaves,
+        when it starts at one (backing out of a grip that did not take): the tool may touch it (a
+        bellows cup gives), and no other."""
+        aimed = None
+        if self.hold is None:
+            aimed = self._part_at(self.tcp_pose(q_next))
+            if aimed is None:
+                # The cup starts on the part it failed to seal on: leaving it is not touching it.
+                aimed = self._part_at(self.tcp_pose(self.q))
         if aimed == self.aimed:
             return
         if self.aimed is not None and self.aimed != self.hold and self.parts[self.aimed] is not None:
