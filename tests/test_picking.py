@@ -225,8 +225,9 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settin
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
 
 
-def plan_one_box(T, grasps, box_part, captured, settings):
-    """The pick plan of one box posed at T (score 0.9) among the captured points, over FLOOR."""
+def plan_one_box(T, grasps, box_part, captured, settings, bin_box=None):
+    """The pick plan of one box posed at T (score 0.9) among the captured points, over FLOOR (and in
+    bin_box when given)."""
     return plan_picks(
         T[None],
         np.array([0.9]),
@@ -237,6 +238,7 @@ def plan_one_box(T, grasps, box_part, captured, settings):
         captured,
         FLOOR,
         settings,
+        bin_box,
     )
 
 
@@ -268,50 +270,19 @@ def test_a_gripper_into_a_wall_is_refused_and_one_in_free_space_is_not(box_part,
     grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
     captured = seen_surface(T, box_part)
-    free = plan_picks(
-        T[None],
-        np.array([0.9]),
-        grasps,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        captured,
-        FLOOR,
-        pick_settings,
-    )
+    free = plan_one_box(T, grasps, box_part, captured, pick_settings)
     assert len(free.picks) == 1 and not free.rejected
     # Measured walls (points of two vertical planes) above the part, closer together than the
     # tool is wide: no grasp on its top can be reached.
     ys, zs = np.meshgrid(np.linspace(-0.05, 0.05, 60), np.linspace(0.38, 0.47, 60))
     wall = np.concatenate([np.column_stack([np.full(ys.size, x), ys.ravel(), zs.ravel()]) for x in (-0.01, 0.01)])
-    blocked = plan_picks(
-        T[None],
-        np.array([0.9]),
-        grasps,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        np.concatenate([captured, wall]),
-        FLOOR,
-        pick_settings,
-    )
+    blocked = plan_one_box(T, grasps, box_part, np.concatenate([captured, wall]), pick_settings)
     assert not blocked.picks and CAPTURED in blocked.unpicked[0][1]
     # A bin given in params barely larger than the part (walls 1-2 mm from its sides): the tool,
     # 30 mm across, cannot come down to its top.
     T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
     box = BinBox(T_cam_from_bin, np.array([-0.022, -0.016, 0.0]), np.array([0.022, 0.016, 0.1]))
-    walled = plan_picks(
-        T[None],
-        np.array([0.9]),
-        grasps,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        captured,
-        FLOOR,
-        pick_settings,
-        box,
-    )
+    walled = plan_one_box(T, grasps, box_part, captured, pick_settings, box)
     assert not walled.picks and BIN in walled.unpicked[0][1]
 
 
@@ -450,17 +421,7 @@ def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, p
     T = lying(0.0, 0.0)
     measured = seen_surface(T, box_part)
     # The part measured 15 mm lower than its pose says: the pose's top face is in the air.
-    plan = plan_picks(
-        T[None],
-        np.array([0.9]),
-        grasps,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        measured + [0.0, 0.0, 0.015],
-        FLOOR,
-        pick_settings,
-    )
+    plan = plan_one_box(T, grasps, box_part, measured + [0.0, 0.0, 0.015], pick_settings)
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
@@ -483,17 +444,7 @@ def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, p
         return contact + np.column_stack([a.ravel(), b.ravel(), np.zeros(a.size)]) @ R.T
 
     for tilt_deg, picked in ((0.0, True), (8.0, True), (30.0, False)):
-        plan = plan_picks(
-            T[None],
-            np.array([0.9]),
-            top,
-            box_part.points_m,
-            box_part.normals,
-            box_part.centre_m,
-            patch(tilt_deg),
-            FLOOR,
-            pick_settings,
-        )
+        plan = plan_one_box(T, top, box_part, patch(tilt_deg), pick_settings)
         assert bool(plan.picks) == picked, tilt_deg
         if not picked:
             assert "not where the camera measured" in plan.unpicked[0][1]
@@ -504,17 +455,7 @@ def test_a_part_whose_grasps_all_point_sideways_is_out_of_the_cone(box_part, pic
         "suction", ["side"], tool_frame(np.array([EXTENTS[0] / 2, 0, 0]), np.array([-1.0, 0, 0]))[None], np.zeros(1)
     )
     T = lying(0.0, 0.0)
-    plan = plan_picks(
-        T[None],
-        np.array([0.9]),
-        only_side,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        seen_surface(T, box_part),
-        FLOOR,
-        pick_settings,
-    )
+    plan = plan_one_box(T, only_side, box_part, seen_surface(T, box_part), pick_settings)
     assert not plan.picks and "cone" in plan.unpicked[0][1]
 
 
@@ -597,17 +538,7 @@ def test_grasp_files_round_trip_and_bad_ones_fail_in_one_line(tmp_path, box_part
 def test_picks_are_given_in_the_base_frame_too(tmp_path, box_part, pick_settings):
     grasps = suction_grasps(box_part, pick_settings)
     T = lying(0.0, 0.0)
-    plan = plan_picks(
-        T[None],
-        np.array([0.9]),
-        grasps,
-        box_part.points_m,
-        box_part.normals,
-        box_part.centre_m,
-        seen_surface(T, box_part),
-        FLOOR,
-        pick_settings,
-    )
+    plan = plan_one_box(T, grasps, box_part, seen_surface(T, box_part), pick_settings)
     T_base_from_cam = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 1.1), np.array([0.4, -0.1, 0.8]))
     path = tmp_path / "picks.json"
     save_picks(path, "c", "box", "suction", plan, T_base_from_cam)

@@ -286,7 +286,8 @@ def plan_picks(
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
                 continue
-            body = swept(gripper_primitives(params, grasps.kind, float(grasps.width_m[g])), back)
+            tool = gripper_primitives(params, grasps.kind, float(grasps.width_m[g]))
+            body = swept(tool, back)
             hit, clearance = tool_collisions(body, T_tool, tree, obstacles, source, i, own, plane, params.clearance_m)
             if hit:
                 causes.update(hit)
@@ -303,7 +304,7 @@ def plan_picks(
                 if k > 0 and tree is not None:
                     # Off the tool's axis its own way out is not in the swept check above.
                     tool_hit = moved_tool_hits(
-                        gripper_primitives(params, grasps.kind, float(grasps.width_m[g])),
+                        tool,
                         T_tool,
                         params.retreat_distance_m * direction,
                         tree,
