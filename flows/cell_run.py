@@ -195,7 +195,7 @@ def run_cell(
                 SceneSeeds.of_capture_digest(params.seed, digest),
                 q,
                 PICKS_PER_CAPTURE,
-                failed_grips.centres_m(),
+                failed_grips,
             )
             refused = None
         except NothingAboveTheFloor as exc:
@@ -242,7 +242,11 @@ def run_cell(
             state = execute_pick(robot, first.arm, first.width_m)
             record["move_s"] = round(time.perf_counter() - t1, 4)
             if state == NO_GRIP:
-                failed_grips.failed(result.registration.poses[first.pose_index].T_cam_from_model, models.part.centre_m)
+                failed_grips.failed(
+                    result.registration.poses[first.pose_index].T_cam_from_model,
+                    models.part.centre_m,
+                    first.T_cam_from_grasp,
+                )
         record["state"] = state
         write_text(here / "cycle.json", json.dumps(record, indent=1) + "\n")
         log.info("cycle %d: %s", cycle - 1, state)

@@ -31,7 +31,7 @@ from binpick.picking.gripper import (
     swept,
 )
 from binpick.picking.obstacles import BIN, CAPTURED
-from binpick.picking.plan import GRIP_FAILED, NOT_PLANNED, plan_picks
+from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, plan_picks
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -240,6 +240,30 @@ def plan_one_box(T, grasps, box_part, captured, settings, bin_box=None):
         settings,
         bin_box,
     )
+
+
+def test_a_grasp_where_a_grip_failed_is_not_tried_again(box_part, pick_settings):
+    grasps = suction_grasps(box_part, pick_settings)
+    T = lying(0.0, 0.0)
+    captured = seen_surface(T, box_part)
+    first = plan_one_box(T, grasps, box_part, captured, pick_settings).picks[0]
+    failed_at = first.T_cam_from_grasp[:3, 3]
+    plan = plan_picks(
+        T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured,
+        FLOOR, pick_settings, failed_contacts_m=failed_at[None],
+    )  # fmt: skip
+    # Another grasp on the same part, its cup clear of the lip that did not seal.
+    (again,) = plan.picks
+    assert again.grasp_id != first.grasp_id
+    lip_m = 2.0 * pick_settings.suction.cup_radius_m
+    assert np.linalg.norm(again.T_cam_from_grasp[:3, 3] - failed_at) > lip_m
+    # Where every grasp failed, the part is not picked, and the reason says so.
+    tcp = (T @ grasps.T_model_from_tool)[:, :3, 3]
+    none = plan_picks(
+        T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured,
+        FLOOR, pick_settings, failed_contacts_m=tcp,
+    )  # fmt: skip
+    assert not none.picks and FAILED_HERE in none.unpicked[0][1]
 
 
 def test_a_gripper_into_a_neighbour_is_refused(box_part, pick_settings):

@@ -6,7 +6,9 @@ next capture sees the same part where it was, usually posed the same way, so the
 would fail again: in the simulated cell a T-joint posed 3 mm and 20 degrees off failed three
 times in a row and stopped a bin half full. The part is left alone, an obstacle like any other,
 until no other part can be picked; then it is tried again (the heap around it has changed, and
-with it what the camera sees of it).
+with it what the camera sees of it), but not where the grip failed: a grasp whose contact lies
+within the gripper's own size of a failed one meets the same surface (in the simulated cell the
+pipe's cup failed to seal three times on one part, each time at the same spot).
 
 Camera frame, metres (the camera is fixed over the bin, so a spot in its frame stays put).
 """
@@ -25,15 +27,18 @@ SAME_PART_SHARE = 0.2
 
 @dataclass
 class FailedGrips:
-    """The centres (camera frame) of the parts a grip failed on since the last retry."""
+    """The centres (camera frame) of the parts a grip failed on since the last retry, and where
+    every failed grip's tool centre point was (kept across retries)."""
 
     _spots: list[np.ndarray] = field(default_factory=list)
+    _contacts: list[np.ndarray] = field(default_factory=list)
 
-    def failed(self, T_cam_from_model: np.ndarray, centre_m: np.ndarray) -> None:
+    def failed(self, T_cam_from_model: np.ndarray, centre_m: np.ndarray, T_cam_from_grasp: np.ndarray) -> None:
         """A grip failed on the part posed at T_cam_from_model (4, 4); centre_m (3,) the part's
-        centre in its model frame."""
+        centre in its model frame; T_cam_from_grasp (4, 4) the tool centre point it was sent to."""
         T = np.asarray(T_cam_from_model, dtype=np.float64)
         self._spots.append(T[:3, :3] @ np.asarray(centre_m, dtype=np.float64) + T[:3, 3])
+        self._contacts.append(np.asarray(T_cam_from_grasp, dtype=np.float64)[:3, 3].copy())
 
     def retry(self) -> bool:
         """No other part could be picked: the parts left alone are tried again. Whether there were any."""
@@ -43,6 +48,10 @@ class FailedGrips:
     def centres_m(self) -> np.ndarray:
         """(k, 3) the centres of the parts to leave alone now."""
         return np.array(self._spots, dtype=np.float64).reshape(-1, 3)
+
+    def contacts_m(self) -> np.ndarray:
+        """(k, 3) where the tool centre point was at each failed grip: not a grasp's place again."""
+        return np.array(self._contacts, dtype=np.float64).reshape(-1, 3)
 
 
 def near_failed(centres_m: np.ndarray, failed_m: np.ndarray, diameter_m: float) -> np.ndarray:
@@ -54,3 +63,14 @@ def near_failed(centres_m: np.ndarray, failed_m: np.ndarray, diameter_m: float) 
         return np.zeros(len(centres), dtype=bool)
     distance = np.linalg.norm(centres[:, None, :] - failed[None, :, :], axis=2)
     return np.asarray(np.min(distance, axis=1) <= SAME_PART_SHARE * diameter_m)
+
+
+def near_contacts(tcp_m: np.ndarray, contacts_m: np.ndarray, radius_m: float) -> np.ndarray:
+    """(g,) bool: which grasps' tool centre points (g, 3) lie within radius_m of a failed grip's
+    (k, 3); same frame, metres."""
+    tcp = np.asarray(tcp_m, dtype=np.float64).reshape(-1, 3)
+    contacts = np.asarray(contacts_m, dtype=np.float64).reshape(-1, 3)
+    if len(tcp) == 0 or len(contacts) == 0:
+        return np.zeros(len(tcp), dtype=bool)
+    distance = np.linalg.norm(tcp[:, None, :] - contacts[None, :, :], axis=2)
+    return np.asarray(np.min(distance, axis=1) <= radius_m)

@@ -83,6 +83,14 @@ def holding_force_n(params: PickParams, kind: str) -> float:
     return float(2.0 * np.tan(np.radians(params.jaw.friction_deg)) * params.jaw.grip_force_n)
 
 
+def contact_size_m(params: PickParams, kind: str) -> float:
+    """How far across the gripper touches the part, metres: the suction cup's lip, or a jaw
+    finger's width. Two grasps whose tool centre points lie closer touch much the same surface."""
+    if kind == "suction":
+        return float(2.0 * params.suction.cup_radius_m)
+    return float(params.jaw.finger_width_m)
+
+
 def gripper_primitives(params: PickParams, kind: str, width_m: float = 0.0) -> list[Primitive]:
     """The gripper of `kind` ('suction' or 'jaw', opened for a grasp of width_m) at its grasp pose."""
     if kind == "suction":

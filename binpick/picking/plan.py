@@ -44,12 +44,13 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from binpick.cell.bin_box import BinBox, support_frame
+from binpick.cell.retries import near_contacts
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
-from binpick.picking.gripper import gripper_primitives, swept
+from binpick.picking.gripper import contact_size_m, gripper_primitives, swept
 from binpick.picking.lift import lift_blockers, way_outs
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
@@ -82,6 +83,8 @@ LIFTS_INTO = "the part lifts into "
 NOT_PLANNED = "not planned: enough picks rank before it"
 # A part the cell's grip failed on a moment ago, left alone for now (binpick/cell/retries.py).
 GRIP_FAILED = "the gripper failed to hold it in an earlier attempt"
+# A grasp whose contact lies where a grip failed before (binpick/cell/retries.py).
+FAILED_HERE = "where a grip failed before"
 
 
 @dataclass(frozen=True)
@@ -167,6 +170,7 @@ def plan_picks(
     q_from: np.ndarray | None = None,
     max_picks: int | None = None,
     skip: np.ndarray | None = None,
+    failed_contacts_m: np.ndarray | None = None,
 ) -> PickPlan:
     """Picks for the detected parts.
 
@@ -184,6 +188,8 @@ def plan_picks(
                        tried in the order of the ranking's keys known before their grasps (up to
                        clearance); those that can no longer rank first are NOT_PLANNED; None: all
     skip             : (p,) bool, parts not to pick now (GRIP_FAILED); they stay obstacles
+    failed_contacts_m: (k, 3) camera frame, where the tool centre point was at grips that failed:
+                       grasps within the gripper's contact size of one are not tried (FAILED_HERE)
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -277,7 +283,13 @@ def plan_picks(
             np.flatnonzero(in_cone)[: params.max_candidates_per_part],
             np.flatnonzero(fallback)[: params.max_candidates_per_part],
         ]
-        for g in np.concatenate(tiers).astype(np.int64):
+        candidates = np.concatenate(tiers).astype(np.int64)
+        failed_here = 0
+        if failed_contacts_m is not None and len(candidates):
+            again = near_contacts(tools[candidates, :3, 3], failed_contacts_m, contact_size_m(params, grasps.kind))
+            failed_here = int(again.sum())
+            candidates = candidates[~again]
+        for g in candidates:
             n_tried += 1
             T_tool = tools[g]
             if not contact_seen(
@@ -359,22 +371,26 @@ def plan_picks(
         if found is not None:
             picks.append(found)
             continue
+        where_failed = f"; {failed_here} lie {FAILED_HERE}" if failed_here else ""
         if len(grasps) == 0:
             unpicked.append((i, f"the part has no {grasps.kind} grasps"))
+        elif not causes and failed_here:
+            unpicked.append((i, f"every grasp in reach lies {FAILED_HERE} ({failed_here})"))
         elif not causes:
             unpicked.append(
                 (i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone")
             )
         elif set(causes) & ARM_REASONS:
             refused = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
-            unpicked.append((i, f"no grasp in reach the arm can execute: {refused}"))
+            unpicked.append((i, f"no grasp in reach the arm can execute: {refused}{where_failed}"))
         else:
             hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
             unpicked.append(
                 (
                     i,
                     f"every grasp in reach collides: with {hits}"
-                    + (f"; {n_out} outside the approach cone" if n_out else ""),
+                    + (f"; {n_out} outside the approach cone" if n_out else "")
+                    + where_failed,
                 )
             )
     picks.sort(key=lambda p: rank_key(p, params))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from binpick.cell.bin_box import BinBox
-from binpick.cell.retries import near_failed
+from binpick.cell.retries import FailedGrips, near_failed
 from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
@@ -35,7 +35,7 @@ def pick(
     extra_obstacles_m: np.ndarray | None = None,
     density_kg_m3: float = DEFAULT_DENSITY_KG_M3,
     max_picks: int | None = None,
-    failed_m: np.ndarray | None = None,
+    failed: FailedGrips | None = None,
 ) -> PickPlan:
     """Picks for the posed parts (binpick/picking/plan.py): obstacles are everything the capture
     measured (its z-buffer; the cleaned points when it has none), the support plane, the bin
@@ -46,8 +46,8 @@ def pick(
     a mixed bin, binpick/scene/mixed.py). density_kg_m3: the part's material; with the gripper's
     hold it sets how fast the arm may carry the part, or that it cannot (binpick/robot/payload.py).
     max_picks: only the first this many picks are planned (plan_picks; None: every part's).
-    failed_m (k, 3), camera frame: the centres of parts a grip failed on (binpick/cell/retries.py):
-    the poses there are not picked now."""
+    failed: the grips that failed in this bin (binpick/cell/retries.py): the parts left alone are
+    not picked now, and no grasp goes where a grip failed."""
     seen = DepthView(cloud.seen_depth_m, cloud.seen_K)
     planner = None
     if cell is not None and cell.arm is not None and params.T_base_from_cam is not None:
@@ -72,8 +72,8 @@ def pick(
     T = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
     scores = np.array([p.score for p in poses], dtype=np.float64)
     skip = None
-    if failed_m is not None:
-        skip = near_failed(T[:, :3, :3] @ part.centre_m + T[:, :3, 3], failed_m, part.diameter_m)
+    if failed is not None:
+        skip = near_failed(T[:, :3, :3] @ part.centre_m + T[:, :3, 3], failed.centres_m(), part.diameter_m)
     shares = np.array([np.nan if p.seen_through is None else p.seen_through for p in poses], dtype=np.float64)
     return plan_picks(
         T,
@@ -91,4 +91,5 @@ def pick(
         q_from,
         max_picks,
         skip,
+        failed.contacts_m() if failed is not None else None,
     )

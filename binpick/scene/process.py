@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.cell.retries import FailedGrips
 from binpick.io.cloud import CleanCloud
 from binpick.io.grasps import GraspSet, load_grasps
 from binpick.io.part_model import PartModel, load_part_model
@@ -111,12 +112,12 @@ def process(
     seeds: SceneSeeds,
     q_from: np.ndarray | None = None,
     max_picks: int | None = None,
-    failed_m: np.ndarray | None = None,
+    failed: FailedGrips | None = None,
 ) -> SceneResult:
     """clean, segment (unless the models have no segmenter), register and (when the models carry
     grasps) pick one capture; q_from: the arm's joint angles when the arm is checked (default:
     cell.home_q_rad); max_picks: only the first this many picks planned (a cell executes one);
-    failed_m (k, 3), camera frame: centres of parts a grip failed on, not picked now (cell/retries.py)."""
+    failed: the grips that failed in this bin, parts and places not picked now (cell/retries.py)."""
     t0 = time.perf_counter()
     cloud = clean(xyz_m, rgb, frame_shape, models.import_params, seeds.clean)
     t1 = time.perf_counter()
@@ -144,7 +145,7 @@ def process(
             q_from,
             density_kg_m3=models.density_kg_m3,
             max_picks=max_picks,
-            failed_m=failed_m,
+            failed=failed,
         )
     t4 = time.perf_counter()
     labels = segments.labels if segments is not None else np.full(len(cloud.points_m), -1, np.int32)

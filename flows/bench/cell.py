@@ -213,7 +213,7 @@ def _clear_bin(
                     SceneSeeds.of(0, f"cell-{tally.attempts}"),
                     q,
                     PICKS_PER_CAPTURE,
-                    failed_grips.centres_m(),
+                    failed_grips,
                 )
                 plan = result.picks
             except BinpickError as exc:
@@ -274,7 +274,9 @@ def _clear_bin(
                 touched = f", touched {' and '.join(sorted(done.touched))}" if done.touched else ""
                 recording.attempt(tally.attempts, part, poses[keep], motion, f"{done.outcome}{touched}")
             if done.outcome in ("no seal", "no hold"):  # what the robot's vacuum sensor or jaws tell
-                failed_grips.failed(result.registration.poses[first.pose_index].T_cam_from_model, part.centre_m)
+                failed_grips.failed(
+                    result.registration.poses[first.pose_index].T_cam_from_model, part.centre_m, first.T_cam_from_grasp
+                )
             tally.removed += int(done.outcome in ("placed", "misplaced"))
             tally.lost += sim.remove_outside()
             failures = 0 if good else failures + 1
