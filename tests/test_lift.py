@@ -62,3 +62,20 @@ def test_a_tilted_approach_may_also_leave_straight_up_and_a_vertical_one_only_ba
     # Not allowed (pick.leave_straight_up false): back only, however tilted.
     (back_only,) = way_outs(tilted, UP, straight_up=False)
     assert np.allclose(back_only, -tilted)
+
+
+def test_a_part_against_a_wall_slides_up_along_it_and_is_not_pushed_into_it():
+    part, normals = box_surface((0.06, 0.04, 0.02), (0.0, 0.0, 0.01))
+    # A bin wall whose inner face cuts 1 mm into the part's side (a pose a millimetre off).
+    ys, zs = np.meshgrid(np.linspace(-0.08, 0.08, 81), np.linspace(0.0, 0.2, 101))
+    wall = np.column_stack([np.full(ys.size, 0.029), ys.ravel(), zs.ravel()])
+    inward = np.tile([-1.0, 0.0, 0.0], (len(wall), 1))
+    sources = np.zeros(len(wall), int)
+    straight_up = [(UP, 0.05), (UP, 0.1)]
+    # Its points alone, their surface unknown, are run into on the way up ...
+    assert lift_blockers(part, normals, straight_up, wall, sources, RADIUS_M, CONTACT_M) == {0}
+    # ... its face known, the part slides up along it ...
+    assert lift_blockers(part, normals, straight_up, wall, sources, RADIUS_M, CONTACT_M, inward) == set()
+    # ... but pulled out toward it (30 degrees off the vertical) it is pushed into the wall.
+    toward = np.array([np.sin(np.radians(30.0)), 0.0, np.cos(np.radians(30.0))])
+    assert lift_blockers(part, normals, [(toward, 0.05)], wall, sources, RADIUS_M, CONTACT_M, inward) == {0}

@@ -683,3 +683,22 @@ def test_a_tool_moved_off_its_axis_hits_what_lies_on_its_way_and_not_beside_it(p
     assert hits([0.05, 0.0, 0.0]) == {CAPTURED}
     assert hits([0.08, 0.0, 0.0]) == {CAPTURED, BIN}
     assert hits([0.0, 0.0, -0.05]) == set()
+
+
+def test_wall_points_carry_their_walls_normal_and_a_bins_faces_face_inward():
+    from binpick.picking.obstacles import surface_normals
+
+    # Two walls: x = 0.1 (normal +x) and y = -0.2 (normal -y); points on, near and off them.
+    walls = np.array([[1.0, 0.0, 0.0, -0.1], [0.0, -1.0, 0.0, -0.2]])
+    points = np.array([[0.1, 0.0, 0.5], [0.103, 0.05, 0.5], [0.0, -0.2, 0.6], [0.0, 0.0, 0.5]])
+    normals = surface_normals(points, walls, 0.004)
+    np.testing.assert_allclose(normals[:3], [[1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    assert np.isnan(normals[3]).all()
+    # A bin seen from above (its z toward the camera): every face's normal points to its middle.
+    T_cam_from_bin = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.5]))
+    box = BinBox(T_cam_from_bin, np.array([-0.15, -0.1, 0.0]), np.array([0.15, 0.1, 0.08]))
+    points, inward = box.surface(0.01)
+    middle = transform_points(T_cam_from_bin, np.array([[0.0, 0.0, 0.04]]))[0]
+    to_middle = middle - points
+    assert np.all(np.einsum("ij,ij->i", inward, to_middle) > 0)
+    np.testing.assert_allclose(np.linalg.norm(inward, axis=1), 1.0)

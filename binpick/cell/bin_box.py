@@ -47,17 +47,24 @@ class BinBox:
 
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
+        return self.surface(spacing_m)[0]
+
+    def surface(self, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """Points (n, 3) on the inner faces of the walls and the floor, about spacing_m apart, and
+        their faces' unit normals (n, 3), facing into the bin; camera frame."""
         lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
         axes = [np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1)) for a, b in zip(lo, hi, strict=True)]
-        faces = []
+        faces, normals = [], []
         for fixed in range(3):
             others = [k for k in range(3) if k != fixed]
             A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
-            for value in (lo[fixed],) if fixed == 2 else (lo[fixed], hi[fixed]):  # no lid
+            for value, inward in ((lo[fixed], 1.0),) if fixed == 2 else ((lo[fixed], 1.0), (hi[fixed], -1.0)):  # no lid
                 f = np.empty((A.size, 3))
                 f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
                 faces.append(f)
-        return transform_points(self.T_cam_from_bin, np.concatenate(faces))
+                normals.append(np.tile(inward * np.eye(3)[fixed], (A.size, 1)))
+        R = np.asarray(self.T_cam_from_bin, dtype=np.float64)[:3, :3]
+        return transform_points(self.T_cam_from_bin, np.concatenate(faces)), np.concatenate(normals) @ R.T
 
 
 def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tuple[np.ndarray, np.ndarray | None]:

@@ -19,6 +19,9 @@ LEADING_COS = 0.17
 # An obstacle point counts only this many of them ahead of the part: noise above a surface (a few
 # stray points the part's own did not take) is not a neighbour.
 MIN_BLOCKING_POINTS = 5
+# A move within about 10 degrees of parallel to a known surface (a bin wall) slides along it: the
+# surface's points are not run into (a part resting against a wall is lifted up along it).
+SLIDE_SIN = 0.17
 # An approach within this angle of the bin's down axis (cosine; about 5 degrees) leaves along the
 # approach only: straight up is the same way out.
 SAME_WAY_COS = 0.996
@@ -44,6 +47,7 @@ def lift_blockers(
     sources: np.ndarray,
     radius_m: float,
     contact_m: float,
+    obstacle_normals: np.ndarray | None = None,
 ) -> set[int]:
     """The sources of the obstacles the part runs into on its way out.
 
@@ -54,7 +58,9 @@ def lift_blockers(
     point must pass a leading surface point to be run into; contact_m: an obstacle point less than
     this ahead of the part at the start is in contact with it (parts in a heap touch) or is the
     part's own surface measured with noise (on a sloped face the surface ahead of a point rises
-    within radius_m across): not run into.
+    within radius_m across): not run into. obstacle_normals (k, 3): the unit normal of the surface
+    an obstacle point lies on (a wall's), NaN where none is known: a move within SLIDE_SIN of
+    parallel to it slides along it.
     """
     surface_m = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
     obstacles_m = np.asarray(obstacles_m, dtype=np.float64).reshape(-1, 3)
@@ -70,7 +76,10 @@ def lift_blockers(
         # Only what lies ahead of the part's rearmost leading point, and across the move: both
         # projected onto the plane normal to it, paired within radius_m there.
         along = obstacles_m @ u
-        candidates = np.flatnonzero(along > float(np.min(leading @ u)) + contact_m)
+        ahead_of_part = along > float(np.min(leading @ u)) + contact_m
+        if obstacle_normals is not None:
+            ahead_of_part &= ~(np.abs(np.asarray(obstacle_normals, dtype=np.float64) @ u) < SLIDE_SIN)
+        candidates = np.flatnonzero(ahead_of_part)
         if len(candidates) == 0:
             continue
         e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])

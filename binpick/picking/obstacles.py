@@ -88,3 +88,18 @@ def obstacle_distances(
     if len(near) == 0:
         return np.zeros(0), src
     return signed_distance(transform_points(invert_T(T_cam_from_tool), obstacles[near]), body), src
+
+
+def surface_normals(points_m: np.ndarray, planes: np.ndarray, band_m: float) -> np.ndarray:
+    """(n, 3) the unit normal of the plane (k, 4: unit normal and d, n . x + d = 0) each point
+    (n, 3) lies within band_m of (the nearest such), NaN for points on none; same frame, metres."""
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    planes = np.asarray(planes, dtype=np.float64).reshape(-1, 4)
+    out = np.full((len(points), 3), np.nan)
+    if len(points) == 0 or len(planes) == 0:
+        return out
+    distance = np.abs(points @ planes[:, :3].T + planes[:, 3])
+    nearest = np.argmin(distance, axis=1)
+    on = distance[np.arange(len(points)), nearest] <= band_m
+    out[on] = planes[nearest[on], :3]
+    return out

@@ -63,7 +63,7 @@ from binpick.picking.measured import (
     local_noise_m,
     point_spacing_m,
 )
-from binpick.picking.obstacles import moved_tool_hits, source_name, tool_collisions
+from binpick.picking.obstacles import moved_tool_hits, source_name, surface_normals, tool_collisions
 from binpick.picking.ranking import known_keys, rank_key
 
 # Obstacle points are thinned to a grid of this share of the clearance (at least 1 mm): closer
@@ -171,6 +171,8 @@ def plan_picks(
     max_picks: int | None = None,
     skip: np.ndarray | None = None,
     failed_contacts_m: np.ndarray | None = None,
+    wall_planes: np.ndarray | None = None,
+    wall_band_m: float = 0.0,
 ) -> PickPlan:
     """Picks for the detected parts.
 
@@ -190,6 +192,9 @@ def plan_picks(
     skip             : (p,) bool, parts not to pick now (GRIP_FAILED); they stay obstacles
     failed_contacts_m: (k, 3) camera frame, where the tool centre point was at grips that failed:
                        grasps within the gripper's contact size of one are not tried (FAILED_HERE)
+    wall_planes      : (w, 4) the bin walls found at import, camera frame; the captured points
+                       within wall_band_m of one, like the given bin's faces, are a surface a part
+                       lifted parallel to it slides along (lift.py)
     """
     T_cam_from_model = np.asarray(T_cam_from_model, dtype=np.float64).reshape(-1, 4, 4)
     n_parts = len(T_cam_from_model)
@@ -216,7 +221,16 @@ def plan_picks(
     carried_sample = part_points[:: max(1, int((CARRIED_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
     captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
     # Obstacle points with their source: -1 captured, -2 the given bin, k >= 0 detected part k.
-    chunks = [captured] + ([bin_box.surface_points(grid * 2)] if bin_box is not None else []) + posed
+    bin_surface = bin_box.surface(grid * 2) if bin_box is not None else None
+    chunks = [captured] + ([bin_surface[0]] if bin_surface is not None else []) + posed
+    # The walls' normals (NaN elsewhere): a part lifted along a wall it rests against is not
+    # dragged into it.
+    walls = np.zeros((0, 4)) if wall_planes is None else wall_planes
+    obstacle_normals = np.concatenate(
+        [surface_normals(captured, walls, wall_band_m)]
+        + ([bin_surface[1]] if bin_surface is not None else [])
+        + [np.full((len(p), 3), np.nan) for p in posed]
+    )
     sources = (
         [np.full(len(captured), -1)]
         + ([np.full(len(chunks[1]), -2)] if bin_box is not None else [])
@@ -331,7 +345,14 @@ def plan_picks(
                         continue
                 moves = [(direction, params.retreat_distance_m), (up, 2.0 * reach)]
                 blockers = lift_blockers(
-                    posed[i], normals_cam, moves, obstacles[ahead], source[ahead], lift_radius, lift_radius + 2 * limit
+                    posed[i],
+                    normals_cam,
+                    moves,
+                    obstacles[ahead],
+                    source[ahead],
+                    lift_radius,
+                    lift_radius + 2 * limit,
+                    obstacle_normals[ahead],
                 )
                 if not blockers:
                     retreat = direction

@@ -92,4 +92,6 @@ def pick(
         max_picks,
         skip,
         failed.contacts_m() if failed is not None else None,
+        cloud.wall_planes,
+        import_params.plane_threshold_m,
     )
