@@ -57,12 +57,7 @@ class FailedGrips:
 def near_failed(centres_m: np.ndarray, failed_m: np.ndarray, diameter_m: float) -> np.ndarray:
     """(p,) bool: which of the posed parts' centres (p, 3) lie within SAME_PART_SHARE of the part's
     diameter of a failed part's centre (k, 3); same frame, metres."""
-    centres = np.asarray(centres_m, dtype=np.float64).reshape(-1, 3)
-    failed = np.asarray(failed_m, dtype=np.float64).reshape(-1, 3)
-    if len(centres) == 0 or len(failed) == 0:
-        return np.zeros(len(centres), dtype=bool)
-    distance = np.linalg.norm(centres[:, None, :] - failed[None, :, :], axis=2)
-    return np.asarray(np.min(distance, axis=1) <= SAME_PART_SHARE * diameter_m)
+    return near_contacts(centres_m, failed_m, SAME_PART_SHARE * diameter_m)
 
 
 def near_contacts(tcp_m: np.ndarray, contacts_m: np.ndarray, radius_m: float) -> np.ndarray:
