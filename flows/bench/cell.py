@@ -54,6 +54,7 @@ from binpick.params import CellParams, Params
 from binpick.part.model import density_kg_m3 as part_density
 from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion, ArmPlanner
+from binpick.picking.gripper import holding_force_n
 from binpick.registration.visibility import DepthView
 from binpick.robot.arm import load_arm
 from binpick.scene.process import PartModels, process
@@ -345,11 +346,13 @@ def bench_cell(
     seed: int = 0,
     density_kg_m3: float | None = None,
     record_prefix: Path | None = None,
+    part_settings: dict[str, Params] | None = None,
 ) -> dict[str, object]:
     """settings: the project's params (cell.arm, cell.speed_scaling, pick.gripper); checkpoints:
     part -> trained FPCC checkpoint (parts without one are registered over the whole scene);
     record_prefix: the first bin of each part (with the arm's check) recorded to
-    <record_prefix>-<part>.rrd."""
+    <record_prefix>-<part>.rrd; part_settings: the params resolved for a part the project lists
+    (its entry's overrides, e.g. a larger suction cup for a heavy part), used for that part."""
     from flows.bench.parts import bench_parts
 
     if settings.cell.arm is None:
@@ -365,7 +368,7 @@ def bench_cell(
         "parts": per_part,
     }
     for part in parts:
-        p = picking_settings(settings, part)
+        p = picking_settings((part_settings or {}).get(part.name, settings), part)
         layout = cell_layout(p)
         p = p.model_copy(
             update={
@@ -424,6 +427,7 @@ def bench_cell(
             **{f"baseline_{k}": v for k, v in _keys(base_tally, base_cycles, n_bins).items()},
             "baseline_failures": dict(base_tally.failures),
             "mass_kg": part_mass_kg(part, density),
+            "holding_force_n": holding_force_n(p.pick, p.pick.gripper),
             "bin_inner_m": [p.generate.bin.inner_x_m, p.generate.bin.inner_y_m],
             "base_to_bin_centre_m": float(np.linalg.norm(layout.T_bin_from_base[:2, 3])),
         }

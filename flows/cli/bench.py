@@ -92,13 +92,14 @@ def bench_cell_cmd(
     arm's joint plan; picks per hour, collisions, drops, double picks; against today's
     gripper-only picks handed to the arm (baseline_*). The first bin of each part is recorded
     beside FILE as <FILE without .json>-<part>.rrd (rerun)."""
-    from binpick.params import load_params
+    from binpick.params import load_params, load_raw
     from flows.bench.cell import DEFAULT_PARTS, bench_cell
 
     if min_parts > max_parts:
         fail(f"--min-parts {min_parts} is above --max-parts {max_parts}")
     root = project_root()
     names = part or list(DEFAULT_PARTS)
+    listed = load_raw(params).get("parts") or {}
     try:
         result = bench_cell(
             load_params(params),
@@ -107,6 +108,7 @@ def bench_cell_cmd(
             (min_parts, max_parts),
             checkpoints(root, names),
             record_prefix=out.with_suffix(""),
+            part_settings={n: load_params(params, n) for n in names if n in listed},
         )
     except ValueError as exc:
         fail(str(exc))
