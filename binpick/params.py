@@ -614,7 +614,7 @@ class PickParams(_Strict):
         ge=0, description="the post-grasp pose: this far back along the approach (or up the bin: picking/lift.py)"
     )
     leave_straight_up: bool = Field(
-        False,
+        True,
         description="a grasp tilted from the bin's down axis whose part, pulled back along the approach, drags into "
         "a neighbour may leave straight up the bin instead, the tool's way up checked (picking/lift.py)",
     )
