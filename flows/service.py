@@ -58,6 +58,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
+from binpick.cell.retries import FailedGrips
 from binpick.errors import BinpickError
 from binpick.io.capture import CAPTURE_SUFFIXES, ImportOptions, load_capture
 from binpick.io.digest import file_sha256
@@ -331,6 +332,7 @@ class PickService:
             # gets the same answer here and when `binpick requests --add` runs it through them.
             seeds = SceneSeeds.of_capture(first.params.seed, frame.xyz_m, frame.rgb)
             t1 = time.perf_counter()
+            failed = FailedGrips.at(np.asarray(request.failed_grasps)) if request.failed_grasps else None
             try:
                 if mixed:
                     models = {name: s.models for name, s in zip(names, served, strict=True)}
@@ -338,10 +340,10 @@ class PickService:
                     priority = request.priority if request.priority is not None else pick.part_priority
                     quota = request.quota if request.quota is not None else pick.part_quota
                     result: Any = process_mixed(
-                        frame.xyz_m, frame.rgb, frame.shape, models, seeds, priority, quota=quota
+                        frame.xyz_m, frame.rgb, frame.shape, models, seeds, priority, quota=quota, failed=failed
                     )
                 else:
-                    result = process(frame.xyz_m, frame.rgb, frame.shape, first.models, seeds)
+                    result = process(frame.xyz_m, frame.rgb, frame.shape, first.models, seeds, failed=failed)
             except BinpickError as exc:
                 raise RequestError(400, self._for_client(f"{path}: {exc}", path, shown)) from None
         except RequestError:

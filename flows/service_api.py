@@ -5,6 +5,7 @@ pipeline (binpick.io.picks, data/README.md) plus the request's id, timings and p
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -52,6 +53,13 @@ class PicksRequest(BaseModel):
         "ur p[x, y, z, rx, ry, rz] in m and rad; abb [x, y, z, q1..q4] in mm, quaternion w first; kuka X Y Z A B C "
         "in mm and deg; fanuc X Y Z W P R in mm and deg; matrix: only the 4 x 4 matrices. Default: pick.pose_format",
     )
+    failed_grasps: list[list[float]] | None = Field(
+        None,
+        description="where the gripper failed to hold a part in earlier picks (no vacuum, jaws closed on air): each "
+        "such pick's tool centre point, camera frame, metres (the translation of its camera grasp pose, "
+        "picks[i].camera.grasp, column 3). No grasp within the gripper's contact size of one (the suction cup's "
+        "lip, a jaw finger's width) is offered; as a query parameter x,y,z triples joined by ';'",
+    )
     data_b64: str | None = Field(None, description="line protocol: the uploaded capture, base64")
     token: str | None = Field(
         None, description="line protocol: the token, when the service requires one (HTTP: Authorization: Bearer)"
@@ -71,6 +79,23 @@ class PicksRequest(BaseModel):
         if any(len(pair) != 2 or not pair[1].strip().isdigit() for pair in pairs):
             raise ValueError(f"quota {value!r}: expected part:count pairs, e.g. ring_screw:2,gear_shaft:0")
         return {name.strip(): int(count) for name, count in pairs}
+
+    @field_validator("failed_grasps", mode="before")
+    @classmethod
+    def _points(cls, value: object) -> object:
+        if isinstance(value, str):
+            try:
+                value = [[float(x) for x in triple.split(",")] for triple in value.split(";") if triple.strip()]
+            except ValueError:
+                raise ValueError(f"failed_grasps {value!r}: expected x,y,z triples joined by ';'") from None
+        return value
+
+    @field_validator("failed_grasps")
+    @classmethod
+    def _xyz(cls, value: list[list[float]] | None) -> list[list[float]] | None:
+        if value is not None and any(len(p) != 3 or not all(math.isfinite(x) for x in p) for p in value):
+            raise ValueError("failed_grasps: each point is three finite numbers x, y, z (metres, camera frame)")
+        return value
 
     @model_validator(mode="after")
     def _one_or_several(self) -> PicksRequest:

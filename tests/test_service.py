@@ -143,6 +143,18 @@ def test_http_answers_picks_for_an_upload_and_a_named_file(server, project, t_jo
     assert np.allclose(
         [p["T_cam_from_model"] for p in named["poses"]], [p["T_cam_from_model"] for p in answer["poses"]], atol=1e-6
     )
+    # The controller reports that the first pick's grip failed: no pick goes there again.
+    failed_at = np.asarray(first["camera"]["grasp"])[:3, 3]
+    again = httpx.post(
+        f"{url}/picks",
+        json={"part": "t_joint", "path": str(capture.relative_to(root)), "failed_grasps": [failed_at.tolist()]},
+        timeout=120,
+    ).json()
+    assert again["picks"], again.get("unpicked")
+    lip_m = 2.0 * load_params(ROOT / "params.yaml").pick.suction.cup_radius_m
+    grasps = np.array([np.asarray(p["camera"]["grasp"])[:3, 3] for p in again["picks"]])
+    assert np.min(np.linalg.norm(grasps - failed_at, axis=1)) > lip_m
+    assert (again["picks"][0]["pose_index"], again["picks"][0]["grasp_id"]) != (first["pose_index"], first["grasp_id"])
 
 
 def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
@@ -173,6 +185,14 @@ def test_bad_requests_get_clear_errors_and_the_service_goes_on(server, project):
     cases.append(
         (httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "pose_format": "staubli"}), 400, "ur")
     )
+    for failed in ([[0.1, 0.2]], "0.1,0.2,0.3;0.4,x,0.6"):
+        cases.append(
+            (
+                httpx.post(f"{url}/picks", json={"part": "t_joint", "path": "x.ply", "failed_grasps": failed}),
+                400,
+                "failed_grasps",
+            )
+        )
     for response, status, words in cases:
         assert response.status_code == status, response.text
         assert words in response.json()["error"]

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
+from binpick.cell.retries import FailedGrips
 from binpick.geometry.transforms import transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.picks import mixed_picks_document, pose_entries
@@ -143,13 +144,14 @@ def process_mixed(
     priority: list[str] | None = None,
     q_from: np.ndarray | None = None,
     quota: dict[str, int] | None = None,
+    failed: FailedGrips | None = None,
 ) -> MixedResult:
     """The scene path on a capture of several kinds of part (the module's docstring). models:
     each part's models (each part's import settings clean the capture for it; the cloud cleaned
     with the finest grid decides which measured points a pose claims);
     priority: parts picked before the others, in that order (the rest by pick.order whatever the
     part; None or []: all by pick.order); quota: at most this many picks of a part in the list
-    (within_quota; parts not named: no limit)."""
+    (within_quota; parts not named: no limit); failed: where grips failed (cell/retries.py)."""
     names = list(models)
     if not names:
         raise ValueError("a mixed capture needs at least one part")
@@ -208,7 +210,7 @@ def process_mixed(
             poses[name].append(pose)
     conflicts = [(flat[i][0], flat[i][1], flat[j][0]) for i, j in lost]
     t3 = time.perf_counter()
-    picks, unpicked, up_cam = _picks(clouds, poses, models, priority or [], q_from)
+    picks, unpicked, up_cam = _picks(clouds, poses, models, priority or [], q_from, failed)
     picks, over = within_quota(picks, quota or {})
     for mp in over:
         unpicked[mp.part].append(
@@ -246,6 +248,7 @@ def _picks(
     models: dict[str, PartModels],
     priority: list[str],
     q_from: np.ndarray | None,
+    failed: FailedGrips | None = None,
 ) -> tuple[list[MixedPick], dict[str, list[tuple[int, str]]], np.ndarray]:
     """Each part's picks with the other parts' posed bodies as obstacles, merged into one list:
     the priority's parts first in its order, then by each part's own ranking (trusted first, then
@@ -274,6 +277,7 @@ def _picks(
             q_from,
             extra_obstacles_m=obstacles,
             density_kg_m3=m.density_kg_m3,
+            failed=failed,
         )
         unpicked[name] = list(plan.unpicked)
         up_cam = plan.up_cam
