@@ -332,7 +332,7 @@ class PickService:
             # gets the same answer here and when `binpick requests --add` runs it through them.
             seeds = SceneSeeds.of_capture(first.params.seed, frame.xyz_m, frame.rgb)
             t1 = time.perf_counter()
-            failed = FailedGrips.at(np.asarray(request.failed_grasps)) if request.failed_grasps else None
+            failed = FailedGrips.at(request.failed_grasps) if request.failed_grasps else None
             try:
                 if mixed:
                     models = {name: s.models for name, s in zip(names, served, strict=True)}

@@ -34,12 +34,10 @@ class FailedGrips:
     _contacts: list[np.ndarray] = field(default_factory=list)
 
     @classmethod
-    def at(cls, contacts_m: np.ndarray) -> FailedGrips:
+    def at(cls, contacts_m: np.ndarray | list[list[float]]) -> FailedGrips:
         """Grips that failed with the tool centre point at contacts_m (k, 3), the parts they were on
         not known (a controller reports where it failed; no part is left alone)."""
-        return cls(
-            _contacts=[np.asarray(c, dtype=np.float64).reshape(3) for c in np.asarray(contacts_m).reshape(-1, 3)]
-        )
+        return cls(_contacts=list(np.array(contacts_m, dtype=np.float64).reshape(-1, 3)))
 
     def failed(self, T_cam_from_model: np.ndarray, centre_m: np.ndarray, T_cam_from_grasp: np.ndarray) -> None:
         """A grip failed on the part posed at T_cam_from_model (4, 4); centre_m (3,) the part's

@@ -233,7 +233,7 @@ def plan_picks(
     )
     sources = (
         [np.full(len(captured), -1)]
-        + ([np.full(len(chunks[1]), -2)] if bin_box is not None else [])
+        + ([np.full(len(bin_surface[0]), -2)] if bin_surface is not None else [])
         + [np.full(len(p), k) for k, p in enumerate(posed)]
     )
     obstacles = np.concatenate(chunks) if chunks else np.zeros((0, 3))
