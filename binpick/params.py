@@ -457,6 +457,9 @@ class ImportCaptureParams(_Strict):
     roi_min_m: tuple[float, float, float] | None
     roi_max_m: tuple[float, float, float] | None
     T_cam_from_roi: tuple[tuple[float, float, float, float], ...] | None
+    # The box's -x, +x, -y, +y walls' heights in its frame where lower than roi_max_m z (binpick
+    # fit-bin measures them: parts heaped over a low box's rim; 0 = no wall); null = walls to the top.
+    roi_wall_heights_m: tuple[float, float, float, float] | None = None
 
     @field_validator("T_cam_from_roi")
     @classmethod

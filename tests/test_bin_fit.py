@@ -51,6 +51,8 @@ def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
     outer = np.array([bin_params.inner_x_m, bin_params.inner_y_m]) + 2 * bin_params.wall_thickness_m
     size = box.inner_max_m[:2] - box.inner_min_m[:2]
     assert np.allclose(size, outer, atol=0.01), size  # the bin's footprint, walls included
+    # Every wall's rim was seen: the walls stand as high as the bin's (above the ground plane found).
+    assert np.allclose(box.wall_heights_m, bin_params.wall_height_m, atol=0.01), box.wall_heights_m
     centre_in_table = transform_points(invert_T(T_cam_table), box.T_cam_from_bin[:3, 3][None])[0]
     assert np.linalg.norm(centre_in_table[:2]) < 0.01
     in_box = transform_points(invert_T(box.T_cam_from_bin), pts)
@@ -60,6 +62,68 @@ def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
     carton_pts = transform_points(invert_T(T_cam_table), pts)
     near_carton = np.abs(carton_pts[:, 0] - (bin_params.inner_x_m / 2 + 0.12)) < 0.03
     assert near_carton.sum() > 20 and not inside[near_carton & (carton_pts[:, 2] > 0.01)].any()
+
+
+def _block(lo, hi, step=0.002):
+    """Points on the surface of an axis-aligned block (lo, hi), bin frame, about step apart."""
+    axes = [np.arange(a, b + step / 2, step) for a, b in zip(lo, hi, strict=True)]
+    faces = []
+    for fixed in range(3):
+        others = [k for k in range(3) if k != fixed]
+        A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
+        for value in (lo[fixed], hi[fixed]):
+            f = np.empty((A.size, 3))
+            f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
+            faces.append(f)
+    return np.concatenate(faces)
+
+
+def test_a_low_box_heaped_over_its_rim_keeps_its_walls_low_and_a_heap_on_a_table_has_none():
+    # A heap of three blocks touching each other (each side of its rectangle touches one block over
+    # less than the side's length); then the same heap in a box 30 x 20 cm with a 1 cm floor and
+    # 3 cm walls, with one more part hanging 12 cm high over its +x rim (to x = 0.18).
+    heap = [((-0.10, -0.05, 0.0), (0.0, 0.02, 0.06)), ((-0.02, 0.0, 0.0), (0.08, 0.08, 0.09))]
+    heap += [((0.0, -0.08, 0.0), (0.04, 0.0, 0.05))]
+    rim = [((-0.15, -0.10, 0.0), (-0.14, 0.10, 0.03)), ((0.14, -0.10, 0.0), (0.15, 0.10, 0.03))]
+    rim += [((-0.15, -0.10, 0.0), (0.15, -0.09, 0.03)), ((-0.15, 0.09, 0.0), (0.15, 0.10, 0.03))]
+    rim += [((-0.15, -0.10, 0.0), (0.15, 0.10, 0.01))]
+    over = [((0.08, -0.04, 0.0), (0.18, 0.04, 0.12))]
+    T_cam_from_bin = invert_T(T_bin_from_cam(0.8))
+    floor = np.array([0.0, 0.0, -1.0, 0.8])  # z = 0.8 in the camera frame, the normal toward it
+
+    def fitted(blocks):
+        pts = np.concatenate([_block(lo, hi) for lo, hi in blocks])
+        return fit_bin_box(transform_points(T_cam_from_bin, pts), floor, 0.004)
+
+    on_table = fitted(heap)
+    assert np.allclose(on_table.inner_max_m[:2] - on_table.inner_min_m[:2], [0.18, 0.16], atol=0.005)
+    assert np.all(on_table.wall_heights_m == 0.0), on_table.wall_heights_m
+    box = fitted(rim + heap + over)
+    assert np.allclose(box.inner_max_m[:2] - box.inner_min_m[:2], [0.33, 0.20], atol=0.005)
+    assert box.inner_max_m[2] > 0.12  # the box reaches over the heap ...
+    # ... its walls where the rim was seen; the side the part hangs over (+x) is the part's own edge.
+    R = (invert_T(T_cam_from_bin) @ box.T_cam_from_bin)[:3, :3]
+    outward = np.array([-R[:, 0], R[:, 0], -R[:, 1], R[:, 1]])
+    expected = np.where(outward @ [1.0, 0.0, 0.0] > 0.99, 0.0, 0.03)
+    assert np.allclose(box.wall_heights_m, expected, atol=0.003), (box.wall_heights_m, outward)
+
+
+def test_a_bin_box_is_an_obstacle_only_as_high_as_its_walls():
+    from binpick.cell.bin_box import BinBox
+
+    box = BinBox(np.eye(4), np.array([-0.15, -0.1, 0.0]), np.array([0.15, 0.1, 0.2]), np.array([0.0, 0.05, 0.2, 0.2]))
+    points, normals = box.surface(0.01)  # the faces' normals point into the bin
+
+    def face(normals, inward):
+        return np.all(np.isclose(normals, inward), axis=1)
+
+    assert not face(normals, [1.0, 0.0, 0.0]).any()  # no -x wall
+    plus_x = face(normals, [-1.0, 0.0, 0.0])
+    assert np.allclose(points[plus_x, 0], 0.15) and np.isclose(points[plus_x, 2].max(), 0.05)
+    assert np.isclose(points[face(normals, [0.0, -1.0, 0.0]), 2].max(), 0.2)
+    assert np.allclose(points[face(normals, [0.0, 0.0, 1.0]), 2], 0.0)  # the floor
+    full, full_normals = BinBox(np.eye(4), box.inner_min_m, box.inner_max_m).surface(0.01)
+    assert np.isclose(full[face(full_normals, [1.0, 0.0, 0.0]), 2].max(), 0.2)
 
 
 def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_path):

@@ -20,11 +20,14 @@ BIN_PLANE_AGREEMENT_M = 0.02
 @dataclass(frozen=True)
 class BinBox:
     """T_cam_from_bin (4, 4), z up from the bin's floor; inner_min_m / inner_max_m (3,) its inner
-    corners in that frame, metres. As an obstacle: its floor and four walls, up to inner_max_m z."""
+    corners in that frame, metres. As an obstacle: its floor and four walls, up to inner_max_m z
+    or to wall_heights_m (4,): the -x, +x, -y, +y walls' heights in that frame (a box whose parts
+    are heaped over its rim; 0 or less: no wall there, e.g. a heap on a table)."""
 
     T_cam_from_bin: np.ndarray
     inner_min_m: np.ndarray
     inner_max_m: np.ndarray
+    wall_heights_m: np.ndarray | None = None
 
     @classmethod
     def of_import(cls, params: ImportCaptureParams) -> BinBox | None:
@@ -35,6 +38,7 @@ class BinBox:
             np.asarray(params.T_cam_from_roi, dtype=np.float64),
             np.asarray(params.roi_min_m, float),
             np.asarray(params.roi_max_m, float),
+            None if params.roi_wall_heights_m is None else np.asarray(params.roi_wall_heights_m, float),
         )
 
     def as_import_settings(self) -> dict[str, object]:
@@ -43,6 +47,9 @@ class BinBox:
             "T_cam_from_roi": [[round(float(x), 9) for x in row] for row in self.T_cam_from_bin],
             "roi_min_m": [round(float(x), 4) for x in self.inner_min_m],
             "roi_max_m": [round(float(x), 4) for x in self.inner_max_m],
+            "roi_wall_heights_m": None
+            if self.wall_heights_m is None
+            else [round(float(x), 4) for x in self.wall_heights_m],
         }
 
     def surface_points(self, spacing_m: float) -> np.ndarray:
@@ -50,15 +57,23 @@ class BinBox:
         return self.surface(spacing_m)[0]
 
     def surface(self, spacing_m: float) -> tuple[np.ndarray, np.ndarray]:
-        """Points (n, 3) on the inner faces of the walls and the floor, about spacing_m apart, and
-        their faces' unit normals (n, 3), facing into the bin; camera frame."""
+        """Points (n, 3) on the inner faces of the walls (as high as they are) and the floor, about
+        spacing_m apart, and their faces' unit normals (n, 3), facing into the bin; camera frame."""
         lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
-        axes = [np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1)) for a, b in zip(lo, hi, strict=True)]
+        tops = np.full(4, hi[2]) if self.wall_heights_m is None else np.minimum(self.wall_heights_m, hi[2])
+
+        def steps(a: float, b: float) -> np.ndarray:
+            return np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1))
+
         faces, normals = [], []
         for fixed in range(3):
             others = [k for k in range(3) if k != fixed]
-            A, B = np.meshgrid(axes[others[0]], axes[others[1]], indexing="ij")
             for value, inward in ((lo[fixed], 1.0),) if fixed == 2 else ((lo[fixed], 1.0), (hi[fixed], -1.0)):  # no lid
+                top = hi[2] if fixed == 2 else tops[2 * fixed + (inward < 0)]
+                if top <= lo[2]:
+                    continue  # no wall on this side
+                spans = [steps(lo[k], top if k == 2 else hi[k]) for k in others]
+                A, B = np.meshgrid(*spans, indexing="ij")
                 f = np.empty((A.size, 3))
                 f[:, fixed], f[:, others[0]], f[:, others[1]] = value, A.ravel(), B.ravel()
                 faces.append(f)

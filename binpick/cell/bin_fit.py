@@ -5,7 +5,9 @@ stands on it nearest to where the camera looks (the optical axis meets the plane
 camera is mounted), and its footprint is that region's smallest enclosing rectangle. The box is
 given in its own frame (`T_cam_from_bin`: origin at the footprint's centre on the plane, z up
 toward the camera, x along the long side), as import_capture's region of interest takes it, for
-the user to check in the recording and keep in params.yaml.
+the user to check in the recording and keep in params.yaml. Each side's wall is as high as its rim
+was measured along most of the side: parts heaped over a low box's rim raise the box, not its
+walls, and a heap on a table has none; the gripper is not kept off a wall that is not there.
 """
 
 from __future__ import annotations
@@ -32,6 +34,12 @@ MIN_PARTS_ACROSS = 1.0
 MAX_PARTS_ALONG = 25.0
 # ... and a bin camera looks into the bin: its up axis within this of the camera's view.
 MAX_VIEW_TILT_DEG = 60.0
+# A side's wall reaches the height that the points within WALL_BAND_M inside the side reach in
+# WALL_MIN_COVERAGE of its WALL_STEP_M steps: a rim runs the whole side, while a heap's outline
+# touches its rectangle at a few parts only (and a part over the rim only raises a step).
+WALL_BAND_M = 0.02
+WALL_STEP_M = 0.01
+WALL_MIN_COVERAGE = 0.7
 
 
 def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -96,8 +104,33 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     T = np.eye(4)
     T[:3, :3] = np.column_stack([x_axis, y_axis, z_axis])
     T[:3, 3] = origin + centre[0] * axes[0] + centre[1] * axes[1]
-    top = float(np.percentile(height[height > keep_above_m][member], HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
-    return BinBox(T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]))
+    member_height = height[height > keep_above_m][member]
+    top = float(np.percentile(member_height, HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
+    c, s = np.cos(angle), np.sin(angle)
+    xy = (uv[member] - centre) @ np.array([[c, -s], [s, c]])  # along the box's x and y
+    walls = np.minimum(measured_wall_heights(xy, member_height, half), top)
+    return BinBox(
+        T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]), np.round(walls, 4)
+    )
+
+
+def measured_wall_heights(xy_m: np.ndarray, height_m: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+    """(4,) the height of each side's wall (order -x, +x, -y, +y), metres above the floor: what
+    the points within WALL_BAND_M inside the side reach in WALL_MIN_COVERAGE of its steps (0: no wall).
+
+    xy_m : (n, 2) the region's points in the box's frame (centre at 0), metres; height_m : (n,)
+    their heights above the floor; half_m : (2,) the box's half sizes.
+    """
+    heights = np.zeros(4)
+    for k, (axis, sign) in enumerate(((0, -1.0), (0, 1.0), (1, -1.0), (1, 1.0))):
+        along = 1 - axis
+        near = sign * xy_m[:, axis] >= half_m[axis] - WALL_BAND_M
+        n_steps = max(1, int(np.ceil(2 * half_m[along] / WALL_STEP_M)))
+        steps = np.clip(((xy_m[near, along] + half_m[along]) / WALL_STEP_M).astype(np.int64), 0, n_steps - 1)
+        step_top = np.zeros(n_steps)
+        np.maximum.at(step_top, steps, height_m[near])
+        heights[k] = np.quantile(step_top, 1.0 - WALL_MIN_COVERAGE)
+    return heights
 
 
 def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:

@@ -194,8 +194,13 @@ def fit_bin(
         box.inner_max_m,
     )
     size = 1000 * (box.inner_max_m - box.inner_min_m)
+    heights = box.wall_heights_m if box.wall_heights_m is not None else np.full(4, box.inner_max_m[2])
+    walls = ", ".join(
+        f"{side} {1000 * h:.0f} mm" if h > 0 else f"{side} none"
+        for side, h in zip(("-x", "+x", "-y", "+y"), heights, strict=True)
+    )
     typer.echo(
-        f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; "
+        f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; walls {walls}; "
         f"{100 * inside.mean():.0f}% of the points inside; check it: {Path(sys.executable).parent / 'rerun'} {rrd}"
     )
     from binpick.io.part_model import load_part_model
