@@ -122,6 +122,10 @@ class FakeRTDE:
                 fake.moves.append(path)
                 return move_ok
 
+            def moveL_FK(self, q, speed, acceleration, asynchronous=False):
+                fake.moves.append([[*q, speed, acceleration, "line"]])
+                return move_ok
+
             def stopScript(self):
                 pass
 
@@ -190,6 +194,21 @@ def test_the_real_arm_is_sent_the_plan_and_its_vacuum_is_read():
     assert execute_pick(_robot(slow), dataclasses.replace(_motion(), carry_share=0.5)) == "placed"
     assert all(m[6:] == [pytest.approx(1.55), pytest.approx(0.625), 0.0] for m in slow.moves[0])
     assert all(m[6:] == [pytest.approx(0.775), pytest.approx(0.15625), 0.0] for m in slow.moves[1])
+
+
+def test_the_lift_is_sent_as_the_controllers_straight_line():
+    # A chain of configurations to the lift (the plan's straight line up): the real arm gets one
+    # moveL_FK to its end, between the joint moves, at the carry's share of the line speed.
+    chain = np.linspace(np.full(6, 0.2), np.full(6, 0.3), 5)
+    motion = dataclasses.replace(_motion(), lines={"lift": chain}, carry_share=0.5)
+    fake = FakeRTDE(vacuum=[True, True])
+    assert execute_pick(_robot(fake), motion) == "placed"
+    assert [[m[:6] for m in move] for move in fake.moves] == [
+        [[0.1] * 6, [0.2] * 6],
+        [[pytest.approx(0.3)] * 6],
+        [[0.4] * 6, [0.5] * 6],
+    ]
+    assert fake.moves[1][0][6:] == [pytest.approx(0.125), pytest.approx(0.3), "line"]
 
 
 def test_no_vacuum_at_the_grasp_and_a_lost_part_and_a_stop_are_named():

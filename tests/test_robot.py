@@ -11,7 +11,8 @@ from conftest import ROOT
 
 from binpick.geometry.transforms import axis_angle_to_R, invert_T, make_T
 from binpick.params import load_params
-from binpick.picking.arm import HITS_WALL, ArmPlanner, place_tool_poses, turned
+from binpick.picking.arm import HITS_WALL, ArmPlanner, turned
+from binpick.picking.place import place_tool_poses
 from binpick.registration.visibility import depth_view
 from binpick.robot.arm import ARMS, load_arm
 from binpick.robot.configuration import JOINT_LIMIT, choose_configuration, nearest_turns
@@ -215,3 +216,56 @@ def test_a_grasp_left_straight_up_puts_the_arms_post_grasp_above_it():
         post = arm.flange_pose(planned.q["postgrasp"]) @ T_flange_from_tcp
         assert np.allclose(post[:3, 3] - grasp[:3, 3], T_BASE_FROM_CAM[:3, :3] @ offset_cam, atol=1e-6)
         assert np.allclose(post[:3, :3], grasp[:3, :3], atol=1e-6)  # moved, not turned
+
+
+def test_a_chain_of_configurations_is_followed_without_stopping_within_the_limits():
+    from binpick.robot.trajectory import chain_motion, stops_duration_s
+
+    # A chain along a straight joint line: the fastest motion along it is ruckig's rest-to-rest
+    # motion between its ends (both time-optimal within the same limits).
+    q0, q1 = np.zeros(6), np.array([1.0, -0.5, 0.2, 0.0, 0.0, 2.0])
+    chain = np.linspace(q0, q1, 11)
+    limits = JointLimits(np.full(6, np.pi), np.full(6, 2.5))
+    line = chain_motion(chain, limits)
+    assert line.duration == pytest.approx(motion(q0, q1, limits).duration, rel=0.02)
+    t = np.linspace(0.0, line.duration, 201)
+    states = [line.at_time(x) for x in t]
+    q = np.array([s[0] for s in states])
+    qd = np.array([s[1] for s in states])
+    assert np.allclose(q[0], q0, atol=1e-9) and np.allclose(q[-1], q1, atol=1e-6)
+    assert np.allclose(q, q[:, 5:6] / 2.0 * q1, atol=1e-3)  # on the line
+    assert np.all(np.abs(qd) <= np.pi * 1.001) and np.all(qd[1:-1, 5] > 0.0)  # never stops on the way
+    qdd = np.diff(qd, axis=0) / np.diff(t)[:, None]
+    assert np.all(np.abs(qdd) <= 2.5 * 1.05)
+    # As a stop of a path: the same seconds after a joint move to its start.
+    assert stops_duration_s(np.zeros(6), [chain], limits) == pytest.approx(line.duration)
+
+
+def test_the_lift_follows_the_tools_straight_line_up():
+    # A grasp tilted 26 degrees, left back along its approach: from the post-grasp the tool goes
+    # cell.lift_m straight up. A straight joint line between the two strays from that line by a
+    # centimetre; the plan's chain (forward kinematics of each configuration) and the joint lines
+    # between its configurations stay within a millimetre of it.
+    arm = load_arm("ur5e")
+    T_cam_from_tool = make_T(
+        axis_angle_to_R(np.array([1.0, 1.0, 0.0]) / np.sqrt(2.0), np.radians(26.0)), [0.05, 0.03, 0.45]
+    )
+    planner = _planner(np.zeros((0, 3)), np.zeros((0, 4)))
+    planned = planner.plan(T_cam_from_tool, np.eye(4), "suction", np.zeros(3), np.asarray(PARAMS.cell.home_q_rad))
+    assert not isinstance(planned, str)
+    chain = planned.lines["lift"]
+    assert np.allclose(chain[0], planned.q["postgrasp"]) and np.allclose(chain[-1], planned.q["lift"])
+    T_flange_from_tcp = np.asarray(PARAMS.cell.T_flange_from_tcp)
+
+    def tcp(q: np.ndarray) -> np.ndarray:
+        return np.array([(arm.flange_pose(c) @ T_flange_from_tcp)[:3, 3] for c in q])
+
+    start, end = tcp(chain[[0, -1]])
+    assert np.allclose(end - start, [0.0, 0.0, PARAMS.cell.lift_m], atol=1e-6)
+
+    def off_line(points: np.ndarray) -> np.ndarray:
+        return np.linalg.norm((points - start)[:, :2], axis=1)  # the line runs up the base's z
+
+    dense = np.concatenate([line_samples(a, b, 0.002) for a, b in zip(chain[:-1], chain[1:], strict=True)])
+    assert off_line(tcp(dense)).max() < 0.001
+    assert off_line(tcp(line_samples(chain[0], chain[-1], 0.002))).max() > 0.005  # what it replaces

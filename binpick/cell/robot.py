@@ -4,8 +4,10 @@ Universal Robots arm through ur_rtde (`URRobot`), and one pick executed on eithe
 
 The real arm: joint moves with `moveJ` (a path of configurations, each reached at rest: speed and
 acceleration are the leading joint's, the slowest joint's limit times cell.speed_scaling), the
-suction cup's vacuum on a standard digital output and its vacuum sensor on a standard digital
-input (cell.robot.vacuum_out / vacuum_in; no sensor: the hold is assumed). Not tried on hardware.
+lift's straight line with `moveL_FK` to its last configuration (the controller's own straight
+line, at LINE_SPEED_M_S and LINE_ACCELERATION_M_S2 times the carry's share), the suction cup's vacuum
+on a standard digital output and its vacuum sensor on a standard digital input
+(cell.robot.vacuum_out / vacuum_in; no sensor: the hold is assumed). Not tried on hardware.
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ from binpick.robot.trajectory import JointLimits
 
 # What a pick on the robot came to (besides "placed").
 NO_GRIP, GRASP_LOST, ARM_STOPPED = "no grip", "grasp lost", "arm stopped"
+# The real arm's straight lines: the tool's speed m/s and acceleration m/s^2 (UR's moveL defaults).
+LINE_SPEED_M_S, LINE_ACCELERATION_M_S2 = 0.25, 1.2
 
 
 class RobotStopped(BinpickError):
@@ -38,6 +42,12 @@ class Robot(Protocol):
     def move(self, path: list[np.ndarray], share: float = 1.0) -> None:
         """Through the configurations in order (straight joint lines, at rest at each) at `share`
         of the joint speed (share^2 of the acceleration: the same motion, slower); raises
+        RobotStopped when the arm stops on its own."""
+        ...
+
+    def move_line(self, chain: np.ndarray, share: float = 1.0) -> None:
+        """Along the tool's straight line that the chain of configurations (k, 6) follows (from
+        where the arm is to the last), without stopping, at `share` of the speed; raises
         RobotStopped when the arm stops on its own."""
         ...
 
@@ -92,13 +102,13 @@ def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:
     ARM_STOPPED (RobotStopped: the arm stopped itself, nothing more is sent)."""
     at = motion.path.index("grasp")
     try:
-        robot.move([motion.q[name] for name in motion.path[: at + 1]])
+        _move(robot, motion, motion.path[: at + 1])
         if not robot.grip(width_m):
             robot.release()
             robot.move([motion.q[motion.path[at - 1]]])  # back out along the approach
             return NO_GRIP
         # Carrying the part: no faster than the gripper's hold allows (binpick/robot/payload.py).
-        robot.move([motion.q[name] for name in motion.path[at + 1 :]], motion.carry_share)
+        _move(robot, motion, motion.path[at + 1 :], motion.carry_share)
         if not robot.holding():
             robot.release()
             return GRASP_LOST
@@ -106,6 +116,21 @@ def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:
         return "placed"
     except RobotStopped:
         return ARM_STOPPED
+
+
+def _move(robot: Robot, motion: ArmMotion, names: tuple[str, ...], share: float = 1.0) -> None:
+    """Through the motion's waypoints `names`: joint lines, a waypoint with a chain along it."""
+    run: list[np.ndarray] = []
+    for name in names:
+        if name in motion.lines:
+            if run:
+                robot.move(run, share)
+                run = []
+            robot.move_line(motion.lines[name], share)
+        else:
+            run.append(motion.q[name])
+    if run:
+        robot.move(run, share)
 
 
 class URRobot:
@@ -155,6 +180,11 @@ class URRobot:
         speed, acceleration = self.speed * share, self.acceleration * share**2
         moves = [[*map(float, q), speed, acceleration, 0.0] for q in path]
         if not self.control.moveJ(moves):
+            raise RobotStopped(self._why_stopped())
+
+    def move_line(self, chain: np.ndarray, share: float = 1.0) -> None:
+        end = [float(x) for x in np.asarray(chain)[-1]]
+        if not self.control.moveL_FK(end, LINE_SPEED_M_S * share, LINE_ACCELERATION_M_S2 * share**2):
             raise RobotStopped(self._why_stopped())
 
     def _why_stopped(self) -> str:

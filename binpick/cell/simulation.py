@@ -31,7 +31,7 @@ from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion
 from binpick.picking.gripper import holding_force_n
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
-from binpick.robot.trajectory import JointLimits, motion
+from binpick.robot.trajectory import JointLimits, chain_motion, motion
 
 # A body this close to the arm or the tool touches it (metres).
 CONTACT_M = 0.0005
@@ -186,25 +186,32 @@ class SimulatedCell:
         that tears off is let go."""
         limits = self.limits.scaled(share)
         for q_next in path:
-            self._aim(q_next)
             trajectory = motion(self.q, q_next, limits)
-            steps = max(1, int(np.ceil(trajectory.duration / TIME_STEP_S)))
-            for s in range(1, steps + 1):
-                q, qd, _ = trajectory.at_time(min(s * TIME_STEP_S, trajectory.duration))
-                self._pose_arm(np.asarray(q), np.asarray(qd))
-                self.pb.stepSimulation(physicsClientId=self.client)
-                self.clock_s += TIME_STEP_S
-                if s % CONTACT_EVERY == 0 or s == steps:
-                    self.touched |= self._touches()
-                    if self.hold is not None and self._slipped():
-                        self._let_go()
-                if (
-                    self.gripped_at_s is not None
-                    and self.out_of_view_s is None
-                    and not self._arm_in_view(np.asarray(q))
-                ):
-                    self.out_of_view_s = self.clock_s
-            self.q = np.asarray(q_next, dtype=float)
+            self._follow(np.asarray(q_next, dtype=float), trajectory.duration, trajectory.at_time)
+
+    def move_line(self, chain: np.ndarray, share: float = 1.0) -> None:
+        """Along the chain of configurations (k, 6) without stopping, as move does."""
+        line = chain_motion(chain, self.limits.scaled(share))
+        self._follow(np.asarray(chain[-1], dtype=float), line.duration, line.at_time)
+
+    def _follow(self, q_next: np.ndarray, duration_s: float, at_time: Callable[[float], tuple]) -> None:
+        """Step the world along a motion of duration_s to q_next: at_time(t) gives the
+        configuration and joint velocities (6,) each, t seconds in."""
+        self._aim(q_next)
+        steps = max(1, int(np.ceil(duration_s / TIME_STEP_S)))
+        for s in range(1, steps + 1):
+            state = at_time(min(s * TIME_STEP_S, duration_s))
+            q = np.asarray(state[0])
+            self._pose_arm(q, np.asarray(state[1]))
+            self.pb.stepSimulation(physicsClientId=self.client)
+            self.clock_s += TIME_STEP_S
+            if s % CONTACT_EVERY == 0 or s == steps:
+                self.touched |= self._touches()
+                if self.hold is not None and self._slipped():
+                    self._let_go()
+            if self.gripped_at_s is not None and self.out_of_view_s is None and not self._arm_in_view(q):
+                self.out_of_view_s = self.clock_s
+        self.q = q_next
 
     def grip(self, width_m: float) -> bool:
         self.clock_s += self._dwell(self.cell.robot.grip_s)

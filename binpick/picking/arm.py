@@ -6,7 +6,11 @@ along the approach, up out of the bin and over to the place (the gripper too, ou
 approach), and the place is reachable holding the part by this grasp.
 
 Frames: base (the robot's), camera, tool (the tool centre point, z the approach), flange; a pose
-T_a_from_b maps b coordinates to a. Motion is in joint space along straight lines (robot/trajectory.py).
+T_a_from_b maps b coordinates to a. Motion is in joint space along straight lines (robot/trajectory.py),
+but for the lift: from the post-grasp up to the lift the tool runs the straight line up that the
+gripper check swept the part along (picking/lift.py), a chain of configurations LIFT_STEP_M
+apart followed without stopping (a straight joint line strays 1-2 cm sideways over 20 cm and
+drags the part into its neighbours).
 
 The motion of one pick, through the named configurations (ArmMotion.path, the first of these
 whose path is clear):
@@ -19,8 +23,9 @@ leaves back along the approach: the tool comes down and goes up one line); place
 left out at a drop zone (the part is let go from above). The target part itself is not an obstacle
 of the links (the tool meets it; the gripper check has the tool), and the arm's base link is left
 out (it stands beside the bin and does not move). The held part is checked (a sample about a
-centimetre apart) from the lift on, not on its way up out of the pile (a neighbour lying on it,
-which the camera may not show, is the physics cell's to find).
+centimetre apart) from the lift on; on its straight way up out of the pile the gripper check's
+lift check has it (a neighbour lying on it, which the camera may not show, is the physics
+cell's to find).
 """
 
 from __future__ import annotations
@@ -28,18 +33,26 @@ from __future__ import annotations
 import itertools
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from binpick.geometry.transforms import invert_T
-from binpick.params import CellParams, PlaceParams
+from binpick.params import CellParams
+from binpick.picking.place import place_tool_poses
 from binpick.registration.visibility import DepthView
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.clearance import collides, near_planes, obstacle_view
-from binpick.robot.configuration import JOINT_LIMIT, SINGULAR, UNREACHABLE, choose_configuration, ur_singularity_margin
+from binpick.robot.configuration import (
+    JOINT_LIMIT,
+    SINGULAR,
+    UNREACHABLE,
+    choose_configuration,
+    follow,
+    ur_singularity_margin,
+)
 from binpick.robot.payload import Payload, carry_share, point_accelerations
-from binpick.robot.trajectory import JointLimits, duration_s, line_samples, path_duration_s
+from binpick.robot.trajectory import JointLimits, duration_s, line_samples, stops_duration_s
 
 WAYPOINTS = ("pregrasp_above", "lift", "pregrasp", "grasp", "postgrasp", "place_above", "place")
 # Reasons the arm refuses a grasp (beside robot.configuration's unreachable, joint limit, singular).
@@ -62,8 +75,10 @@ MAX_SHORT_MOVE_RAD = 1.0
 MAX_TURNS_CHECKED, MAX_PLACES_CHECKED = 6, 4
 # Configurations whose links are checked in one pass.
 PATH_CHUNK = 64
-# Turns tried about the vertical at a conveyor and a drop zone.
-PLACE_TURNS = 12
+# The lift's straight line is followed through configurations this far apart (the joint line
+# between two strays well under a millimetre); a joint turning more between two is a branch jump.
+LIFT_STEP_M = 0.01
+MAX_CHAIN_STEP_RAD = MAX_SHORT_MOVE_RAD / 4
 
 
 @dataclass(frozen=True)
@@ -72,9 +87,11 @@ class ArmMotion:
     the tool's axis it chose (degrees, from the grasp's own), the tool's pose at the place
     (T_base_from_place_tcp), the motion's seconds at the scaled joint limits and the path: the
     waypoints in the order the arm moves through them from where it starts (straight joint
-    lines, stopping at each); carry_share: the share of the joint speed from the grasp on, where
-    the gripper holds the part (binpick/robot/payload.py; 1: the part's weight unknown or light
-    enough for the full speed)."""
+    lines, stopping at each, or along a chain in `lines`); carry_share: the share of the joint
+    speed from the grasp on, where the gripper holds the part (binpick/robot/payload.py; 1: the
+    part's weight unknown or light enough for the full speed); lines: waypoint -> (k, 6) the
+    chain of configurations from the waypoint before it to it, the tool on a straight line (the
+    lift), followed without stopping."""
 
     q: dict[str, np.ndarray]
     turn_deg: float
@@ -82,6 +99,7 @@ class ArmMotion:
     motion_s: float
     path: tuple[str, ...]
     carry_share: float = 1.0
+    lines: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def turned(T: np.ndarray, angle_rad: float) -> np.ndarray:
@@ -96,45 +114,6 @@ def raised(T: np.ndarray, height_m: float) -> np.ndarray:
     out = np.array(T, dtype=float)
     out[2, 3] += height_m
     return out
-
-
-def place_tool_poses(place: PlaceParams, T_model_from_tool: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
-    """(k, 4, 4) T_base_from_tcp that put a part held by the grasp T_model_from_tool where the place
-    wants it: fixture: the part at T_base_from_part exactly (T_base_from_part @ T_model_from_tool);
-    conveyor: that turned about the vertical through the part's place; drop: the part's centre
-    (centre_m, model frame) at the place's position, the tool straight down, any turn."""
-    T_target = np.asarray(place.T_base_from_part, dtype=float)
-    if place.kind == "fixture":
-        return (T_target @ T_model_from_tool)[None]
-    angles = 2.0 * np.pi * np.arange(PLACE_TURNS) / PLACE_TURNS
-    if place.kind == "conveyor":
-        out = []
-        for a in angles:
-            spin = np.eye(4)
-            spin[:3, :3] = _rz(a)
-            out.append(_about(T_target[:3, 3]) @ spin @ _about(-T_target[:3, 3]) @ T_target @ T_model_from_tool)
-        return np.array(out)
-    centre_tool = invert_T(T_model_from_tool)[:3, :3] @ centre_m + invert_T(T_model_from_tool)[:3, 3]
-    down = np.diag([1.0, -1.0, -1.0])  # tool z along the base's -z
-    out = []
-    for a in angles:
-        R = _rz(a) @ down
-        T = np.eye(4)
-        T[:3, :3] = R
-        T[:3, 3] = T_target[:3, 3] - R @ centre_tool
-        out.append(T)
-    return np.array(out)
-
-
-def _rz(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _about(p: np.ndarray) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, 3] = p
-    return T
 
 
 class ArmPlanner:
@@ -232,11 +211,12 @@ class ArmPlanner:
         # The pick side (to the grasp and up to the lift) and the place side (from the lift on) are
         # checked apart: a turn whose pick side is blocked is not tried again for every place.
         for _, angle, q_grasp in sorted(reachable, key=lambda c: c[0])[:MAX_TURNS_CHECKED]:
-            q = self._in_bin(T_cam_from_tool, angle, q_grasp, retreat_base)
-            if isinstance(q, str):
-                reasons[q] += 1
+            in_bin = self._in_bin(T_cam_from_tool, angle, q_grasp, retreat_base)
+            if isinstance(in_bin, str):
+                reasons[in_bin] += 1
                 continue
-            pick_side = self._clear_pick_side(T_cam_from_tool, q, q_from)
+            q, lines = in_bin
+            pick_side = self._clear_pick_side(q, lines, q_from)
             if isinstance(pick_side, str):
                 reasons[pick_side] += 1
                 continue
@@ -262,16 +242,20 @@ class ArmPlanner:
                     place_side, hit = ("place_above", "place"), None
                 if hit is None:
                     names = pick_side + place_side
-                    path = [q_from] + [q[name] for name in names]
                     at = names.index("grasp") + 1
-                    share = self._carry_share(path[at:], turned(T_model_from_tool, angle), centre_m)
+                    # The lift's chain is timed as the line it is, the carry's accelerations from
+                    # the joint line between its ends (alike but for the 1-2 cm stray).
+                    share = self._carry_share(
+                        [q[name] for name in names[at - 1 :]], turned(T_model_from_tool, angle), centre_m
+                    )
                     if share is None:
                         reasons[TOO_HEAVY] += 1
                         break
-                    seconds = path_duration_s(path[: at + 1], self.limits) + path_duration_s(
-                        path[at:], self.limits.scaled(share)
+                    stops = [lines.get(name, q[name]) for name in names]
+                    seconds = stops_duration_s(q_from, stops[:at], self.limits) + stops_duration_s(
+                        q["grasp"], stops[at:], self.limits.scaled(share)
                     )
-                    return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names, share)
+                    return ArmMotion(dict(q), float(np.degrees(angle)), T_place, seconds, names, share, lines)
             if not placed:
                 reasons[PLACE_UNREACHABLE] += 1
             elif hit is not None:
@@ -291,7 +275,7 @@ class ArmPlanner:
         return carry_share(point_accelerations(self.arm, carry, self.limits, centre_flange), self.payload)
 
     def _clear_pick_side(
-        self, T_cam_from_tool: np.ndarray, q: dict[str, np.ndarray], q_from: np.ndarray
+        self, q: dict[str, np.ndarray], lines: dict[str, np.ndarray], q_from: np.ndarray
     ) -> tuple[str, ...] | str:
         """The waypoints from q_from down to the grasp and up out of the bin, the first order whose
         path is clear (straight to the pre-grasp, else down from above it; out to the post-grasp,
@@ -307,7 +291,12 @@ class ArmPlanner:
         # up, the lift lies over the grasp, and a line from it to the pre-grasp swings the tool
         # sideways into the target (the arm's check leaves the target to the gripper check).
         for names in (("pregrasp", "grasp", *out), ("pregrasp_above", "pregrasp", "grasp", *out)):
-            hit = self.path_hit([q_from] + [q[name] for name in names], _tool_checked(names))
+            waypoints, flags = [q_from], []
+            for name, flag in zip(names, _tool_checked(names), strict=True):
+                inner = list(lines[name][1:-1]) if name in lines else []  # a chain's own configurations
+                waypoints += [*inner, q[name]]
+                flags += [flag] * (len(inner) + 1)
+            hit = self.path_hit(waypoints, flags)
             if hit is None:
                 return names
         assert hit is not None
@@ -315,10 +304,11 @@ class ArmPlanner:
 
     def _in_bin(
         self, T_cam_from_tool: np.ndarray, angle: float, q_grasp: np.ndarray, retreat_base: np.ndarray
-    ) -> dict[str, np.ndarray] | str:
+    ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]] | str:
         """The configurations at the pre-grasp, post-grasp (retreat_base (3,) the way there from the
         grasp, base frame, unit), lift and above the pre-grasp with the tool turned by angle, on the
-        branch of the grasp's (q_grasp), with it; or why there are none."""
+        branch of the grasp's (q_grasp), with it, and the lift's chain ({"lift": (k, 6)}: the tool's
+        straight line up from the post-grasp); or why there are none."""
         grasp = self.T_base_from_cam @ turned(T_cam_from_tool, angle)
         poses = {"grasp": grasp, "pregrasp": _back(grasp, grasp[:3, 2] * self.pregrasp_m)}
         poses["postgrasp"] = _back(grasp, -retreat_base * self.retreat_m)
@@ -332,7 +322,24 @@ class ArmPlanner:
                 return why
             if np.max(np.abs(q[name] - q[ref])) > MAX_SHORT_MOVE_RAD:
                 return UNREACHABLE
-        return q
+        if not self.check_path:
+            return q, {}  # the baseline's hand-over goes no further than the post-grasp
+        chain = self._chain(poses["postgrasp"], q["postgrasp"], q["lift"])
+        return (q, {"lift": chain}) if isinstance(chain, np.ndarray) else chain
+
+    def _chain(self, T_base_from_start: np.ndarray, q_start: np.ndarray, q_end: np.ndarray) -> np.ndarray | str:
+        """(k, 6) configurations from q_start to q_end (the lift, cell.lift_m straight up from the
+        tool pose T_base_from_start), the tool LIFT_STEP_M apart on the line; or why the arm
+        cannot follow the line (robot.configuration.follow)."""
+        n = max(1, int(np.ceil(self.cell.lift_m / LIFT_STEP_M)))
+        poses = [raised(T_base_from_start, self.cell.lift_m * k / n) @ self.T_tcp_from_flange for k in range(1, n)]
+        lower, upper = self.arm.lower_rad + self.margin, self.arm.upper_rad - self.margin
+        chain = follow([self.arm.ik(T) for T in poses], q_start, lower, upper, MAX_CHAIN_STEP_RAD)
+        if isinstance(chain, str):
+            return chain
+        if np.max(np.abs(q_end - chain[-1])) > MAX_CHAIN_STEP_RAD:
+            return UNREACHABLE  # the lift's configuration lies on another branch
+        return np.vstack([chain, q_end])
 
     def _places(
         self, T_model_from_tool: np.ndarray, centre_m: np.ndarray, q_lift: np.ndarray

@@ -86,3 +86,26 @@ def choose_configuration(
     cost = np.where(ok, seconds + 1e-3 * travel.sum(axis=1), np.inf)
     best = int(np.argmin(cost))
     return Choice(turned[best], None, float(seconds[best]))
+
+
+def follow(
+    solutions_along: list[np.ndarray], q_start: np.ndarray, lower: np.ndarray, upper: np.ndarray, max_step_rad: float
+) -> np.ndarray | str:
+    """(k + 1, 6) configurations along a path of tool poses: q_start (6,), then for each pose's
+    inverse kinematics solutions ((m, 6), k of them) the one nearest the configuration before,
+    its joints turned within [lower, upper]; or why the arm cannot follow: UNREACHABLE where a
+    pose has no solution or the nearest moves a joint more than max_step_rad (a jump to another
+    branch, near a singularity), JOINT_LIMIT where only the limits stop it."""
+    chain = [np.asarray(q_start, dtype=float)]
+    for solutions in solutions_along:
+        if len(solutions) == 0:
+            return UNREACHABLE
+        turns = nearest_turns(solutions, chain[-1], lower, upper)
+        within = ~np.any(np.isnan(turns), axis=1)
+        if not within.any():
+            return JOINT_LIMIT
+        step = np.max(np.abs(turns[within] - chain[-1]), axis=1)
+        if step.min() > max_step_rad:
+            return UNREACHABLE
+        chain.append(turns[within][np.argmin(step)])
+    return np.array(chain)
