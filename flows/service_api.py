@@ -126,7 +126,10 @@ class ArmJoints(BaseModel):
         description="the pre-grasp pose raised by cell.lift_m (an approach that does not go straight to the pre-grasp "
         "comes down from it)"
     )
-    lift: list[float] = Field(description="the post-grasp pose raised by cell.lift_m")
+    lift: list[float] = Field(
+        description="the post-grasp pose raised by cell.lift_m, reached from the post-grasp along the tool's straight "
+        "line up (a linear move, e.g. UR moveL)"
+    )
     pregrasp: list[float]
     grasp: list[float]
     postgrasp: list[float]
@@ -138,7 +141,7 @@ class ArmOfPick(BaseModel):
     joints_rad: ArmJoints = Field(
         description="the arm's joint angles (base, shoulder, elbow, wrist 1, 2, 3) at each waypoint; the pick moves "
         "from the start through pregrasp (or pregrasp_above, pregrasp), grasp, postgrasp, lift, place_above, place in "
-        "straight joint lines"
+        "straight joint lines, but for postgrasp to lift: the tool's straight line up"
     )
     turn_deg: float = Field(
         description="the tool turned about its axis from the grasp's own (the poses above include it)"
