@@ -51,8 +51,14 @@ def test_the_bin_is_fitted_on_a_table_and_the_carton_beside_it_left_out():
     outer = np.array([bin_params.inner_x_m, bin_params.inner_y_m]) + 2 * bin_params.wall_thickness_m
     size = box.inner_max_m[:2] - box.inner_min_m[:2]
     assert np.allclose(size, outer, atol=0.01), size  # the bin's footprint, walls included
-    # Every wall's rim was seen: the walls stand as high as the bin's (above the ground plane found).
+    # Every wall's rim was seen: the walls stand as high as the bin's (above the ground plane found),
+    # also through 3 mm of depth noise (a Kinect-class sensor at a metre).
     assert np.allclose(box.wall_heights_m, bin_params.wall_height_m, atol=0.01), box.wall_heights_m
+    rng = np.random.default_rng(1)
+    noisy = pts + pts / np.linalg.norm(pts, axis=1, keepdims=True) * rng.normal(0.0, 0.003, (len(pts), 1))
+    floor, _ = fit_plane_ransac(noisy, 0.009, 1000, 0)
+    noisy_box = fit_bin_box(noisy, floor if floor[3] > 0 else -floor, 0.009)
+    assert np.allclose(noisy_box.wall_heights_m, bin_params.wall_height_m, atol=0.012), noisy_box.wall_heights_m
     centre_in_table = transform_points(invert_T(T_cam_table), box.T_cam_from_bin[:3, 3][None])[0]
     assert np.linalg.norm(centre_in_table[:2]) < 0.01
     in_box = transform_points(invert_T(box.T_cam_from_bin), pts)
@@ -106,6 +112,25 @@ def test_a_low_box_heaped_over_its_rim_keeps_its_walls_low_and_a_heap_on_a_table
     outward = np.array([-R[:, 0], R[:, 0], -R[:, 1], R[:, 1]])
     expected = np.where(outward @ [1.0, 0.0, 0.0] > 0.99, 0.0, 0.03)
     assert np.allclose(box.wall_heights_m, expected, atol=0.003), (box.wall_heights_m, outward)
+
+
+def test_a_row_of_cups_lying_along_a_side_is_no_wall():
+    # Four cylinders (radius 4 cm, a cup's) lying side by side across the +y side of a heap, their
+    # ends on it: the side is covered end to end and 4-8 cm high, but not level as a rim is.
+    theta = np.linspace(0.0, np.pi, 60)
+    y = np.arange(0.02, 0.1001, 0.002)
+    cups = []
+    for x_c in (-0.12, -0.04, 0.04, 0.12):
+        T, Y = np.meshgrid(theta, y, indexing="ij")
+        cups.append(np.column_stack([x_c + 0.04 * np.cos(T).ravel(), Y.ravel(), 0.04 + 0.04 * np.sin(T).ravel()]))
+    heap = np.concatenate([*cups, _block((-0.16, -0.10, 0.0), (0.16, 0.02, 0.03))])
+    T_cam_from_bin = invert_T(T_bin_from_cam(0.8))
+    box = fit_bin_box(transform_points(T_cam_from_bin, heap), np.array([0.0, 0.0, -1.0, 0.8]), 0.004)
+    R = (invert_T(T_cam_from_bin) @ box.T_cam_from_bin)[:3, :3]
+    outward = np.array([-R[:, 0], R[:, 0], -R[:, 1], R[:, 1]])
+    plus_y = int(np.argmax(outward @ [0.0, 1.0, 0.0]))
+    assert np.allclose(box.inner_max_m[:2] - box.inner_min_m[:2], [0.32, 0.20], atol=0.005)
+    assert box.wall_heights_m[plus_y] == 0.0, box.wall_heights_m
 
 
 def test_a_bin_box_is_an_obstacle_only_as_high_as_its_walls():

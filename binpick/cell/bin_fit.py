@@ -36,10 +36,14 @@ MAX_PARTS_ALONG = 25.0
 MAX_VIEW_TILT_DEG = 60.0
 # A side's wall reaches the height that the points within WALL_BAND_M inside the side reach in
 # WALL_MIN_COVERAGE of its WALL_STEP_M steps: a rim runs the whole side, while a heap's outline
-# touches its rectangle at a few parts only (and a part over the rim only raises a step).
+# touches its rectangle at a few parts only (and a part over the rim only raises a step). A rim is
+# also level: in WALL_MIN_LEVEL of the steps its top lies within WALL_LEVEL_M of that height; a
+# row of parts along the side (cups lying end to end) rises and falls from step to step.
 WALL_BAND_M = 0.02
 WALL_STEP_M = 0.01
 WALL_MIN_COVERAGE = 0.7
+WALL_LEVEL_M = 0.005
+WALL_MIN_LEVEL = 0.6
 
 
 def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -116,7 +120,8 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
 
 def measured_wall_heights(xy_m: np.ndarray, height_m: np.ndarray, half_m: np.ndarray) -> np.ndarray:
     """(4,) the height of each side's wall (order -x, +x, -y, +y), metres above the floor: what
-    the points within WALL_BAND_M inside the side reach in WALL_MIN_COVERAGE of its steps (0: no wall).
+    the points within WALL_BAND_M inside the side reach in WALL_MIN_COVERAGE of its steps, where
+    WALL_MIN_LEVEL of the steps top out within WALL_LEVEL_M of it (a level rim); else 0 (no wall).
 
     xy_m : (n, 2) the region's points in the box's frame (centre at 0), metres; height_m : (n,)
     their heights above the floor; half_m : (2,) the box's half sizes.
@@ -129,7 +134,9 @@ def measured_wall_heights(xy_m: np.ndarray, height_m: np.ndarray, half_m: np.nda
         steps = np.clip(((xy_m[near, along] + half_m[along]) / WALL_STEP_M).astype(np.int64), 0, n_steps - 1)
         step_top = np.zeros(n_steps)
         np.maximum.at(step_top, steps, height_m[near])
-        heights[k] = np.quantile(step_top, 1.0 - WALL_MIN_COVERAGE)
+        height = float(np.quantile(step_top, 1.0 - WALL_MIN_COVERAGE))
+        level = float(np.mean(np.abs(step_top - height) <= WALL_LEVEL_M))
+        heights[k] = height if level >= WALL_MIN_LEVEL else 0.0
     return heights
 
 
