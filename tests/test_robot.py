@@ -269,3 +269,18 @@ def test_the_lift_follows_the_tools_straight_line_up():
     dense = np.concatenate([line_samples(a, b, 0.002) for a, b in zip(chain[:-1], chain[1:], strict=True)])
     assert off_line(tcp(dense)).max() < 0.001
     assert off_line(tcp(line_samples(chain[0], chain[-1], 0.002))).max() > 0.005  # what it replaces
+
+
+def test_following_a_path_takes_the_nearest_solution_and_names_a_jump_or_a_limit():
+    from binpick.robot.configuration import UNREACHABLE, follow
+
+    lower, upper = np.full(6, -2.0 * np.pi), np.full(6, 2.0 * np.pi)
+    # Two solutions per pose: the one near the configuration before is taken, its wrist turned a
+    # whole turn back toward it (6.3 rad is 6.3 - 2 pi = 0.017 rad from the start).
+    along = [np.array([[3.0] * 6, [0.1] * 6]), np.array([[0.2, 0.2, 0.2, 0.2, 0.2, 6.3], [-3.0] * 6])]
+    chain = follow(along, np.zeros(6), lower, upper, 0.25)
+    assert isinstance(chain, np.ndarray)
+    assert np.allclose(chain, [[0.0] * 6, [0.1] * 6, [0.2, 0.2, 0.2, 0.2, 0.2, 6.3 - 2.0 * np.pi]])
+    assert follow([np.array([[1.0] * 6])], np.zeros(6), lower, upper, 0.25) == UNREACHABLE  # a jump
+    assert follow([np.zeros((0, 6))], np.zeros(6), lower, upper, 0.25) == UNREACHABLE  # no solution
+    assert follow([np.array([[0.2] * 6])], np.zeros(6), np.full(6, -0.15), np.full(6, 0.15), 0.25) == JOINT_LIMIT
