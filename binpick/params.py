@@ -720,8 +720,9 @@ class CellParams(_Strict):
     on its flange, its home, the place; picks are checked for the whole arm when `arm` is set and
     pick.T_base_from_cam says where the camera is."""
 
-    arm: Literal["ur5e", "ur3e"] | None = Field(
-        description="the arm (airo-models URDF, ur_analytic_ik IK); null: picks checked for the gripper only"
+    arm: Literal["ur5e", "ur3e", "ur10"] | None = Field(
+        description="the arm (URDF from airo-models or example-robot-data, ur_analytic_ik IK); null: picks "
+        "checked for the gripper only"
     )
     T_flange_from_tcp: list[list[float]] = Field(
         description="the tool on the flange: its centre point (the cup's lip, the jaws' middle) in the flange frame"

@@ -1,6 +1,6 @@
 """The robot arm: kinematics, joint limits and link geometry from the URDF a maintained package
-ships (airo-models: Universal Robots e-series), inverse kinematics from an analytic solver
-(ur_analytic_ik). Nothing is downloaded.
+ships (airo-models: the Universal Robots UR5e and UR3e; example-robot-data: the UR10), inverse
+kinematics from an analytic solver (ur_analytic_ik). Nothing is downloaded.
 
 Frames: `base` is the controller's base frame (the one a UR teach pendant and `getActualTCPPose`
 use; the URDF's REP-103 `base_link` is it turned half a turn about z), `flange` the tool flange
@@ -23,8 +23,13 @@ from binpick.native import stdout_silenced
 
 log = logging.getLogger(__name__)
 
-# The arms whose URDF airo-models ships and whose analytic IK ur_analytic_ik has.
-ARMS = ("ur5e", "ur3e")
+# The arms whose URDF a package ships and whose analytic IK ur_analytic_ik has: the e-series from
+# airo-models, the UR10 (CB3, 1.3 m reach) from example-robot-data's ur_description.
+ARMS = ("ur5e", "ur3e", "ur10")
+EXAMPLE_ROBOT_DATA_URDF = {"ur10": "cmeel.prefix/share/example-robot-data/robots/ur_description/urdf/ur10_robot.urdf"}
+# Joint acceleration where a URDF declares none (example-robot-data's): the 2.5 rad/s^2 that
+# airo-models declares for every joint of the e-series arms; Universal Robots publishes no figure.
+DEFAULT_ACCELERATION_RAD_S2 = 2.5
 BASE, FLANGE = "base", "tool0"
 # Link surfaces are sampled about this far apart for collision checks: a check's radius adds
 # half of it, so that nothing slips between the samples.
@@ -41,8 +46,8 @@ class ArmModel:
     link_names : the links with collision geometry, base to flange
     link_points_m : per link (k_i, 3) its collision surface sampled every LINK_SAMPLE_SPACING_M,
                     link frame
-    upper_arm_m, forearm_m : a UR's a2 and a3 (the elbow's and wrist 1's offsets along their
-                    parents' x; negative in UR's convention)
+    upper_arm_m, forearm_m : a UR's a2 and a3 (the upper arm's and the forearm's lengths,
+                    negative in UR's convention)
     """
 
     name: str
@@ -124,13 +129,25 @@ def load_arm(name: str) -> ArmModel:
     return _load(name)
 
 
+def _urdf_path(name: str) -> Path:
+    if name in EXAMPLE_ROBOT_DATA_URDF:
+        from importlib.metadata import PackageNotFoundError, distribution
+
+        try:
+            return Path(str(distribution("example-robot-data").locate_file(EXAMPLE_ROBOT_DATA_URDF[name])))
+        except PackageNotFoundError:
+            raise ValueError(f"the {name} model needs example-robot-data: pip install example-robot-data") from None
+    import airo_models
+
+    return Path(airo_models.get_urdf_path(name))
+
+
 @functools.lru_cache(maxsize=len(ARMS))
 def _load(name: str) -> ArmModel:
-    import airo_models
     import ur_analytic_ik
     import yourdfpy
 
-    path = Path(airo_models.get_urdf_path(name))
+    path = _urdf_path(name)
     # yourdfpy logs the Drake namespace of the acceleration limits as an error and reads on.
     quiet = logging.getLogger("yourdfpy")
     level = quiet.level
@@ -154,12 +171,19 @@ def _load(name: str) -> ArmModel:
         max_acceleration_rad_s2=accelerations,
         link_names=links,
         link_points_m=points,
-        upper_arm_m=float(urdf.joint_map["elbow_joint"].origin[0, 3]),
-        forearm_m=float(urdf.joint_map["wrist_1_joint"].origin[0, 3]),
+        upper_arm_m=_link_length(urdf, "elbow_joint"),
+        forearm_m=_link_length(urdf, "wrist_1_joint"),
         urdf_path=path,
         _chain=_joint_chain(urdf, chain_links, joints),
         _ik=getattr(ur_analytic_ik, name),
     )
+
+
+def _link_length(urdf: Any, joint: str) -> float:
+    """A UR link's length from the joint at its end (negative, UR's convention): the largest offset
+    of the joint's origin (along x in airo-models' files, z in ur_description's; the others are
+    the small sideways offsets)."""
+    return -float(np.max(np.abs(np.asarray(urdf.joint_map[joint].origin, dtype=float)[:3, 3])))
 
 
 def _chain_links(urdf: Any) -> list[str]:
@@ -200,6 +224,8 @@ def _acceleration_limits(path: Path, joints: tuple[str, ...]) -> np.ndarray:
         limit = joint.find("limit")
         if limit is not None and limit.get(ACCELERATION_ATTRIBUTE) is not None:
             found[joint.get("name")] = float(limit.get(ACCELERATION_ATTRIBUTE))
+    if not found:  # none declared at all (example-robot-data)
+        return np.full(len(joints), DEFAULT_ACCELERATION_RAD_S2)
     missing = [j for j in joints if j not in found]
     if missing:
         raise ValueError(f"{path}: no acceleration limit for {', '.join(missing)}")
@@ -212,7 +238,7 @@ def _link_surface(urdf: Any, folder: Path, link: str) -> np.ndarray:
     for c in urdf.link_map[link].collisions:
         g = c.geometry
         if g.mesh is not None:
-            mesh = trimesh.load(folder / g.mesh.filename, force="mesh")
+            mesh = trimesh.load(_mesh_path(folder, g.mesh.filename), force="mesh")
             assert isinstance(mesh, trimesh.Trimesh)  # force="mesh" merges a scene into one
             if g.mesh.scale is not None:
                 mesh.apply_scale(g.mesh.scale)
@@ -227,7 +253,26 @@ def _link_surface(urdf: Any, folder: Path, link: str) -> np.ndarray:
         if c.origin is not None:
             mesh.apply_transform(c.origin)
         count = max(16, int(mesh.area / LINK_SAMPLE_SPACING_M**2))
-        # A fixed seed: the same arm is the same sample in every process.
-        points, _ = trimesh.sample.sample_surface_even(mesh, count, seed=0)
+        # A fixed seed: the same arm is the same sample in every process. A link's thin parts
+        # take fewer than count at the spacing, which trimesh logs as a warning: enough as they are.
+        quiet = logging.getLogger("trimesh")
+        level = quiet.level
+        quiet.setLevel(logging.ERROR)
+        try:
+            points, _ = trimesh.sample.sample_surface_even(mesh, count, seed=0)
+        finally:
+            quiet.setLevel(level)
         parts.append(np.asarray(points, dtype=float))
     return np.concatenate(parts) if parts else np.zeros((0, 3))
+
+
+def _mesh_path(folder: Path, filename: str) -> Path:
+    """A URDF's mesh file: relative to its folder, or package://<package>/<path> inside the
+    nearest folder above it named <package> (example-robot-data's layout)."""
+    if not filename.startswith("package://"):
+        return folder / filename
+    package, _, rest = filename[len("package://") :].partition("/")
+    for above in (folder, *folder.parents):
+        if above.name == package:
+            return above / rest
+    raise ValueError(f"{folder}: no folder {package!r} above it for {filename}")
