@@ -330,6 +330,26 @@ def _browser():
     return webdriver.Chrome(options=options, service=webdriver.ChromeService(executable_path=driver))
 
 
+def _gone(element):
+    """A wait condition: the element no longer belongs to the page. Chromium answers a look at a
+    node taken away mid-reload either as stale or as an inspector error ("Node with given id does
+    not belong to the document"); selenium's staleness_of knows only the first."""
+    from selenium.common.exceptions import StaleElementReferenceException, WebDriverException
+
+    def check(_driver) -> bool:
+        try:
+            element.is_enabled()
+        except StaleElementReferenceException:
+            return True
+        except WebDriverException as exc:
+            if "does not belong to the document" in str(exc):
+                return True
+            raise
+        return False
+
+    return check
+
+
 def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browser(server, project):
     service, url = server
     root, _, capture = project
@@ -370,7 +390,7 @@ def test_the_operator_page_shows_the_latest_capture_and_the_requests_in_a_browse
             from selenium.webdriver.support import expected_conditions
             from selenium.webdriver.support.wait import WebDriverWait
 
-            WebDriverWait(browser, 60).until(expected_conditions.staleness_of(button))
+            WebDriverWait(browser, 60).until(_gone(button))
             parts = WebDriverWait(browser, 60).until(expected_conditions.presence_of_element_located((By.ID, "parts")))
             assert parts.text == "t_joint"
         finally:
