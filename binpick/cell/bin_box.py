@@ -15,6 +15,8 @@ from binpick.params import ImportCaptureParams
 # within these (then the measured plane is used: it is where the parts lie today).
 BIN_PLANE_AGREEMENT_DEG = 10.0
 BIN_PLANE_AGREEMENT_M = 0.02
+# The order of a box's four walls wherever they are listed (wall_heights_m, roi_wall_heights_m).
+WALL_SIDES = ("-x", "+x", "-y", "+y")
 
 
 @dataclass(frozen=True)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import trimesh
 
+from binpick.log import loggers_raised
 from binpick.native import stdout_silenced
 
 log = logging.getLogger(__name__)
@@ -149,13 +150,8 @@ def _load(name: str) -> ArmModel:
 
     path = _urdf_path(name)
     # yourdfpy logs the Drake namespace of the acceleration limits as an error and reads on.
-    quiet = logging.getLogger("yourdfpy")
-    level = quiet.level
-    quiet.setLevel(logging.CRITICAL)
-    try:
+    with loggers_raised(("yourdfpy",), logging.CRITICAL):
         urdf = yourdfpy.URDF.load(str(path), load_meshes=False, load_collision_meshes=False)
-    finally:
-        quiet.setLevel(level)
     joints = tuple(urdf.actuated_joint_names)
     limits = [urdf.joint_map[j].limit for j in joints]
     accelerations = _acceleration_limits(path, joints)
@@ -255,13 +251,8 @@ def _link_surface(urdf: Any, folder: Path, link: str) -> np.ndarray:
         count = max(16, int(mesh.area / LINK_SAMPLE_SPACING_M**2))
         # A fixed seed: the same arm is the same sample in every process. A link's thin parts
         # take fewer than count at the spacing, which trimesh logs as a warning: enough as they are.
-        quiet = logging.getLogger("trimesh")
-        level = quiet.level
-        quiet.setLevel(logging.ERROR)
-        try:
+        with loggers_raised(("trimesh",), logging.ERROR):
             points, _ = trimesh.sample.sample_surface_even(mesh, count, seed=0)
-        finally:
-            quiet.setLevel(level)
         parts.append(np.asarray(points, dtype=float))
     return np.concatenate(parts) if parts else np.zeros((0, 3))
 

@@ -67,11 +67,10 @@ def positions(trajectory: Trajectory, times_s: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LineMotion:
-    """Rest-to-rest along a chain of configurations (k, 6) without stopping on the way: the
+    """Rest-to-rest along a chain of configurations (chain_motion) without stopping on the way: the
     chain's spline (through every configuration) timed by TOPP-RA (toppra), the fastest within
     every joint's speed and acceleration limits all along it."""
 
-    chain: np.ndarray
     trajectory: Any = field(repr=False)  # toppra's interpolated trajectory
 
     @property
@@ -106,7 +105,7 @@ def chain_motion(chain: np.ndarray, limits: JointLimits) -> LineMotion:
     ).compute_trajectory()
     if trajectory is None:
         raise ValueError(f"no motion along a chain of {len(chain)} configurations: TOPP-RA found none")
-    return LineMotion(chain, trajectory)
+    return LineMotion(trajectory)
 
 
 def line_samples(q_from: np.ndarray, q_to: np.ndarray, max_step_rad: float) -> np.ndarray:

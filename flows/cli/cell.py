@@ -149,6 +149,7 @@ def fit_bin(
     import numpy as np
     import yaml
 
+    from binpick.cell.bin_box import WALL_SIDES
     from binpick.cell.bin_fit import fit_bin_box, implausible
     from binpick.geometry.pointcloud import fit_plane_ransac
     from binpick.geometry.transforms import invert_T, transform_points
@@ -196,8 +197,7 @@ def fit_bin(
     size = 1000 * (box.inner_max_m - box.inner_min_m)
     heights = box.wall_heights_m if box.wall_heights_m is not None else np.full(4, box.inner_max_m[2])
     walls = ", ".join(
-        f"{side} {1000 * h:.0f} mm" if h > 0 else f"{side} none"
-        for side, h in zip(("-x", "+x", "-y", "+y"), heights, strict=True)
+        f"{side} {1000 * h:.0f} mm" if h > 0 else f"{side} none" for side, h in zip(WALL_SIDES, heights, strict=True)
     )
     typer.echo(
         f"{capture}: bin {size[0]:.0f} x {size[1]:.0f} mm, {1000 * box.inner_max_m[2]:.0f} mm high; walls {walls}; "

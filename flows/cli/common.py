@@ -14,7 +14,7 @@ import typer
 
 from binpick.env import configure_environment, project_root
 from binpick.layout import Layout
-from binpick.log import setup_logging
+from binpick.log import loggers_raised, setup_logging
 
 if TYPE_CHECKING:
     from binpick.io.capture import ImportOptions
@@ -69,17 +69,8 @@ def quiet_prefect() -> Iterator[None]:
     if _state["verbose"]:
         yield
         return
-    loggers = [
-        logging.getLogger(name) for name in ("prefect.flow_runs", "prefect.task_runs", "prefect.engine", "prefect")
-    ]
-    before = [lg.level for lg in loggers]
-    for lg in loggers:
-        lg.setLevel(logging.CRITICAL)
-    try:
+    with loggers_raised(("prefect.flow_runs", "prefect.task_runs", "prefect.engine", "prefect"), logging.CRITICAL):
         yield
-    finally:
-        for lg, level in zip(loggers, before, strict=True):
-            lg.setLevel(level)
 
 
 @app.callback()
