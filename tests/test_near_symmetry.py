@@ -157,3 +157,27 @@ def test_a_turned_pose_is_turned_back_by_a_relief_on_the_lid_at_low_and_high_noi
     assert turn_deg(start) > 80.0
     T, turned = resolve(ppf, start, fine, cKDTree(fine), view, scales, PARAMS.registration.icp_iterations)
     assert turned and turn_deg(T) < 5.0
+
+
+def test_votes_for_a_pose_spread_over_its_turns_are_one_cluster(mug):
+    """Candidates at the mug's right pose turned by each of its near symmetries, one vote each,
+    and a wrong pose with three votes: clustered with the near symmetries, the right pose's turns
+    are one cluster with every vote and come first; through the declared symmetries alone (none)
+    the wrong pose wins."""
+    from dataclasses import replace
+
+    from binpick.registration.clustering import cluster_poses
+
+    _, model = mug
+    assert len(model.near_symmetries) >= 8
+    T_right = make_T(axis_angle_to_R(np.array([1.0, 0.2, 0.0]), 2.0), np.array([0.01, -0.02, 0.5]))
+    T_wrong = make_T(axis_angle_to_R(np.array([0.0, 1.0, 0.0]), np.pi / 2), np.array([0.03, -0.02, 0.52]))
+    candidates = [(T_right @ S, 1.0) for S in model.near_symmetries] + [(T_wrong, 3.0)]
+    clusters = cluster_poses(candidates, model, PARAMS.registration)
+    assert len(clusters) == 2
+    (T_first, votes), (T_second, _) = clusters
+    assert votes == len(model.near_symmetries)
+    assert any(np.allclose(T_first, T_right @ S) for S in model.near_symmetries)
+    assert np.allclose(T_second, T_wrong)
+    alone = cluster_poses(candidates, replace(model, near_symmetries=np.zeros((0, 4, 4))), PARAMS.registration)
+    assert np.allclose(alone[0][0], T_wrong) and alone[0][1] == 3.0

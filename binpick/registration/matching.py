@@ -23,6 +23,7 @@ from binpick.registration.constants import (
     FINE_STRIDE,
     MAX_CLUSTER_CANDIDATES,
     MIN_FREE_SHARE,
+    MIN_SEGMENT_REFS,
     SCENE_CLUSTERS_PER_INSTANCE,
     SCENE_REFS_PER_CHUNK,
     SEGMENT_EXPLAINED_SHARE,
@@ -65,7 +66,7 @@ def match_segment(
     if len(idx) < 3:
         return None
     pts, nrm = scene_points[idx].astype(np.float64), scene_normals[idx].astype(np.float64)
-    n_refs = max(1, int(round(params.scene_ref_fraction * len(pts))))
+    n_refs = min(len(pts), max(MIN_SEGMENT_REFS, int(round(params.scene_ref_fraction * len(pts)))))
     refs = np.sort(rng.choice(len(pts), size=n_refs, replace=False))
     candidates = vote(model, pts, nrm, refs)
     if not candidates:
