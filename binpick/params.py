@@ -505,6 +505,9 @@ class SegmentParams(_Strict):
     # Predicted instances with fewer points become noise (slivers of a part); null = calibrated
     # (at least min_points).
     min_instance_points: int | None = Field(ge=1)
+    # A point is a part's where the foreground head's logit is above this; null = calibrated on
+    # the validation scenes (0 for checkpoints calibrated before it was).
+    foreground_logit: float | None = None
 
 
 class RegisterParams(_Strict):

@@ -118,12 +118,13 @@ def run(
         )
         log.info(
             "%s: clustering calibrated on %d validation scenes: centre threshold %.2f, embedding threshold %.2f, "
-            "smallest instance %d points (P/R %.2f/%.2f)",
+            "smallest instance %d points, foreground logit above %.1f (P/R %.2f/%.2f)",
             part.name,
             len(val_views),
             chosen["centre_threshold"],
             chosen["embedding_threshold"],
             chosen["min_instance_points"],
+            chosen["foreground_logit"],
             chosen["precision"],
             chosen["recall"],
         )

@@ -184,14 +184,32 @@ def test_block_inference_labels_every_point_and_merges_across_blocks():
 def test_each_point_is_called_a_part_or_not_by_the_block_whose_seed_is_nearest():
     """Points 0..4 on a line, two overlapping blocks that disagree, and a rim point (5) in no
     block: each point takes the judgement of the nearer seed (the first block on a tie), the rim
-    point its nearest neighbour's."""
+    point its nearest neighbour's; a point is a part's where its logit is above the cut."""
     points = np.array([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0], [4, 0, 0], [4.2, 0, 0]])
     none = np.zeros((0,))
     blocks = [
-        (0, np.array([0, 1, 2, 3]), none, none, np.array([True, True, False, False])),
-        (4, np.array([2, 3, 4]), none, none, np.array([True, True, False])),
+        (0, np.array([0, 1, 2, 3]), none, none, np.array([2.0, 2.0, -2.0, -2.0])),
+        (4, np.array([2, 3, 4]), none, none, np.array([2.0, 1.0, -1.0])),
     ]
     np.testing.assert_array_equal(part_points(points, blocks), [True, True, False, True, False, False])
+    np.testing.assert_array_equal(part_points(points, blocks, -1.5), [True, True, False, True, True, True])
+
+
+def test_the_foreground_cut_is_chosen_where_the_validation_points_separate():
+    """Part points with logits in [-1.2, 3], no-part points in [-4, -2.2], points left out of the
+    loss (-2) anywhere: the cuts -2.0 and -1.5 both separate them, and the one nearer 0 is chosen;
+    views with no no-part point leave the cut at 0."""
+    from binpick.network.calibrate import choose_foreground_logit
+
+    rng = np.random.default_rng(0)
+    labels = np.concatenate([np.repeat(np.arange(4), 50), np.full(60, -1), np.full(30, -2)])
+    logits = np.concatenate([rng.uniform(-1.2, 3.0, 200), rng.uniform(-4.0, -2.2, 60), rng.uniform(-5.0, 5.0, 30)])
+    points = rng.normal(size=(len(labels), 3))
+    blocks = [(0, np.arange(len(labels)), np.zeros((0,)), np.zeros((0,)), logits)]
+    assert choose_foreground_logit([(points, points, labels)], [blocks]) == -1.5
+    parts_only = labels >= 0
+    only = [(0, np.arange(200), np.zeros((0,)), np.zeros((0,)), logits[parts_only])]
+    assert choose_foreground_logit([(points[parts_only], points[parts_only], labels[parts_only])], [only]) == 0.0
 
 
 def test_crop_is_contiguous_and_pads_small_scenes():
@@ -378,8 +396,13 @@ def test_calibration_drops_slivers_by_instance_size():
 def test_segment_params_override_calibrated_thresholds():
     from binpick.network.infer import cluster_params
 
-    calibrated = CalibratedClustering(centre_threshold=0.5, embedding_threshold=1.2, min_instance_points=60)
+    calibrated = CalibratedClustering(
+        centre_threshold=0.5, embedding_threshold=1.2, min_instance_points=60, foreground_logit=-1.5
+    )
     assert cluster_params(PARAMS.segment, 0.1, calibrated).embedding_threshold == 1.2
+    assert cluster_params(PARAMS.segment, 0.1, calibrated).foreground_logit == -1.5
+    assert cluster_params(changed(PARAMS.segment, foreground_logit=0.5), 0.1, calibrated).foreground_logit == 0.5
+    assert cluster_params(PARAMS.segment, 0.1, None).foreground_logit == 0.0
     assert cluster_params(changed(PARAMS.segment, embedding_threshold=1.7), 0.1, calibrated).embedding_threshold == 1.7
     assert cluster_params(PARAMS.segment, 0.1, None).centre_threshold == 0.3  # an old checkpoint: the defaults
     assert cluster_params(changed(PARAMS.segment, min_points=25), 0.1, None).min_points == 25

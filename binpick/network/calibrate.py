@@ -15,6 +15,7 @@ import numpy as np
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network, write_with_clustering
 from binpick.network.infer import Block, ClusterParams, cluster_params, default_device, label_blocks, predict_blocks
+from binpick.network.loss import NOT_A_PART
 from binpick.network.model import FPCC
 from binpick.network.train import Views
 from binpick.params import SegmentParams
@@ -25,8 +26,45 @@ EMBEDDING_GRID_PER_EPS2 = (0.8, 0.9, 1.0, 1.07, 1.17)  # around the margin the l
 # false instances are slivers of a part cut off at a block edge or an occlusion (on the ring
 # screw's test scenes 24 of 31 were fragments of one part, median 77 points of about 760).
 INSTANCE_SIZE_GRID_PER_MEDIAN = (0.0, 0.05, 0.1, 0.15, 0.2)
+# The foreground head's logit cuts tried. Its loss weighs parts and no-part points alike, so on
+# views that are mostly parts its logits sit low: on the T-joint's `cpu` network's validation
+# views (93 % part points) the cut at 0 kept 0.92 of the part points (precision 0.99), -1.5 kept
+# 0.99 (0.98); on a simulated cell's capture of 6 lone T-joints 0.56 against 0.88.
+FOREGROUND_LOGIT_GRID = (-3.0, -2.5, -2.0, -1.5, -1.0, -0.5, 0.0, 0.5, 1.0)
+# With fewer no-part points than this share the views cannot place the cut: it stays at 0.
+MIN_NOT_A_PART_SHARE = 0.01
 # The chosen values a checkpoint keeps (its CalibratedClustering).
-CALIBRATED = ("centre_threshold", "embedding_threshold", "min_instance_points")
+CALIBRATED = ("centre_threshold", "embedding_threshold", "min_instance_points", "foreground_logit")
+
+
+def choose_foreground_logit(
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], predicted: list[list[Block]]
+) -> float:
+    """The cut of FOREGROUND_LOGIT_GRID with the best F1 of "a part's point" over the views' points
+    (points (N, 3), normals, labels (N,): >= 0 a part's, NOT_A_PART not, others not scored), each
+    point judged by the block whose seed is nearest, as inference judges it; ties to the cut
+    nearest 0. Views with almost no no-part points (MIN_NOT_A_PART_SHARE) leave it at 0."""
+    logits, parts = [], []
+    for (points, _, labels), blocks in zip(views, predicted, strict=True):
+        logit = np.full(len(points), np.nan)
+        best = np.full(len(points), np.inf)
+        for seed, idx, _, _, fg in blocks:
+            dist = np.linalg.norm(points[idx] - points[seed], axis=1)
+            closer = dist < best[idx]
+            logit[idx[closer]] = fg[closer]
+            best[idx[closer]] = dist[closer]
+        scored = np.isfinite(logit) & ((labels >= 0) | (labels == NOT_A_PART))
+        logits.append(logit[scored])
+        parts.append(labels[scored] >= 0)
+    logit, part = np.concatenate(logits), np.concatenate(parts)
+    if not len(part) or np.mean(~part) < MIN_NOT_A_PART_SHARE:
+        return 0.0
+    f1 = [
+        2.0 * np.count_nonzero((logit > t) & part) / (np.count_nonzero(logit > t) + part.sum())
+        for t in FOREGROUND_LOGIT_GRID
+    ]
+    top = np.flatnonzero(np.isclose(f1, max(f1)))
+    return float(min((FOREGROUND_LOGIT_GRID[k] for k in top), key=abs))
 
 
 def calibrate_clustering(
@@ -48,6 +86,7 @@ def calibrate_clustering(
     predicted: list[list[Block]] = [
         predict_blocks(model, p, n, features, length_scale_m, n_points, rng) for p, n, _ in views
     ]
+    foreground_logit = choose_foreground_logit(views, predicted)
     sizes = [np.bincount(labels[labels >= 0]) for _, _, labels in views]
     sizes_scored = np.concatenate([s[s >= min_points] for s in sizes]) if sizes else np.zeros(0)
     median_size = float(np.median(sizes_scored)) if len(sizes_scored) else 0.0
@@ -56,7 +95,7 @@ def calibrate_clustering(
     for centre in CENTRE_GRID:
         for rel in EMBEDDING_GRID_PER_EPS2:
             for min_size in size_grid:
-                cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size)
+                cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size, foreground_logit)
                 counts = SegmentationCounts()
                 for (points, _, labels), blocks in zip(views, predicted, strict=False):
                     counts = counts.add(
@@ -71,6 +110,7 @@ def calibrate_clustering(
                             "centre_threshold": centre,
                             "embedding_threshold": rel * eps2,
                             "min_instance_points": min_size,
+                            "foreground_logit": foreground_logit,
                             "precision": s["precision"],
                             "recall": s["recall"],
                         },
@@ -120,7 +160,10 @@ def recalibrate(
         source,
         out,
         CalibratedClustering(
-            chosen["centre_threshold"], chosen["embedding_threshold"], int(chosen["min_instance_points"])
+            chosen["centre_threshold"],
+            chosen["embedding_threshold"],
+            int(chosen["min_instance_points"]),
+            chosen["foreground_logit"],
         ),
     )
     return chosen

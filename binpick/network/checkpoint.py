@@ -29,17 +29,21 @@ CHECKPOINT_VERSION = 2
 @dataclass(frozen=True)
 class CalibratedClustering:
     """Clustering settings chosen on the validation scenes after training (network/calibrate.py):
-    centre score threshold, embedding distance threshold, smallest instance kept (points)."""
+    centre score threshold, embedding distance threshold, smallest instance kept (points), and the
+    foreground head's logit above which a point is a part's (0 in checkpoints calibrated before it
+    was chosen)."""
 
     centre_threshold: float
     embedding_threshold: float
     min_instance_points: int
+    foreground_logit: float = 0.0
 
     def to_dict(self) -> dict[str, float]:
         return {
             "centre_threshold": self.centre_threshold,
             "embedding_threshold": self.embedding_threshold,
             "min_instance_points": self.min_instance_points,
+            "foreground_logit": self.foreground_logit,
         }
 
 
@@ -94,6 +98,7 @@ class InferenceSettings:
                     float(clustering["centre_threshold"]),
                     float(clustering["embedding_threshold"]),
                     int(clustering["min_instance_points"]),
+                    float(clustering.get("foreground_logit", 0.0)),
                 ),
                 max_seen_through=float(extra["verification"]["max_seen_through"]) if "verification" in extra else None,
                 min_visible_support=(

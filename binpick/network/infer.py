@@ -24,12 +24,14 @@ class ClusterParams:
     """centre_threshold: score above which a point may be a centre; nms_radius_m: candidates this
     close (metres) to a chosen centre are suppressed, as are candidates closer than
     embedding_threshold in embedding space; points farther than embedding_threshold from every
-    centre are noise; instances smaller than min_points become noise."""
+    centre are noise; instances smaller than min_points become noise; foreground_logit: a point
+    whose foreground logit is not above it is no part's."""
 
     centre_threshold: float
     nms_radius_m: float
     embedding_threshold: float
     min_points: int
+    foreground_logit: float = 0.0
 
 
 def cluster(
@@ -92,12 +94,12 @@ def predict(
     model: FPCC, points: np.ndarray, normals: np.ndarray, features: str, length_scale_m: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One network pass: points (N, 3) metres, normals (N, 3) -> embedding (N, D), centre scores
-    (N,) and foreground (N,) bool (the points it calls a part's)."""
+    (N,) and foreground logits (N,) (a point is a part's above ClusterParams.foreground_logit)."""
     device = next(model.parameters()).device
     p = torch.as_tensor(points, dtype=torch.float32, device=device)[None]
     n = torch.as_tensor(normals, dtype=torch.float32, device=device)[None]
     emb, ctr, fg = model(input_features(p, n, features, length_scale_m), p)
-    return emb[0].cpu().numpy(), ctr[0].cpu().numpy(), (fg[0] > 0).cpu().numpy()
+    return emb[0].cpu().numpy(), ctr[0].cpu().numpy(), fg[0].cpu().numpy()
 
 
 def segment_scene(
@@ -115,7 +117,7 @@ def segment_scene(
     return label_blocks(points, predict_blocks(model, points, normals, features, length_scale_m, n_points, rng), params)
 
 
-# Seed point, point indices, embeddings, centre scores, foreground.
+# Seed point, point indices, embeddings, centre scores, foreground logits.
 Block = tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
@@ -139,18 +141,18 @@ def predict_blocks(
     return blocks
 
 
-def part_points(points: np.ndarray, blocks: list[Block]) -> np.ndarray:
-    """(M,) bool: the scene points the network calls a part's (its foreground head; every point
-    for a network without one). Each point is judged by the block whose seed is nearest to it
-    (where it had the most context), as label_blocks labels it; a point in no block takes its
-    nearest neighbour's judgement."""
+def part_points(points: np.ndarray, blocks: list[Block], foreground_logit: float = 0.0) -> np.ndarray:
+    """(M,) bool: the scene points the network calls a part's (its foreground head's logit above
+    foreground_logit; every point for a network without one). Each point is judged by the block
+    whose seed is nearest to it (where it had the most context), as label_blocks labels it; a
+    point in no block takes its nearest neighbour's judgement."""
     M = len(points)
     is_part = np.ones(M, bool)
     best_dist = np.full(M, np.inf)
     for seed, idx, _, _, fg in blocks:
         dist = np.linalg.norm(points[idx] - points[seed], axis=1)
         closer = dist < best_dist[idx]
-        is_part[idx[closer]] = fg[closer]
+        is_part[idx[closer]] = fg[closer] > foreground_logit
         best_dist[idx[closer]] = dist[closer]
     rim = np.flatnonzero(~np.isfinite(best_dist))
     if len(rim) and len(rim) < M:
@@ -176,7 +178,7 @@ def label_blocks(points: np.ndarray, blocks: list[Block], params: ClusterParams)
     seen = np.zeros(M, bool)  # in a block
     n_instances = 0
     for seed, idx, emb, ctr, fg in blocks:
-        local = cluster(points[idx], emb, ctr, params, fg)
+        local = cluster(points[idx], emb, ctr, params, fg > params.foreground_logit)
         mapping = np.full(int(local.max()) + 2, -1, np.int32)  # local id -> global id; last slot: noise
         for j in range(int(local.max()) + 1):
             before = labels[idx[local == j]]
@@ -239,6 +241,7 @@ def cluster_params(
             segment.min_points,
             int(pick(segment.min_instance_points, c.min_instance_points if c else None, segment.min_points)),
         ),
+        foreground_logit=pick(segment.foreground_logit, c.foreground_logit if c else None, 0.0),
     )
 
 
@@ -267,7 +270,9 @@ class Segmenter:
     ) -> tuple[np.ndarray, np.ndarray]:
         """segment's labels (M,) int32 and part_points' (M,) bool from one pass of the network."""
         blocks = self.predict_blocks(points, normals, rng)
-        return label_blocks(points, blocks, self.clustering), part_points(points, blocks)
+        return label_blocks(points, blocks, self.clustering), part_points(
+            points, blocks, self.clustering.foreground_logit
+        )
 
 
 def make_segmenter(network: FPCC, settings: InferenceSettings, segment: SegmentParams) -> Segmenter:
