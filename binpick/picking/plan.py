@@ -73,6 +73,16 @@ OBSTACLE_GRID_M = 0.001
 # smallest primitive (a 5 mm cup) cannot slip between its points, whatever the part's size (a
 # fixed count of 1,500 left 7.7 mm between the points of the 0.44 m gear shaft).
 PART_OBSTACLE_GRID_M = 0.003
+
+
+def body_sample_stride(spacing_m: float) -> int:
+    """k: every k-th point of a part's evenly spread surface sample (points spacing_m apart, as
+    OwnPoints measures it) stands for its body as an obstacle, k the points per
+    PART_OBSTACLE_GRID_M square: a grid's density at a stride's cost (a grid over 20,000 points
+    took 30 ms)."""
+    return max(1, int((PART_OBSTACLE_GRID_M / max(spacing_m, 1e-6)) ** 2))
+
+
 # The held part's sample on the arm's way out spaced about this (the walls it must clear are
 # centimetres thick).
 CARRIED_GRID_M = 0.01
@@ -209,9 +219,7 @@ def plan_picks(
     own_of = OwnPoints(
         part_points, np.asarray(part_normals, dtype=np.float64).reshape(-1, 3), NOISE_BAND_FACTOR * params.own_points_m
     )
-    # Every k-th point of the (evenly spread) sample, k the points per PART_OBSTACLE_GRID_M square
-    # at its spacing: a grid's density at a stride's cost (a grid over 20,000 points took 30 ms).
-    stride = max(1, int((PART_OBSTACLE_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))
+    stride = body_sample_stride(own_of.spacing_m)
     model_sample = part_points[::stride]
     model_normals = np.asarray(part_normals, dtype=np.float64).reshape(-1, 3)[::stride]
     # The part's way out is checked across the sample's spacing (its silhouette has no gaps).

@@ -23,7 +23,8 @@ from binpick.io.cloud import CleanCloud
 from binpick.io.picks import mixed_picks_document, pose_entries
 from binpick.io.poses import PartPose
 from binpick.params import ImportCaptureParams
-from binpick.picking.plan import Pick
+from binpick.picking.measured import point_spacing_m
+from binpick.picking.plan import Pick, body_sample_stride
 from binpick.picking.ranking import rank_key
 from binpick.scene.clean import clean
 from binpick.scene.pick import pick
@@ -35,9 +36,8 @@ from binpick.seeding import SceneSeeds
 # Two poses of different parts conflict when they share more than this of the smaller one's
 # measured points.
 CONFLICT_SHARE = 0.3
-# Every k-th model surface point stands for a part's body among the other parts' obstacles, and
-# for its surface when the measured points it claims are counted (the dense sample is 20,000).
-OBSTACLE_STRIDE = 4
+# Every k-th model surface point stands for a part's surface when the measured points it claims
+# are counted (the dense sample is 20,000).
 CLAIM_STRIDE = 5
 
 
@@ -255,12 +255,18 @@ def _picks(
     pick.order), ties by part name."""
     merged: list[tuple[tuple, MixedPick]] = []
     unpicked: dict[str, list[tuple[int, str]]] = {}
+    # Each part's body as the others' obstacle: its surface sample on the grid a plan gives the
+    # parts it poses itself. Every 4th of its 20,000 points (4-5 times as many) had made the pick
+    # step of a T-joint + pipe capture 0.7 s slower than the two one-part runs' (now 0.3 s).
+    bodies = {
+        n: m.part.points_m[:: body_sample_stride(2.0 * point_spacing_m(m.part.points_m))] for n, m in models.items()
+    }
     up_cam = np.array([0.0, 0.0, -1.0])  # the camera looking down, until a plan says where up is
     for name, m in models.items():
         if m.grasps is None or m.pick_params is None or not poses[name]:
             continue
         others = [
-            transform_points(p.T_cam_from_model, models[other].part.points_m[::OBSTACLE_STRIDE])
+            transform_points(p.T_cam_from_model, bodies[other])
             for other in models
             if other != name
             for p in poses[other]
