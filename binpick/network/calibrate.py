@@ -14,7 +14,15 @@ import numpy as np
 
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network, write_with_clustering
-from binpick.network.infer import Block, ClusterParams, cluster_params, default_device, label_blocks, predict_blocks
+from binpick.network.infer import (
+    Block,
+    ClusterParams,
+    block_logits,
+    cluster_params,
+    default_device,
+    label_blocks,
+    predict_blocks,
+)
 from binpick.network.loss import NOT_A_PART
 from binpick.network.model import FPCC
 from binpick.network.train import Views
@@ -46,13 +54,7 @@ def choose_foreground_logit(
     nearest 0. Views with almost no no-part points (MIN_NOT_A_PART_SHARE) leave it at 0."""
     logits, parts = [], []
     for (points, _, labels), blocks in zip(views, predicted, strict=True):
-        logit = np.full(len(points), np.nan)
-        best = np.full(len(points), np.inf)
-        for seed, idx, _, _, fg in blocks:
-            dist = np.linalg.norm(points[idx] - points[seed], axis=1)
-            closer = dist < best[idx]
-            logit[idx[closer]] = fg[closer]
-            best[idx[closer]] = dist[closer]
+        logit = block_logits(points, blocks)
         scored = np.isfinite(logit) & ((labels >= 0) | (labels == NOT_A_PART))
         logits.append(logit[scored])
         parts.append(labels[scored] >= 0)

@@ -141,24 +141,30 @@ def predict_blocks(
     return blocks
 
 
-def part_points(points: np.ndarray, blocks: list[Block], foreground_logit: float = 0.0) -> np.ndarray:
-    """(M,) bool: the scene points the network calls a part's (its foreground head's logit above
-    foreground_logit; every point for a network without one). Each point is judged by the block
-    whose seed is nearest to it (where it had the most context), as label_blocks labels it; a
-    point in no block takes its nearest neighbour's judgement."""
-    M = len(points)
-    is_part = np.ones(M, bool)
-    best_dist = np.full(M, np.inf)
+def block_logits(points: np.ndarray, blocks: list[Block]) -> np.ndarray:
+    """(M,) the foreground logit of each scene point from the block whose seed is nearest to it
+    (where it had the most context), as label_blocks labels it; NaN for a point in no block."""
+    logits = np.full(len(points), np.nan)
+    best_dist = np.full(len(points), np.inf)
     for seed, idx, _, _, fg in blocks:
         dist = np.linalg.norm(points[idx] - points[seed], axis=1)
         closer = dist < best_dist[idx]
-        is_part[idx[closer]] = fg[closer] > foreground_logit
+        logits[idx[closer]] = fg[closer]
         best_dist[idx[closer]] = dist[closer]
-    rim = np.flatnonzero(~np.isfinite(best_dist))
-    if len(rim) and len(rim) < M:
-        inside = np.flatnonzero(np.isfinite(best_dist))
-        _, nearest = cKDTree(points[inside]).query(points[rim])
-        is_part[rim] = is_part[inside[nearest]]
+    return logits
+
+
+def part_points(points: np.ndarray, blocks: list[Block], foreground_logit: float = 0.0) -> np.ndarray:
+    """(M,) bool: the scene points the network calls a part's (its foreground head's logit above
+    foreground_logit; every point for a network without one), each judged by the block whose
+    seed is nearest (block_logits); a point in no block takes its nearest neighbour's judgement."""
+    logits = block_logits(points, blocks)
+    inside = np.isfinite(logits)
+    is_part = np.ones(len(points), bool)
+    is_part[inside] = logits[inside] > foreground_logit
+    if inside.any() and not inside.all():
+        _, nearest = cKDTree(points[inside]).query(points[~inside])
+        is_part[~inside] = is_part[np.flatnonzero(inside)[nearest]]
     return is_part
 
 
