@@ -4,7 +4,8 @@ labelled training scene for the part's network (pseudo-labels).
 A point of the cleaned capture near a trusted pose's model surface gets that pose's instance;
 every other point (near a pose that did not pass with margin, on a part nobody posed, on a
 distractor) is IGNORE: it stays in the network's input, as it would at inference, but adds
-nothing to the loss. It is not called background: the cell does not know what it is.
+nothing to the loss. It is not called background: the cell does not know what it is. What the
+cell does know is the bin: a point beyond its walls or under its floor is NOT_A_PART.
 """
 
 from __future__ import annotations
@@ -13,14 +14,13 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from binpick.geometry.transforms import transform_points
+from binpick.cell.bin_box import BinBox
+from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.poses import PartPose
+from binpick.labels import IGNORE, NOT_A_PART
 from binpick.picking.plan import image_coordinates, local_noise_m
-
-# Label of a point the loss and the scoring leave out (instances are >= 0; -1 is "not a part").
-IGNORE = -2
 
 
 def trusted(poses: list[PartPose], min_score: float, margin: float) -> np.ndarray:
@@ -58,6 +58,16 @@ def pseudo_labels(
     return labels
 
 
+def outside_bin(points_m: np.ndarray, bin_box: BinBox, near_m: float) -> np.ndarray:
+    """(N,) bool: points (N, 3, camera frame, metres) farther than near_m beyond the bin's inner
+    walls or under its floor, where no part of the bin can be (its rim, the table, the room).
+    Above the box is not outside: parts heap over a rim."""
+    q = transform_points(invert_T(np.asarray(bin_box.T_cam_from_bin, dtype=np.float64)), points_m)
+    lo, hi = np.asarray(bin_box.inner_min_m, float), np.asarray(bin_box.inner_max_m, float)
+    beyond_walls = np.any(q[:, :2] < lo[:2] - near_m, axis=1) | np.any(q[:, :2] > hi[:2] + near_m, axis=1)
+    return beyond_walls | (q[:, 2] < lo[2] - near_m)
+
+
 def near_distance_m(noise_m: float, voxel_size_m: float, diameter_m: float) -> float:
     """How far a measured point may lie from a trusted pose's surface and still be that part's:
     three times the capture's depth noise, at least one import voxel, at most 3 % of the part's
@@ -73,10 +83,12 @@ def label_capture(
     min_score: float,
     margin: float,
     voxel_size_m: float,
+    bin_box: BinBox | None = None,
 ) -> LabelledCapture:
     """A cleaned capture labelled from its poses (the register stage's, verified against this
     capture): poses trusted with margin label the points near them (near_distance_m of the
-    noise the capture shows about its points), every other point is IGNORE.
+    noise the capture shows about its points); with the bin's box, the other points outside it
+    are NOT_A_PART; every other point is IGNORE.
 
     dense_points_m (M, 3): the part's dense surface sample, model frame (the PPF model's);
     diameter_m: the part's; min_score: the verification threshold the poses passed;
@@ -87,6 +99,8 @@ def label_capture(
     noise = local_noise_m(points, KDTree(image_coordinates(points)), points) if len(points) else 0.0
     near = near_distance_m(noise, voxel_size_m, diameter_m)
     labels = pseudo_labels(points, T_trusted, dense_points_m, near)
+    if bin_box is not None and len(points):
+        labels[(labels == IGNORE) & outside_bin(points, bin_box, near)] = NOT_A_PART
     return LabelledCapture(
         points_m=np.asarray(cloud.points_m, np.float32),
         normals=np.asarray(cloud.normals, np.float32),

@@ -33,8 +33,8 @@ from binpick.io.atomic import atomic_path
 from binpick.io.digest import file_sha256
 from binpick.io.labelled_capture import LabelledCapture, list_labelled_captures, load_labelled_capture
 from binpick.io.review_record import load_review_record, save_review_record
+from binpick.labels import IGNORE
 from binpick.layout import Layout
-from binpick.learning import IGNORE
 from binpick.params import Params
 
 log = logging.getLogger(__name__)
@@ -199,6 +199,7 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
     """Fine-tune the part's served network when enough approved captures are new (or force);
     serve the result only when it is no worse. params: resolved for the part. Returns what was
     measured and decided."""
+    from binpick.network.calibrate import recalibrate
     from binpick.network.checkpoint import read_checkpoint, write_finetuned
     from binpick.network.infer import default_device
     from binpick.network.train import BEST, Views, finetune_fpcc, load_views
@@ -270,6 +271,15 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
         base_sha,
         sorted(learnt | {p.stem for p in train}),
         sorted((seen - learnt) | {p.stem for p in test}),
+    )
+    # The clustering's cuts are chosen for the network they cut: the fine-tuned one's, again.
+    recalibrate(
+        candidate,
+        candidate,
+        synthetic_val,
+        params.segment,
+        params.evaluate.iou_threshold,
+        np.random.default_rng(derive_int(params.seed, "calibrate-finetuned", part)),
     )
     before = score(current, params, scenes / "test", test)
     after = score(candidate, params, scenes / "test", test)

@@ -10,13 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.cell.bin_box import BinBox
 from binpick.errors import InputError
 from binpick.io.atomic import atomic_paths
 from binpick.io.cloud import load_cloud
 from binpick.io.labelled_capture import save_labelled_capture
 from binpick.io.poses import load_poses
 from binpick.io.ppf_model import load_ppf_model
-from binpick.learning import IGNORE, label_capture
+from binpick.labels import IGNORE
+from binpick.learning import label_capture
 from binpick.params import Params, load_params
 from stages.common import entry, parser, start, write_metrics
 
@@ -45,6 +47,7 @@ def run(
         params.registration.min_score,
         params.learn.trust_margin,
         params.import_capture.voxel_size_m,
+        BinBox.of_import(params.import_capture),
     )
     n = len(labelled.labels)
     metrics = {

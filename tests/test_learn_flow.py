@@ -13,8 +13,8 @@ from binpick.errors import BinpickError
 from binpick.io.labelled_capture import LabelledCapture, save_labelled_capture
 from binpick.io.part_model import save_part_model
 from binpick.io.scene import SyntheticScene, save_scene
+from binpick.labels import IGNORE
 from binpick.layout import Layout
-from binpick.learning import IGNORE
 from binpick.network.checkpoint import read_checkpoint
 from binpick.network.train import train_fpcc
 from flows.learn import approved_captures, finetune, heldout, no_worse, pending_captures, review, served_checkpoint

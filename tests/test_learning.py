@@ -7,10 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from binpick.cell.bin_box import BinBox
 from binpick.generation.scene import generate_scene
+from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.labelled_capture import load_labelled_capture, save_labelled_capture
 from binpick.io.poses import PartPose
-from binpick.learning import IGNORE, label_capture, pseudo_labels, trusted
+from binpick.labels import IGNORE, NOT_A_PART
+from binpick.learning import label_capture, pseudo_labels, trusted
 from binpick.network.loss import fpcc_loss
 from binpick.scene.clean import clean
 from binpick.view import ViewParams
@@ -138,3 +141,60 @@ def test_ignored_points_add_nothing_to_the_loss():
     none = loss(e, ctr, torch.full((1, N), IGNORE))
     none.backward()
     assert none.item() == 0.0 and float(e.grad.abs().sum()) == 0.0
+
+
+def test_points_beyond_the_bin_are_no_part_and_trusted_parts_keep_theirs(captured, t_joint):
+    """A box of the bin's -x half (a bin whose +x half lies beyond its wall): the untrusted
+    parts' points on the +x side become NOT_A_PART, on the -x side stay IGNORE; a trusted part's
+    points keep its instance on either side."""
+    scene, cloud, truth = captured
+    seen = [i for i in range(len(scene.T_cam_from_model)) if (truth == i).sum() >= 50]
+    trusted_ids = set(seen[:2])
+    box = BinBox(scene.T_cam_from_bin, np.array([-1.0, -1.0, 0.0]), np.array([0.0, 1.0, 1.0]))
+    labelled = label_capture(
+        cloud,
+        _poses(scene, trusted_ids),
+        t_joint.points_m,
+        t_joint.diameter_m,
+        MIN_SCORE,
+        MARGIN,
+        PARAMS.import_capture.voxel_size_m,
+        box,
+    )
+    x_bin = transform_points(invert_T(scene.T_cam_from_bin), cloud.points_m.astype(np.float64))[:, 0]
+    near = float(labelled.near_m)
+    for j, i in enumerate(sorted(trusted_ids)):
+        np.testing.assert_array_equal(labelled.labels[truth == i], j)
+    other = ~np.isin(truth, sorted(trusted_ids))
+    assert (other & (x_bin > near)).sum() >= 50, "the +x half should show untrusted points"
+    assert np.all(labelled.labels[other & (x_bin > near)] == NOT_A_PART)
+    assert np.all(labelled.labels[other & (x_bin <= 0.0)] == IGNORE)
+
+
+def test_the_foreground_head_learns_from_a_captured_view_only_when_it_knows_both_classes():
+    """A capture's view of part points and ignored points gives the foreground head no gradient
+    (one class would teach "everything is a part"); one point known as no part, or a synthetic
+    view with no ignored point, teaches it."""
+    g = torch.Generator().manual_seed(0)
+    N = 64
+    points = torch.rand(1, N, 3, generator=g) * 0.05
+    emb = torch.rand(1, N, 8, generator=g)
+    ctr = torch.rand(1, N, generator=g)
+
+    def fg_grad(labels):
+        fg = torch.zeros(1, N, requires_grad=True)
+        e = emb.clone().requires_grad_(True)
+        total, _ = fpcc_loss(
+            e, ctr, points, labels, 0.05, 0.5, 1.5, 1.0, "linear", 32, torch.Generator().manual_seed(1), fg
+        )
+        total.backward()
+        return 0.0 if fg.grad is None else float(fg.grad.abs().sum())
+
+    captured = torch.randint(0, 3, (1, N), generator=g)
+    captured[0, 40:] = IGNORE
+    assert fg_grad(captured) == 0.0
+    with_background = captured.clone()
+    with_background[0, 50] = NOT_A_PART
+    assert fg_grad(with_background) > 0.0
+    synthetic_parts_only = torch.randint(0, 3, (1, N), generator=g)
+    assert fg_grad(synthetic_parts_only) > 0.0

@@ -18,8 +18,9 @@ class LabelledCapture:
 
     points_m         : (N, 3) float32, the cleaned capture (the network's input at inference)
     normals          : (N, 3) float32, facing the camera
-    labels           : (N,) int16, index of the trusted pose a point belongs to; IGNORE (-2) for
-                       every other point (left out of the loss and the scoring, not background)
+    labels           : (N,) int16, index of the trusted pose a point belongs to; NOT_A_PART (-1)
+                       beyond the bin; IGNORE (-2) for every other point (left out of the loss
+                       and the scoring, not background)
     T_cam_from_model : (k, 4, 4) float64, the trusted poses
     scores           : (k,) float64, their verification scores
     near_m           : () float64, how far from a posed surface a point was still labelled

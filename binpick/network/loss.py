@@ -9,9 +9,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-# Label of a point known not to belong to any part (a scene's instances are >= 0; lower labels are
-# points the loss leaves out).
-NOT_A_PART = -1
+from binpick.labels import NOT_A_PART
+
 # The foreground term's weight beside the embedding term (both are about 1 at the start).
 FOREGROUND_LOSS_WEIGHT = 1.0
 
@@ -59,7 +58,8 @@ def fpcc_loss(
     loss ignores, a captured scene's unexplained points: input, not target). Pairs farther apart
     than 2 * d_max (a true, not a squared, distance) are ignored. foreground_logit (B, N), when
     given: the foreground head's output, taught part (>= 0) against NOT_A_PART with the two
-    classes weighted alike (points of no part are a few per cent of a training view).
+    classes weighted alike (points of no part are a few per cent of a training view); a view with
+    ignored points teaches it only when it holds points of both classes.
     """
     B, N, _ = embedding.shape
     emb_terms, ctr_terms, fg_terms = [], [], []
@@ -72,8 +72,11 @@ def fpcc_loss(
             emb_terms.append(embedding[b].sum() * 0.0)
             continue
         ctr_terms.append(F.smooth_l1_loss(centre[b, index], target[index]))
-        if foreground_logit is not None:
-            is_part = labels[b, index] >= 0
+        is_part = labels[b, index] >= 0
+        # A view with ignored points (a captured scene) may know only its parts: a term of one
+        # class there would teach "everything is a part". It teaches the head when it knows both.
+        partial = bool((labels[b] < NOT_A_PART).any()) and (bool(is_part.all()) or not bool(is_part.any()))
+        if foreground_logit is not None and not partial:
             bce = F.binary_cross_entropy_with_logits(
                 foreground_logit[b, index], is_part.to(foreground_logit.dtype), reduction="none"
             )

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.cell.bin_box import BinBox
 from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.scene import generate_scene
@@ -41,6 +42,7 @@ from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.learning import label_capture
 from binpick.metrics.segmentation import SegmentationCounts
+from binpick.network.calibrate import recalibrate
 from binpick.network.checkpoint import read_checkpoint, write_finetuned
 from binpick.network.evaluate import segment_and_count
 from binpick.network.train import BEST, Views, finetune_fpcc, train_fpcc
@@ -97,11 +99,9 @@ def _views(scenes: list[tuple[SyntheticScene, np.random.SeedSequence]]) -> Views
 
 def _train(
     part: PartModel, p: Params, presets: list[str], n_train: int, n_val: int, seed: int, work: Path, tag: str
-) -> tuple[Path, Views]:
+) -> tuple[Path, Views, Views]:
     """A network trained on n_train scenes of these presets ([] = today's camera), clustering
-    calibrated on n_val: its checkpoint and its synthetic training views."""
-    from binpick.network.calibrate import recalibrate
-
+    calibrated on n_val: its checkpoint, its training views and its validation views."""
     train = _views(_render(part, p, presets, False, f"{tag}-train", n_train, seed))
     val = _views(_render(part, p, presets, False, f"{tag}-val", n_val, seed))
     folder = work / tag
@@ -127,7 +127,7 @@ def _train(
         p.evaluate.iou_threshold,
         np.random.default_rng(derive_int(seed, "calibrate", part.name, tag)),
     )
-    return out, train + val
+    return out, train, val
 
 
 def _with_network(models: PartModels, p: Params, checkpoint: Path) -> PartModels:
@@ -206,17 +206,24 @@ def _finetuned(
     p: Params,
     built: PartModels,
     base: Path,
-    synthetic: Views,
+    synthetic_train: Views,
+    synthetic_val: Views,
     captures: list[tuple[SyntheticScene, np.random.SeedSequence]],
     seed: int,
     work: Path,
 ) -> tuple[Path, dict[str, float]]:
-    """The base network fine-tuned on the captures it labelled itself (binpick learn's recipe)."""
+    """The base network fine-tuned on its synthetic training views plus the captures it labelled
+    itself, kept at its best on the validation views and recalibrated on them (binpick learn's
+    recipe)."""
     models = _with_network(built, p, base)
     labelled = []
     n_trusted = 0
-    for k, (scene, _) in enumerate(captures):
+    for k, (scene, s) in enumerate(captures):
         H, W = scene.labels.shape
+        # The cell knows its bin: the box generate_scene drew.
+        drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
+        half = np.array([drawn.inner_x_m / 2, drawn.inner_y_m / 2])
+        box = BinBox(scene.T_cam_from_bin, np.append(-half, 0.0), np.append(half, drawn.wall_height_m))
         try:
             result = process(
                 scene.xyz_m.reshape(-1, 3),
@@ -236,6 +243,7 @@ def _finetuned(
             p.registration.min_score,
             p.learn.trust_margin,
             p.import_capture.voxel_size_m,
+            box,
         )
         if len(c.T_cam_from_model):
             labelled.append(c)
@@ -244,8 +252,8 @@ def _finetuned(
     folder = work / "finetune"
     best = finetune_fpcc(
         state,
-        synthetic + Views.of_captures(labelled),
-        synthetic,
+        synthetic_train + Views.of_captures(labelled),
+        synthetic_val,
         p.train,
         p.learn.finetune_epochs,
         p.learn.finetune_learning_rate,
@@ -255,6 +263,14 @@ def _finetuned(
     )
     out = folder / "model.pt"
     write_finetuned(best, out, state, state["sha256"], [f"capture-{k}" for k in range(len(labelled))], [])
+    recalibrate(
+        out,
+        out,
+        synthetic_val,
+        p.segment,
+        p.evaluate.iou_threshold,
+        np.random.default_rng(derive_int(seed, "calibrate-finetuned", part.name)),
+    )
     return out, {
         "n_captures": float(len(captures)),
         "n_labelled_captures": float(len(labelled)),
@@ -311,8 +327,8 @@ def bench_sensors(
         pairs: dict[str, dict[str, float]] = {}
         with tempfile.TemporaryDirectory(prefix="binpick-sensors-") as tmp:
             work = Path(tmp)
-            today, today_views = _train(part, p, [], n_train, n_val, seed, work, TODAY)
-            randomised, _ = _train(part, p, presets, n_train, n_val, seed, work, RANDOMISED)
+            today, today_train, today_val = _train(part, p, [], n_train, n_val, seed, work, TODAY)
+            randomised, _, _ = _train(part, p, presets, n_train, n_val, seed, work, RANDOMISED)
             for train_name, checkpoint in ((TODAY, today), (RANDOMISED, randomised)):
                 for test_name, scenes in tests.items():
                     pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed)
@@ -325,7 +341,7 @@ def bench_sensors(
                     )
             if leave_one_out:
                 for q in presets:
-                    without, _ = _train(
+                    without, _, _ = _train(
                         part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}"
                     )
                     pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed)
@@ -337,7 +353,7 @@ def bench_sensors(
                         {k: round(v, 3) for k, v in pairs[f"without_{q}@{q}"].items()},
                     )
             captures = _render(part, p, [finetune_sensor], True, f"captures-{finetune_sensor}", n_captures, seed)
-            tuned, labelling = _finetuned(part, p, built, today, today_views, captures, seed, work)
+            tuned, labelling = _finetuned(part, p, built, today, today_train, today_val, captures, seed, work)
             finetune: dict[str, object] = {
                 "base": TODAY,
                 "sensor": finetune_sensor,
