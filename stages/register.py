@@ -68,6 +68,7 @@ def run(
         "n_seen_through": float(result.n_seen_through),
         "n_unsupported": float(result.n_unsupported),
         "n_not_part": float(result.n_not_part),
+        "n_in_the_floor": float(result.n_in_the_floor),
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }

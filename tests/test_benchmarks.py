@@ -8,7 +8,7 @@ from binpick.geometry.transforms import make_T
 from flows.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
 from flows.bench.ppf import bench_ppf
 
-from settings import PARAMS
+from settings import PARAMS, changed
 
 
 def test_penetration_measure_knows_overlap_from_none(t_joint):
@@ -46,12 +46,34 @@ def test_clutter_bench_reports_both_scorings():
 
     result = bench_clutter(PARAMS, ["t_joint"], n_scenes=1, checkpoints={})
     part = result["parts"]["t_joint"]
-    for key in ("pose_precision", "pose_recall", "false_poses_outside_bin", "n_scenes"):
+    for key in ("pose_precision", "pose_recall", "pose_recall_measured", "false_poses_outside_bin", "n_scenes"):
         assert key in part and f"baseline_{key}" in part and key in result and f"baseline_{key}" in result
     assert part["n_scenes"] == 1 and part["pose_recall"] >= 0.5 and part["false_poses_outside_bin"] == 0
     # The one scene is counted in the band of tilt its camera was drawn in (0 to 45 degrees).
     ((band, figures),) = result["by_tilt"].items()
     assert 0 <= int(band.split("-")[0]) < 45 and figures["n_scenes"] == 1
+
+
+def test_a_part_the_capture_did_not_measure_is_visible_but_not_measured(t_joint):
+    """measured_fractions reads the captured label image: a part whose pixels the sensor lost
+    (its label blanked, as a projector's shadow does) is measured 0, the others as visible."""
+    from dataclasses import replace
+
+    from binpick.generation.scene import generate_scene
+    from binpick.view import ViewParams
+    from flows.bench.clutter import measured_fractions
+
+    plain = PARAMS.generate.model_copy(update={"clutter": PARAMS.generate.clutter.off()})
+    scene = generate_scene(
+        t_joint, plain, changed(PARAMS.camera, downscale=2), ViewParams.of_import(PARAMS.import_capture), 5, n_objects=4
+    )
+    measured = measured_fractions(scene, t_joint)
+    np.testing.assert_allclose(measured, scene.visible_fraction, atol=0.05)
+    lost = int(np.argmax(scene.visible_fraction))
+    blanked = replace(scene, labels=np.where(scene.labels == lost, -1, scene.labels).astype(scene.labels.dtype))
+    after = measured_fractions(blanked, t_joint)
+    assert scene.visible_fraction[lost] > 0.5 and after[lost] == 0.0
+    np.testing.assert_array_equal(np.delete(after, lost), np.delete(measured, lost))
 
 
 def test_a_tilted_bench_camera_looks_at_the_bin_centre_at_its_tilt():

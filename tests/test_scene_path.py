@@ -136,6 +136,29 @@ def test_poses_where_the_camera_saw_through_are_dropped(t_joint, models):
     assert result.n_seen_through == 0 and all(p.seen_through <= limit for p in result.poses)
     # ... and most of what the camera should see of each is measured (visible support).
     assert result.n_unsupported == 0 and min(p.visible_support for p in result.poses) > 0.8
+    # ... and none reaches into the floor.
+    assert result.n_in_the_floor == 0
+
+
+def test_poses_reaching_into_the_floor_are_dropped(t_joint, models):
+    """The rendered parts rest on the floor the cleaning found (their lowest point within a few
+    millimetres of it); a part pushed 0.4 diameters along the floor's normal reaches that much
+    deeper, and is refused, though the floor hides it from the seen-through check."""
+    from binpick.registration.constants import MAX_BELOW_FLOOR_REL
+    from binpick.registration.verification import below_floor_share, in_the_floor
+
+    scene, xyz, shape = _capture(t_joint, seed=31, n_objects=6)
+    cloud = clean(xyz, None, shape, models.import_params, seed=0)
+    floor = cloud.floor_plane
+    shares = [below_floor_share(models.ppf, T, floor) for T in scene.T_cam_from_model]
+    assert max(shares) < 0.1 and not any(in_the_floor(models.ppf, T, floor) for T in scene.T_cam_from_model)
+    T = scene.T_cam_from_model[int(np.argmax(shares))]
+    pushed = T.copy()
+    pushed[:3, 3] -= 0.4 * models.ppf.diameter_m * floor[:3]
+    assert below_floor_share(models.ppf, pushed, floor) == pytest.approx(max(shares) + 0.4, abs=1e-9)
+    assert in_the_floor(models.ppf, pushed, floor) and max(shares) + 0.4 > MAX_BELOW_FLOOR_REL
+    # No floor found (NaN): nothing to check against.
+    assert below_floor_share(models.ppf, pushed, np.full(4, np.nan)) == 0.0
 
 
 def test_poses_on_points_the_network_calls_no_parts_are_dropped(t_joint, models):

@@ -119,6 +119,12 @@ class Scales:
 # of the measured depth along its ray; below that it is sensor noise or a silhouette pixel.
 SEEN_THROUGH_MARGIN_REL = 0.05
 SEEN_THROUGH_MARGIN_MIN_M = 0.003
+# A part cannot lie inside the support plane the cleaning found (the bin's floor, or the table
+# under it): a pose whose surface reaches more than this share of the part's diameter below it
+# is refused. Bench sensors' clutter bins (tilts to 45 degrees, the `cpu` networks, 8 bins a
+# preset): right poses reach at most 0.16 d below (pose error, the plane fitted to the table 5 mm
+# under the bin's floor), wrong ones fitted into the floor 0.26 d and 0.41 d.
+MAX_BELOW_FLOOR_REL = 0.25
 # The verification threshold when none was chosen at training (register.max_seen_through null
 # and no checkpoint, e.g. whole-scene registration without a network): on cluttered T-joint bins
 # true poses have 0.00-0.03, estimates within ADD 0.1 d up to 0.28, wrong ones from 0.43.

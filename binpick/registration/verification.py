@@ -15,6 +15,7 @@ from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.ppf_model import PPFModel
 from binpick.registration.constants import (
     ICP_RELATIVE_CHANGE,
+    MAX_BELOW_FLOOR_REL,
     MAX_SHARED_SUPPORT,
     SCORE_STRIDE,
     SEEN_THROUGH_MARGIN_MIN_M,
@@ -51,6 +52,22 @@ def score_pose(
         transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m
     )
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+def below_floor_share(model: PPFModel, T_cam_from_model: np.ndarray, floor_plane: np.ndarray) -> float:
+    """How far the posed surface reaches below the support plane, in part diameters (<= 0: not
+    at all). floor_plane (4,): a, b, c, d, unit normal toward the camera (CleanCloud.floor_plane);
+    0 when there is none (NaN)."""
+    plane = np.asarray(floor_plane, dtype=np.float64)
+    if plane.shape != (4,) or not np.all(np.isfinite(plane)):
+        return 0.0
+    height = transform_points(T_cam_from_model, model.dense_points_m[::SCORE_STRIDE]) @ plane[:3] + plane[3]
+    return float(-height.min() / model.diameter_m)
+
+
+def in_the_floor(model: PPFModel, T_cam_from_model: np.ndarray, floor_plane: np.ndarray) -> bool:
+    """The pose reaches more than MAX_BELOW_FLOOR_REL of the part's diameter below the support plane."""
+    return below_floor_share(model, T_cam_from_model, floor_plane) > MAX_BELOW_FLOOR_REL
 
 
 def seen_through(model: PPFModel, T_cam_from_model: np.ndarray, view: DepthView, stride: int = SCORE_STRIDE) -> float:

@@ -27,7 +27,7 @@ from binpick.registration.constants import (
 )
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
-from binpick.registration.verification import part_share, score_pose, seen_through, visible_support
+from binpick.registration.verification import in_the_floor, part_share, score_pose, seen_through, visible_support
 from binpick.registration.visibility import DepthView
 
 log = logging.getLogger(__name__)
@@ -54,6 +54,7 @@ class Registration:
     n_seen_through: int = 0  # poses dropped: too much of their surface where the camera saw through
     n_unsupported: int = 0  # poses dropped: too little of their surface in view measured
     n_not_part: int = 0  # poses dropped: the network calls most of the points on them no part's
+    n_in_the_floor: int = 0  # poses dropped: reaching far below the support plane
 
 
 def with_verification(params: RegisterParams, chosen: Verification | None) -> RegisterParams:
@@ -168,14 +169,19 @@ def register(
     # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
     # cylinder, its gear in the air), is not there, whatever its fit to the points near it. Nor
     # is one on points the network calls no part's (a cup fitted onto a carton face): the
-    # geometry and the network must both say so.
+    # geometry and the network must both say so. Nor is one reaching deep into the floor the
+    # cleaning found: nothing measured can contradict it there (the floor hides it), but no part
+    # lies inside the floor.
     resolved = with_verification(params, None)
     limit, least = resolved.max_seen_through, resolved.min_visible_support
     assert limit is not None and least is not None  # with_verification resolves both
     kept_poses = []
-    n_unsupported = n_not_part = 0
+    n_unsupported = n_not_part = n_in_the_floor = 0
     inlier_m = Scales.of(ppf, params).inlier_m
     for pose in poses:
+        if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
+            n_in_the_floor += 1
+            continue
         share = seen_through(ppf, pose.T_cam_from_model, view)
         if share > limit:
             continue
@@ -190,19 +196,27 @@ def register(
             n_not_part += 1
             continue
         kept_poses.append(replace(pose, seen_through=share, visible_support=support))
-    n_seen_through = len(poses) - len(kept_poses) - n_unsupported - n_not_part
+    n_seen_through = len(poses) - len(kept_poses) - n_unsupported - n_not_part - n_in_the_floor
     if len(kept_poses) < len(poses):
         log.info(
             "dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface "
-            "in view measured, %d on points the network calls no part's",
+            "in view measured, %d on points the network calls no part's, %d reaching into the floor",
             len(poses) - len(kept_poses),
             len(poses),
             n_seen_through,
             n_unsupported,
             n_not_part,
+            n_in_the_floor,
         )
     return Registration(
-        kept_poses, n_segments, n_duplicates, per_instance_ms, n_seen_through, n_unsupported, n_not_part
+        kept_poses,
+        n_segments,
+        n_duplicates,
+        per_instance_ms,
+        n_seen_through,
+        n_unsupported,
+        n_not_part,
+        n_in_the_floor,
     )
 
 

@@ -5,7 +5,9 @@ registration with verification), against the scoring without the checks this ben
 seen-through nor visible support).
 
 Per part: pose_precision and pose_recall (parts at least half visible, ADD(-S) < 0.1 d, as the
-register stage counts them), false_poses_outside_bin (wrong poses whose centre lies outside the
+register stage counts them), pose_recall_measured (over the parts the capture measured at least
+half of: a part in the projector's shadow or out of the sensor's range is visible, not
+measured), false_poses_outside_bin (wrong poses whose centre lies outside the
 bin's inner footprint), n_scenes; then the same over all parts, and over all parts per band of
 the camera's tilt from the bin's up axis (`by_tilt`: 0-15, 15-30, 30-45 degrees, ...): the
 camera is tilted up to `tilt_deg_max` (45 by default), as a cell camera mounted beside the bin is.
@@ -21,7 +23,9 @@ from typing import TypeVar
 import numpy as np
 
 from binpick.errors import BinpickError
+from binpick.generation.camera import visible_fractions
 from binpick.generation.scene import generate_scene
+from binpick.geometry.camera import PinholeCamera
 from binpick.geometry.symmetry import symmetry_transforms
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.part_model import PartModel
@@ -124,18 +128,38 @@ def _outside_bin(
     return bool(abs(c[0]) > inner_x / 2 or abs(c[1]) > inner_y / 2)
 
 
+def measured_fractions(scene, part: PartModel) -> np.ndarray:
+    """(k,) share of the pixels each of the scene's parts would cover alone that the capture
+    measured on it: visible_fraction after the sensor's shadows, dropouts and range limits (the
+    scene's label image is the captured one)."""
+    H, W = scene.labels.shape
+    objects = [(transform_points(T, part.mesh_vertices_m), part.mesh_faces) for T in scene.T_cam_from_model]
+    return visible_fractions(objects, scene.labels, PinholeCamera.from_K(scene.K, W, H))
+
+
 def _score(poses, scene, ppf, part, inner_x, inner_y) -> dict[str, float]:
     T_est = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
-    summary, per_est = scene_pose_metrics(
+
+    def recall_over(visible: np.ndarray) -> tuple[float, float]:
+        summary, per_est = scene_pose_metrics(
+            T_est, scene.T_cam_from_model, visible, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m
+        )
+        return summary["n_pickable"], summary["pose_recall"] * summary["n_pickable"]
+
+    _, per_est = scene_pose_metrics(
         T_est, scene.T_cam_from_model, scene.visible_fraction, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m
     )
     false = [i for i, m in enumerate(per_est) if not m or not m["add_ok"]]
     outside = sum(_outside_bin(T_est[i], part.centre_m, scene.T_cam_from_bin, inner_x, inner_y) for i in false)
+    n_pickable, n_found = recall_over(scene.visible_fraction)
+    n_measured, n_found_measured = recall_over(np.minimum(scene.visible_fraction, measured_fractions(scene, part)))
     return {
         "n_est": float(len(poses)),
         "n_ok": float(len(poses) - len(false)),
-        "n_pickable": summary["n_pickable"],
-        "n_found": summary["pose_recall"] * summary["n_pickable"],
+        "n_pickable": n_pickable,
+        "n_found": n_found,
+        "n_measured": n_measured,
+        "n_found_measured": n_found_measured,
         "outside": float(outside),
     }
 
@@ -143,9 +167,11 @@ def _score(poses, scene, ppf, part, inner_x, inner_y) -> dict[str, float]:
 def _summary(rows: list[dict[str, float]]) -> dict[str, float]:
     n_est, n_ok = sum(r["n_est"] for r in rows), sum(r["n_ok"] for r in rows)
     n_pick, n_found = sum(r["n_pickable"] for r in rows), sum(r["n_found"] for r in rows)
+    n_measured, n_found_measured = sum(r["n_measured"] for r in rows), sum(r["n_found_measured"] for r in rows)
     return {
         "pose_precision": n_ok / n_est if n_est else 0.0,
         "pose_recall": n_found / n_pick if n_pick else 0.0,
+        "pose_recall_measured": n_found_measured / n_measured if n_measured else 0.0,
         "false_poses_outside_bin": sum(r["outside"] for r in rows),
         "n_scenes": float(len(rows)),
     }

@@ -9,7 +9,8 @@ sizes given) rendered with:
 - `without_<preset>`: every preset but that one (leave-one-out).
 Each is tested on cluttered bins (bench clutter's distractors and camera tilts up to 45 degrees)
 rendered with every preset and with today's camera, through the real scene path. Keys per
-`<train>@<test>` pair: pose_precision, pose_recall, false_poses_outside_bin (as bench clutter),
+`<train>@<test>` pair: pose_precision, pose_recall, pose_recall_measured, false_poses_outside_bin
+(as bench clutter),
 pick_success_rate (the first pick of each capture judged as bench picking judges it: the right
 part touched, the gripper's path free of the other parts and the bin; a capture without a pick
 counts as a failure), seg_precision, seg_recall (the network's instances on the scene's view).
