@@ -144,7 +144,6 @@ def simulated_cell(params: Params, part: PartModel, n_parts: int, seed: int) -> 
         density_kg_m3(params, part.name),
         [(m.bounds[0], m.bounds[1]) for m in bin_meshes(g.bin)],
         (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0),
-        g.bin.wall_height_m,
         T_bin_from_base,
         T_bin,
         in_view_of(camera_of(params.camera), invert_T(T_bin_from_camera)),

@@ -12,6 +12,7 @@ import pytest
 from conftest import ROOT
 
 from binpick.cell.robot import ARM_STOPPED, GRASP_LOST, NO_GRIP, RobotStopped, URRobot, execute_pick
+from binpick.cell.simulation import SCALE
 from binpick.errors import BinpickError
 from binpick.layout import Layout
 from binpick.params import load_params
@@ -267,3 +268,22 @@ def test_backing_out_of_a_grip_that_did_not_seal_is_not_a_touch(t_joint, models)
     sim.close()
     assert done.outcome == "no seal" and done.touched == set()
     assert left == 1
+
+
+def test_a_part_on_the_heap_above_the_rim_is_in_the_bin_and_one_beside_it_is_not(t_joint):
+    """A full bin's heap rises above the walls: a part resting there is still in the bin (it is
+    rendered, and not counted as come out with a pick); a part beside the walls is not."""
+    from flows.cell_run import simulated_cell
+
+    sim, _ = simulated_cell(PARAMS, t_joint, 1, seed=2)
+    body, b = sim.parts[0], PARAMS.generate.bin
+
+    def in_bin_at(xyz_m):
+        _, q = sim.pb.getBasePositionAndOrientation(body, physicsClientId=sim.client)
+        sim.pb.resetBasePositionAndOrientation(body, list(np.asarray(xyz_m) * SCALE), q, physicsClientId=sim.client)
+        return bool(sim.in_bin()[0])
+
+    above_the_rim = in_bin_at([0.0, 0.0, b.wall_height_m + 0.05])
+    beside = in_bin_at([b.inner_x_m / 2 + 0.05, 0.0, 0.02])
+    sim.close()
+    assert above_the_rim and not beside

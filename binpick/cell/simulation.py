@@ -58,7 +58,6 @@ class SimulatedCell:
         density_kg_m3: float,
         bin_boxes: list[tuple[np.ndarray, np.ndarray]],
         inner_half_xy_m: tuple[float, float],
-        wall_height_m: float,
         T_bin_from_base: np.ndarray,
         T_bin_from_parts: np.ndarray,
         in_view: Callable[[np.ndarray], bool],
@@ -66,7 +65,7 @@ class SimulatedCell:
         import pybullet as pb
 
         self.pb, self.arm, self.cell, self.pick, self.kind, self.part = pb, arm, cell, pick, kind, part
-        self.inner_half_xy_m, self.wall_height_m = inner_half_xy_m, wall_height_m
+        self.inner_half_xy_m = inner_half_xy_m
         self.T_bin_from_base = np.asarray(T_bin_from_base, dtype=float)
         self.T_flange_from_tcp = np.asarray(cell.T_flange_from_tcp, dtype=float)
         self.limits = JointLimits(arm.max_velocity_rad_s, arm.max_acceleration_rad_s2).scaled(cell.speed_scaling)
@@ -122,13 +121,14 @@ class SimulatedCell:
         return np.array(poses).reshape(-1, 4, 4), index
 
     def in_bin(self) -> np.ndarray:
-        """(k,) bool per part index: its centre within the bin's walls, below their top."""
+        """(k,) bool per part index: its centre within the bin's walls, above its floor (however
+        high: a full bin's heap rises above the rim; what leaves the bin leaves its footprint)."""
         out = np.zeros(len(self.parts), bool)
         for i, body in enumerate(self.parts):
             if body is None:
                 continue
             p = self._body_pose(body)[:3, 3]
-            out[i] = bool(np.all(np.abs(p[:2]) < self.inner_half_xy_m) and -0.01 < p[2] < self.wall_height_m)
+            out[i] = bool(np.all(np.abs(p[:2]) < self.inner_half_xy_m) and p[2] > -0.01)
         return out
 
     def remove_outside(self) -> int:

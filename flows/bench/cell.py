@@ -178,7 +178,6 @@ def _clear_bin(
         density_kg_m3,
         boxes,
         (g.bin.inner_x_m / 2.0, g.bin.inner_y_m / 2.0),
-        g.bin.wall_height_m,
         layout.T_bin_from_base,
         T_bin,
         in_view,
