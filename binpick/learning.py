@@ -15,12 +15,12 @@ from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
 from binpick.cell.bin_box import BinBox
+from binpick.geometry.depth_noise import image_coordinates, local_noise_m
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.cloud import CleanCloud
 from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.poses import PartPose
 from binpick.labels import IGNORE, NOT_A_PART
-from binpick.picking.plan import image_coordinates, local_noise_m
 
 
 def trusted(poses: list[PartPose], min_score: float, margin: float) -> np.ndarray:

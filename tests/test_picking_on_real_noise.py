@@ -11,9 +11,9 @@ from conftest import box_part_model
 from pykdtree.kdtree import KDTree
 
 from binpick.cell.bin_box import BinBox, support_frame
+from binpick.geometry.depth_noise import image_coordinates, local_noise_m
 from binpick.geometry.transforms import axis_angle_to_R, make_T, transform_points
 from binpick.io.grasps import GraspSet, tool_frame
-from binpick.picking.measured import image_coordinates, local_noise_m
 from binpick.picking.plan import UNSEEN, plan_picks
 
 EXTENTS = np.array([0.06, 0.05, 0.02])

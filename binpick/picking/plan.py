@@ -45,6 +45,7 @@ from scipy.spatial import cKDTree
 
 from binpick.cell.bin_box import BinBox, support_frame
 from binpick.cell.retries import near_contacts
+from binpick.geometry.depth_noise import NOISE_NEIGHBOURS, image_coordinates, local_noise_m
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.io.grasps import GraspSet
@@ -54,13 +55,10 @@ from binpick.picking.gripper import contact_size_m, gripper_primitives, swept
 from binpick.picking.lift import lift_blockers, way_outs
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
-    NOISE_NEIGHBOURS,
     OWN_NOISE_SIGMAS,
     OwnPoints,
     captured_near,
     contact_seen,
-    image_coordinates,
-    local_noise_m,
     point_spacing_m,
 )
 from binpick.picking.obstacles import moved_tool_hits, source_name, surface_normals, tool_collisions

@@ -21,6 +21,7 @@ from binpick.registration.constants import (
     SEEN_THROUGH_MARGIN_MIN_M,
     SEEN_THROUGH_MARGIN_REL,
     SUPPORT_MAX_INCIDENCE_DEG,
+    SUPPORT_NOISE_RELIEF,
 )
 from binpick.registration.visibility import DepthView, seen_through_share, visible_support_share
 
@@ -103,6 +104,12 @@ def visible_support(
         return 0.0
     d, _ = scene_tree.query(points, distance_upper_bound=inlier_m)
     return visible_support_share(points, np.isfinite(d), view, inlier_m)
+
+
+def support_cut(least: float, noise_m: float, inlier_m: float) -> float:
+    """The visible support a pose needs on a capture with noise_m of depth noise about it: least,
+    lowered by SUPPORT_NOISE_RELIEF as the noise grows from 0.5 to 1.5 inlier distances."""
+    return least - SUPPORT_NOISE_RELIEF * float(np.clip(noise_m / inlier_m - 0.5, 0.0, 1.0))
 
 
 def part_share(

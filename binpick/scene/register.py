@@ -13,6 +13,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
+from binpick.geometry.depth_noise import NOISE_NEIGHBOURS, image_coordinates, local_noise_m
 from binpick.geometry.pointcloud import voxel_downsample_indices
 from binpick.io.cloud import CleanCloud
 from binpick.io.poses import PartPose
@@ -27,7 +28,14 @@ from binpick.registration.constants import (
 )
 from binpick.registration.matching import explained_by, match_scene, match_segment, suppress_duplicates
 from binpick.registration.near_symmetry import resolve
-from binpick.registration.verification import in_the_floor, part_share, score_pose, seen_through, visible_support
+from binpick.registration.verification import (
+    in_the_floor,
+    part_share,
+    score_pose,
+    seen_through,
+    support_cut,
+    visible_support,
+)
 from binpick.registration.visibility import DepthView
 
 log = logging.getLogger(__name__)
@@ -38,6 +46,8 @@ log = logging.getLogger(__name__)
 # registration on 8-part T-joint bins. A constant, not the machine's core count: which segments
 # are matched, and so the poses, must not depend on the machine.
 SEGMENT_WAVE = 2
+# The noise about a pose is measured on this many captured points nearest its centre.
+NOISE_PROBE_POINTS = 400
 
 
 @dataclass(frozen=True)
@@ -178,6 +188,8 @@ def register(
     kept_poses = []
     n_unsupported = n_not_part = n_in_the_floor = 0
     inlier_m = Scales.of(ppf, params).inlier_m
+    points = np.asarray(cloud.points_m, dtype=np.float64)
+    image_tree = KDTree(image_coordinates(points)) if len(points) >= NOISE_NEIGHBOURS else None
     for pose in poses:
         if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
             n_in_the_floor += 1
@@ -185,8 +197,12 @@ def register(
         share = seen_through(ppf, pose.T_cam_from_model, view)
         if share > limit:
             continue
+        # The sensor's noise about the pose, from the captured points nearest its centre.
+        centre = pose.T_cam_from_model[:3, :3] @ ppf.dense_points_m.mean(axis=0) + pose.T_cam_from_model[:3, 3]
+        _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
+        noise_m = local_noise_m(points, image_tree, points[np.ravel(near)])
         support = visible_support(ppf, pose.T_cam_from_model, view, cloud_tree, inlier_m)
-        if support < least:
+        if support < support_cut(least, noise_m, inlier_m):
             n_unsupported += 1
             continue
         if (
