@@ -51,21 +51,26 @@ def _poses(scene, trusted_ids):
     ]
 
 
+def _labelled(cloud, scene, part, trusted_ids, bin_box=None):
+    return label_capture(
+        cloud,
+        _poses(scene, trusted_ids),
+        part.points_m,
+        part.diameter_m,
+        MIN_SCORE,
+        MARGIN,
+        PARAMS.import_capture.voxel_size_m,
+        bin_box,
+    )
+
+
 def test_a_capture_labelled_from_known_poses_labels_every_point_of_those_parts(captured, t_joint):
     scene, cloud, truth = captured
     seen = [i for i in range(len(scene.T_cam_from_model)) if (truth == i).sum() >= 50]
     assert len(seen) >= 4, "the rendered bin should show at least 4 parts"
     trusted_ids = set(seen[:-1])
     untrusted = seen[-1]
-    labelled = label_capture(
-        cloud,
-        _poses(scene, trusted_ids),
-        t_joint.points_m,
-        t_joint.diameter_m,
-        MIN_SCORE,
-        MARGIN,
-        PARAMS.import_capture.voxel_size_m,
-    )
+    labelled = _labelled(cloud, scene, t_joint, trusted_ids)
     # Trusted poses keep the rendered order, so trusted pose j is instance sorted(trusted_ids)[j].
     instance_of = np.array(sorted(trusted_ids))
     assert len(labelled.T_cam_from_model) == len(trusted_ids)
@@ -151,16 +156,7 @@ def test_points_beyond_the_bin_are_no_part_and_trusted_parts_keep_theirs(capture
     seen = [i for i in range(len(scene.T_cam_from_model)) if (truth == i).sum() >= 50]
     trusted_ids = set(seen[:2])
     box = BinBox(scene.T_cam_from_bin, np.array([-1.0, -1.0, 0.0]), np.array([0.0, 1.0, 1.0]))
-    labelled = label_capture(
-        cloud,
-        _poses(scene, trusted_ids),
-        t_joint.points_m,
-        t_joint.diameter_m,
-        MIN_SCORE,
-        MARGIN,
-        PARAMS.import_capture.voxel_size_m,
-        box,
-    )
+    labelled = _labelled(cloud, scene, t_joint, trusted_ids, box)
     x_bin = transform_points(invert_T(scene.T_cam_from_bin), cloud.points_m.astype(np.float64))[:, 0]
     near = float(labelled.near_m)
     for j, i in enumerate(sorted(trusted_ids)):

@@ -122,7 +122,7 @@ SEEN_THROUGH_MARGIN_MIN_M = 0.003
 # A part cannot lie inside the support plane the cleaning found (the bin's floor, or the table
 # under it): a pose whose surface reaches more than this share of the part's diameter below it
 # is refused. Bench sensors' clutter bins (tilts to 45 degrees, the `cpu` networks, 8 bins a
-# preset): right poses reach at most 0.16 d below (pose error, the plane fitted to the table 5 mm
+# preset): right poses reach at most 0.15 d below (pose error, the plane fitted to the table 5 mm
 # under the bin's floor), wrong ones fitted into the floor 0.26 d and 0.41 d.
 MAX_BELOW_FLOOR_REL = 0.25
 # On a noisy capture less of a right pose's surface has a measured point within the inlier
