@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from binpick.labels import NOT_A_PART
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network, write_with_clustering
 from binpick.network.infer import (
@@ -23,7 +24,6 @@ from binpick.network.infer import (
     label_blocks,
     predict_blocks,
 )
-from binpick.network.loss import NOT_A_PART
 from binpick.network.model import FPCC
 from binpick.network.train import Views
 from binpick.params import SegmentParams

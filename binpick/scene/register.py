@@ -189,7 +189,18 @@ def register(
     n_unsupported = n_not_part = n_in_the_floor = 0
     inlier_m = Scales.of(ppf, params).inlier_m
     points = np.asarray(cloud.points_m, dtype=np.float64)
-    image_tree = KDTree(image_coordinates(points)) if len(points) >= NOISE_NEIGHBOURS else None
+    model_centre = ppf.dense_points_m.mean(axis=0)
+    image_tree: KDTree | None = None  # built for the first pose whose support is short of the cut
+
+    def noise_about(T_cam_from_model: np.ndarray) -> float:
+        """The sensor's noise about a pose, from the captured points nearest its centre."""
+        nonlocal image_tree
+        if image_tree is None and len(points) >= NOISE_NEIGHBOURS:
+            image_tree = KDTree(image_coordinates(points))
+        centre = T_cam_from_model[:3, :3] @ model_centre + T_cam_from_model[:3, 3]
+        _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
+        return local_noise_m(points, image_tree, points[np.ravel(near)])
+
     for pose in poses:
         if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
             n_in_the_floor += 1
@@ -197,12 +208,9 @@ def register(
         share = seen_through(ppf, pose.T_cam_from_model, view)
         if share > limit:
             continue
-        # The sensor's noise about the pose, from the captured points nearest its centre.
-        centre = pose.T_cam_from_model[:3, :3] @ ppf.dense_points_m.mean(axis=0) + pose.T_cam_from_model[:3, 3]
-        _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
-        noise_m = local_noise_m(points, image_tree, points[np.ravel(near)])
         support = visible_support(ppf, pose.T_cam_from_model, view, cloud_tree, inlier_m)
-        if support < support_cut(least, noise_m, inlier_m):
+        # The cut only eases (support_cut <= least): the noise is measured only when it can matter.
+        if support < least and support < support_cut(least, noise_about(pose.T_cam_from_model), inlier_m):
             n_unsupported += 1
             continue
         if (

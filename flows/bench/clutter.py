@@ -140,19 +140,18 @@ def measured_fractions(scene, part: PartModel) -> np.ndarray:
 def _score(poses, scene, ppf, part, inner_x, inner_y) -> dict[str, float]:
     T_est = np.array([p.T_cam_from_model for p in poses]).reshape(-1, 4, 4)
 
-    def recall_over(visible: np.ndarray) -> tuple[float, float]:
-        summary, per_est = scene_pose_metrics(
+    def scored(visible: np.ndarray) -> tuple[dict[str, float], list[dict[str, float]]]:
+        return scene_pose_metrics(
             T_est, scene.T_cam_from_model, visible, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m
         )
-        return summary["n_pickable"], summary["pose_recall"] * summary["n_pickable"]
 
-    _, per_est = scene_pose_metrics(
-        T_est, scene.T_cam_from_model, scene.visible_fraction, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m
-    )
+    summary, per_est = scored(scene.visible_fraction)
     false = [i for i, m in enumerate(per_est) if not m or not m["add_ok"]]
     outside = sum(_outside_bin(T_est[i], part.centre_m, scene.T_cam_from_bin, inner_x, inner_y) for i in false)
-    n_pickable, n_found = recall_over(scene.visible_fraction)
-    n_measured, n_found_measured = recall_over(np.minimum(scene.visible_fraction, measured_fractions(scene, part)))
+    # The matching does not depend on which parts count; only the recall's parts do.
+    measured, _ = scored(np.minimum(scene.visible_fraction, measured_fractions(scene, part)))
+    n_pickable, n_found = summary["n_pickable"], summary["pose_recall"] * summary["n_pickable"]
+    n_measured, n_found_measured = measured["n_pickable"], measured["pose_recall"] * measured["n_pickable"]
     return {
         "n_est": float(len(poses)),
         "n_ok": float(len(poses) - len(false)),
