@@ -254,6 +254,9 @@ class SensorModelParams(_Strict):
     fy_px: float = Field(gt=0)
     working_distance_m: tuple[float, float] = Field(description="the maker's range; the camera is placed inside it")
     baseline_m: float = Field(ge=0, description="projector (or second camera) offset along the camera's +x")
+    projector_angle_deg: float = Field(
+        default=0.0, description="the projector's offset turned this far from +x about the optical axis (the mount)"
+    )
     shadows: bool = Field(description="no data where the projector's ray to the surface is blocked")
     depth_sigma_m: float = Field(ge=0, description="range noise std at zero range, normal incidence")
     depth_sigma_per_m2: float = Field(ge=0, description="added std per squared metre of range")
@@ -302,6 +305,12 @@ class SensorParams(_Strict):
     effect_scale: tuple[float, float] = Field(
         description="each effect's size scaled by a factor drawn in this range per scene"
     )
+    baseline_scale: tuple[float, float] = Field(
+        description="the projector's baseline scaled by a factor drawn in this range per scene"
+    )
+    projector_angle_deg: tuple[float, float] = Field(
+        description="the projector's side: its offset turned about the optical axis by an angle drawn in this range"
+    )
     surface: Literal["matte", "machined", "shiny"] = Field(
         description="the part's finish (a part entry's `surface` sets it)"
     )
@@ -315,9 +324,13 @@ class SensorParams(_Strict):
             raise ValueError(f"sensor.presets names {unknown}, not in sensor.models (have: {sorted(self.models)})")
         if self.presets and sorted(self.materials) != sorted(SURFACES):
             raise ValueError(f"sensor.materials must define exactly {list(SURFACES)}")
-        lo, hi = self.effect_scale
-        if not 0 < lo <= hi:
-            raise ValueError(f"sensor.effect_scale must be a range 0 < low <= high, got [{lo}, {hi}]")
+        for name in ("effect_scale", "baseline_scale"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"sensor.{name} must be a range 0 < low <= high, got [{lo}, {hi}]")
+        lo, hi = self.projector_angle_deg
+        if not lo <= hi:
+            raise ValueError(f"sensor.projector_angle_deg must be a range low <= high, got [{lo}, {hi}]")
         return self
 
 

@@ -69,6 +69,7 @@ def run(
         "n_unsupported": float(result.n_unsupported),
         "n_not_part": float(result.n_not_part),
         "n_in_the_floor": float(result.n_in_the_floor),
+        "capture_noise_mm": 1000.0 * result.capture_noise_m,
         "n_found": float(len(estimates)),
         "score_mean": float(np.mean([e.score for e in estimates])) if estimates else 0.0,
     }

@@ -62,7 +62,15 @@ GENERATE = {
         "camera_distance_scale": [1.0, 1.0],
         "noise_scale": [1.0, 1.0],
     },
-    "sensor": {"presets": [], "effect_scale": [1.0, 1.0], "surface": "matte", "models": {}, "materials": {}},
+    "sensor": {
+        "presets": [],
+        "effect_scale": [1.0, 1.0],
+        "baseline_scale": [1.0, 1.0],
+        "projector_angle_deg": [0.0, 0.0],
+        "surface": "matte",
+        "models": {},
+        "materials": {},
+    },
 }
 
 

@@ -465,3 +465,72 @@ def test_a_segment_with_a_neighbours_stub_gets_the_pose_the_camera_saw(t_joint, 
 
     assert rot_err(view, cloud_tree) < 3.0
     assert rot_err() > 150.0  # the trap is real: the segment's points alone prefer the turned T
+
+
+def test_the_whole_scene_score_leaves_out_surface_the_sensor_did_not_measure(t_joint, ppf):
+    """Half the part's facing surface has no points: in the projector's shadow (nothing measured
+    there) it does not count against the pose; measured but without points near the pose, it
+    does; below MIN_MEASURED_SHARE of the surface measured, the score is held down."""
+    from binpick.registration.constants import MIN_MEASURED_SHARE, Scales
+    from binpick.registration.visibility import DepthView, _zbuffer
+
+    T = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
+    p = transform_points(T, t_joint.points_m)
+    facing = p[np.einsum("ij,ij->i", t_joint.normals @ T[:3, :3].T, -p) > 0]
+    lit = facing[facing[:, 0] >= np.median(facing[:, 0])]
+    K = np.array([[1000.0, 0.0, 320.0], [0.0, 1000.0, 240.0], [0.0, 0.0, 1.0]])
+
+    def seen(points):
+        return DepthView(_zbuffer(points, K, (480, 640)), K)
+
+    inlier = Scales.of(ppf, PARAMS.registration).inlier_m
+    blind = score_pose(ppf, T, lit, inlier, whole_scene=True)
+    assert blind == pytest.approx(0.5, abs=0.05)
+    assert score_pose(ppf, T, lit, inlier, whole_scene=True, view=seen(lit)) > 0.95
+    assert score_pose(ppf, T, lit, inlier, whole_scene=True, view=seen(facing)) == blind
+    few = facing[facing[:, 0] >= np.quantile(facing[:, 0], 0.8)]
+    assert score_pose(ppf, T, few, inlier, whole_scene=True, view=seen(few)) == pytest.approx(
+        0.2 / MIN_MEASURED_SHARE, abs=0.05
+    )
+
+
+def test_a_noisy_capture_widens_the_inlier_distance_and_a_clean_one_keeps_it(t_joint, ppf):
+    """A T-joint rendered as our camera sees it (0.3 mm of noise) keeps the params; with 2 mm
+    more along each ray (a Kinect-class sensor) the inlier distance grows to the noise measured,
+    and the right pose, under min_score at the plain distance, scores above it, still above a
+    pose turned 0.6 rad."""
+    from pykdtree.kdtree import KDTree
+
+    from binpick.geometry.depth_noise import image_coordinates, local_noise_m
+    from binpick.registration.constants import NOISE_INLIER_SIGMAS, Scales
+    from binpick.scene.register import with_capture_noise
+
+    scene = render_scene(
+        t_joint,
+        make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))[None],
+        PARAMS.generate,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams(0.002, 0.006),
+        np.random.default_rng(3),
+    )
+    xyz = scene.xyz_m.reshape(-1, 3).astype(np.float64)
+    xyz = xyz[np.isfinite(xyz[:, 2])]
+    T = scene.T_cam_from_model[0]
+    turned = T @ make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.6), np.zeros(3))
+    plain = PARAMS.registration
+    for added_m in (0.0, 0.002):
+        noisy = (
+            xyz * (1.0 + np.random.default_rng(5).normal(0.0, added_m, len(xyz)) / np.linalg.norm(xyz, axis=1))[:, None]
+        )
+        points = np.ascontiguousarray(noisy[voxel_downsample_indices(noisy, 0.002)])
+        noise = local_noise_m(points, KDTree(image_coordinates(points)), points)
+        widened = with_capture_noise(plain, noise, ppf.diameter_m)
+        if added_m == 0.0:
+            assert widened is plain, noise
+            continue
+        inlier = Scales.of(ppf, widened).inlier_m
+        assert inlier == pytest.approx(NOISE_INLIER_SIGMAS * noise) and 0.002 <= noise <= 0.003
+        near = points[np.linalg.norm(points - (T[:3, :3] @ t_joint.centre_m + T[:3, 3]), axis=1) < 0.05]
+        right_plain = score_pose(ppf, T, near, Scales.of(ppf, plain).inlier_m)
+        right, wrong = score_pose(ppf, T, near, inlier), score_pose(ppf, turned, near, inlier)
+        assert right_plain < plain.min_score <= right and right > wrong + 0.05, (right_plain, right, wrong)

@@ -78,6 +78,26 @@ def test_the_shadow_behind_a_block_has_the_width_the_geometry_gives(baseline_m):
     assert not shadow[~np.isfinite(clean.xyz_m[..., 2])].any()
 
 
+@pytest.mark.parametrize("angle_deg, side", [(0.0, (-1, 0)), (90.0, (0, -1)), (180.0, (1, 0))])
+def test_the_mount_turns_the_shadow_to_the_side_away_from_the_projector(angle_deg, side):
+    height, half, baseline_m = 0.05, 0.03, 0.1
+    meshes = floor_and_block(height, half)
+    clean = render(meshes, [-1, 0], INTR)
+    model = plain_model(shadows=True, baseline_m=baseline_m, projector_angle_deg=angle_deg)
+    out = apply_sensor_model(clean, meshes, INTR, model, MATTE, np.random.default_rng(0))
+    lost = np.isfinite(clean.xyz_m[..., 2]) & ~np.isfinite(out.xyz_m[..., 2])
+    x, y = clean.xyz_m[..., 0], clean.xyz_m[..., 1]
+    beyond = half * FLOOR_M / (FLOOR_M - height)  # where the camera's view of the floor starts
+    sx, sy = side
+    towards = x * sx + y * sy  # along the side the shadow must fall on
+    across = np.abs(x * sy - y * sx)  # along the block's edge on that side
+    shadow_side = (towards > beyond - 1e-3) & (across < half)
+    assert lost[shadow_side].sum() * (FLOOR_M / INTR.fx) ** 2 == pytest.approx(
+        baseline_m * height / (FLOOR_M - height) * 2 * half * FLOOR_M / (FLOOR_M - height), rel=0.15
+    )
+    assert not lost[(towards < 0) | ((across < half) & ~shadow_side)].any()
+
+
 def test_no_baseline_no_shadow():
     meshes = floor_and_block()
     clean = render(meshes, [-1, 0], INTR)

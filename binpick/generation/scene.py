@@ -167,10 +167,18 @@ def clutter_generator(seed: int | np.random.SeedSequence) -> np.random.Generator
 
 def draw_sensor(generate: GenerateParams, rng: np.random.Generator) -> SensorModelParams:
     """One scene's sensor: a preset of generate.sensor.presets, its effects scaled by a factor
-    drawn from generate.sensor.effect_scale."""
+    drawn from generate.sensor.effect_scale, its baseline by one from baseline_scale, its
+    projector turned about the optical axis by an angle from projector_angle_deg (a fixed range
+    draws nothing: the scenes of a seed stay the same)."""
     s = generate.sensor
     name = s.presets[int(rng.integers(0, len(s.presets)))]
-    return scaled_model(s.models[name], _scaled(s.effect_scale, rng))
+    model = scaled_model(s.models[name], _scaled(s.effect_scale, rng))
+    return model.model_copy(
+        update={
+            "baseline_m": model.baseline_m * _scaled(s.baseline_scale, rng),
+            "projector_angle_deg": model.projector_angle_deg + _scaled(s.projector_angle_deg, rng),
+        }
+    )
 
 
 def _scaled(lo_hi: tuple[float, float], rng: np.random.Generator) -> float:

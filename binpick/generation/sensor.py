@@ -3,7 +3,8 @@
 The clean render (camera.py) is what a perfect depth camera would see. A structured-light or
 stereo sensor differs from it in ways that follow the geometry, each its own kernel here:
 - `projector_shadow`: the projector (or second camera) sits baseline_m beside the camera along
-  its +x; surface the camera sees but the projector's light cannot reach returns nothing.
+  its +x (turned by projector_angle_deg about the optical axis: the mount); surface the camera
+  sees but the projector's light cannot reach returns nothing.
 - `incidence_cos`, `specular_cos`: steep surfaces return less and noisier data; a shiny surface
   whose normal bisects the camera and projector directions blinds the camera with a highlight.
 - `mix_edge_pixels`: a pixel on a depth edge mixes the two depths (a point in the air between them).
@@ -234,7 +235,8 @@ def apply_sensor_model(
     """
     H, W = clean.labels.shape
     xyz, normals, labels = clean.xyz_m.copy(), clean.normals.copy(), clean.labels.astype(np.int32)
-    projector = np.array([model.baseline_m, 0.0, 0.0])
+    turn = np.radians(model.projector_angle_deg)
+    projector = model.baseline_m * np.array([np.cos(turn), np.sin(turn), 0.0])
     is_part = labels >= 0
     gone = np.zeros((H, W), bool)
     if model.shadows and model.baseline_m > 0:

@@ -138,6 +138,7 @@ def match_scene(
     max_instances: int = 30,
     known: Sequence[np.ndarray] = (),
     votes_from: np.ndarray | None = None,
+    view: DepthView | None = None,
 ) -> list[PartPose]:
     """Every instance of the part in a whole scene, without segments: votes from reference
     points all over the scene, the strongest pose clusters refined and scored, poses scoring
@@ -148,6 +149,8 @@ def match_scene(
             explain are taken, and only other instances are returned.
     votes_from : (n,) bool, the points a vote may start from (default all). Poses are still
             fitted and scored on every point.
+    view : what the camera saw (its z-buffer): facing surface with no measurement on its ray
+            does not count against a pose's score (verification.whole_scene_share).
     """
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
@@ -206,7 +209,7 @@ def match_scene(
         if repeats_any(model, T, settled, params.cluster_rotation_deg, scales.cluster_translation_m):
             continue
         T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
-        score = score_pose(model, T, fine, inlier, score_tree, whole_scene=True)
+        score = score_pose(model, T, fine, inlier, score_tree, whole_scene=True, view=view)
         if score >= params.min_score:
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))

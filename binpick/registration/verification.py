@@ -17,13 +17,14 @@ from binpick.registration.constants import (
     ICP_RELATIVE_CHANGE,
     MAX_BELOW_FLOOR_REL,
     MAX_SHARED_SUPPORT,
+    MIN_MEASURED_SHARE,
     SCORE_STRIDE,
     SEEN_THROUGH_MARGIN_MIN_M,
     SEEN_THROUGH_MARGIN_REL,
     SUPPORT_MAX_INCIDENCE_DEG,
     SUPPORT_NOISE_RELIEF,
 )
-from binpick.registration.visibility import DepthView, seen_through_share, visible_support_share
+from binpick.registration.visibility import DepthView, measured_depth, seen_through_share, visible_support_share
 
 
 def score_pose(
@@ -34,11 +35,14 @@ def score_pose(
     scene_tree: KDTree | None = None,
     whole_scene: bool = False,
     stride: int = SCORE_STRIDE,
+    view: DepthView | None = None,
 ) -> float:
     """Score in [0, 1]: geometric mean of the share of camera-facing model points with a scene
     point within inlier_m, and the share of scene points within inlier_m of the model. On a
-    whole scene (other parts around) only the first share counts. scene_tree: a pykdtree of
-    scene_points (nearest-neighbour queries take half scipy's time), built here when None."""
+    whole scene (other parts around) only the first share counts, and with the capture's view
+    a facing point on whose ray the sensor measured nothing does not count against the pose
+    (whole_scene_share). scene_tree: a pykdtree of scene_points (nearest-neighbour queries take
+    half scipy's time), built here when None."""
     if len(scene_points) == 0:
         return 0.0
     facing = _posed_facing_points(model, T_cam_from_model, stride)
@@ -47,12 +51,33 @@ def score_pose(
     scene_tree = scene_tree or KDTree(np.ascontiguousarray(scene_points, dtype=np.float64))
     d_model, _ = scene_tree.query(facing, distance_upper_bound=inlier_m)
     if whole_scene:
-        return float(np.mean(np.isfinite(d_model)))
+        return whole_scene_share(facing, np.isfinite(d_model), view)
     # Scene points against the model's own tree, in the model frame: built once per model.
     d_scene, _ = model.dense_tree.query(
         transform_points(invert_T(T_cam_from_model), scene_points), distance_upper_bound=inlier_m
     )
     return float(np.sqrt(np.mean(np.isfinite(d_model)) * np.mean(np.isfinite(d_scene))))
+
+
+def whole_scene_share(facing_cam: np.ndarray, supported: np.ndarray, view: DepthView | None) -> float:
+    """The whole-scene score of a pose: the share of its camera-facing model points (k, 3;
+    camera frame) with a scene point near them (supported (k,) bool), among those on whose ray
+    the sensor measured something (view; all points without one), and never fewer than
+    MIN_MEASURED_SHARE of them.
+
+    A segment's score has a second factor, the share of its points the pose explains, which a
+    correct pose keeps near 1 when the sensor leaves half its surface unmeasured; the whole
+    scene has no such factor, so the same gap (a wide-baseline projector's shadow across the
+    part) pulled a right pose's whole-scene score below min_score (PhoXi-class captures at 41
+    degrees: 0.14-0.29 against 0.37-0.54 on the same parts' segments). The floor keeps a pose
+    on a few measured points in a region the sensor barely saw from scoring high."""
+    supported = np.asarray(supported, bool)
+    if len(supported) == 0:
+        return 0.0
+    if view is None or view.is_empty:
+        return float(supported.mean())
+    measured = np.isfinite(measured_depth(facing_cam, view))
+    return float(supported[measured].sum() / max(int(measured.sum()), MIN_MEASURED_SHARE * len(supported)))
 
 
 def below_floor_share(model: PPFModel, T_cam_from_model: np.ndarray, floor_plane: np.ndarray) -> float:

@@ -5,7 +5,9 @@ Per part, networks are trained on synthetic bins (in memory, the project's train
 sizes given) rendered with:
 - `today`: the camera section's camera and generate.noise (what the project trained on before
   the sensor models);
-- `randomised`: a preset drawn per scene from every sensor model in generate.sensor.models;
+- `randomised`: a preset drawn per scene from every sensor model in generate.sensor.models,
+  its baseline scaled and its projector turned about the optical axis at random
+  (RANDOMISED_BASELINE_SCALE);
 - `without_<preset>`: every preset but that one (leave-one-out).
 Each is tested on cluttered bins (bench clutter's distractors and camera tilts up to 45 degrees)
 rendered with every preset and with today's camera, through the real scene path. Keys per
@@ -61,13 +63,28 @@ log = logging.getLogger(__name__)
 TODAY = "today"
 RANDOMISED = "randomised"
 BIN_SAMPLE_SPACING_M = 0.004
+# The randomised networks' training scenes also draw each preset's baseline and the projector's
+# side: a sensor the network never saw differs in both. Structured-light and stereo sensors for
+# bins put their projector or second camera 0.05-0.55 m from the camera (Kinect v1 0.075 m,
+# PhoXi M 0.35 m, PhoXi L 0.55 m), and a cell may mount one turned about its axis. Scaling the
+# presets' 0.075-0.15 m by 0.5-3 spans 0.04-0.45 m: it reaches PhoXi M's baseline, so the
+# leave-one-out figure for it measures a sensor inside these ranges, not beyond them.
+RANDOMISED_BASELINE_SCALE = (0.5, 3.0)
+RANDOMISED_PROJECTOR_ANGLE_DEG = (0.0, 360.0)
 
 
-def _generate(p: Params, presets: list[str], clutter: bool):
+def _generate(p: Params, presets: list[str], clutter: bool, randomise_mount: bool = False):
+    """generate params for these presets ([] = today's camera), cluttered or not; randomise_mount:
+    draw the baseline and the projector's side as the randomised networks' training does."""
     g = p.generate
+    mount = (
+        {"baseline_scale": RANDOMISED_BASELINE_SCALE, "projector_angle_deg": RANDOMISED_PROJECTOR_ANGLE_DEG}
+        if randomise_mount
+        else {}
+    )
     return g.model_copy(
         update={
-            "sensor": g.sensor.model_copy(update={"presets": list(presets)}),
+            "sensor": g.sensor.model_copy(update={"presets": list(presets), **mount}),
             "clutter": g.clutter.model_copy(update={**CLUTTER, "camera_tilt_deg_max": TILT_DEG_MAX})
             if clutter
             else g.clutter.off(),
@@ -80,9 +97,16 @@ def _scene_seed(seed: int, part: str, tag: str, index: int) -> np.random.SeedSeq
 
 
 def _render(
-    part: PartModel, p: Params, presets: list[str], clutter: bool, tag: str, n: int, seed: int
+    part: PartModel,
+    p: Params,
+    presets: list[str],
+    clutter: bool,
+    tag: str,
+    n: int,
+    seed: int,
+    randomise_mount: bool = False,
 ) -> list[tuple[SyntheticScene, np.random.SeedSequence]]:
-    g = _generate(p, presets, clutter)
+    g = _generate(p, presets, clutter, randomise_mount)
     view = ViewParams.of_import(p.import_capture)
     out = []
     for i in range(n):
@@ -101,10 +125,12 @@ def _views(scenes: list[tuple[SyntheticScene, np.random.SeedSequence]]) -> Views
 def _train(
     part: PartModel, p: Params, presets: list[str], n_train: int, n_val: int, seed: int, work: Path, tag: str
 ) -> tuple[Path, Views, Views]:
-    """A network trained on n_train scenes of these presets ([] = today's camera), clustering
-    calibrated on n_val: its checkpoint, its training views and its validation views."""
-    train = _views(_render(part, p, presets, False, f"{tag}-train", n_train, seed))
-    val = _views(_render(part, p, presets, False, f"{tag}-val", n_val, seed))
+    """A network trained on n_train scenes of these presets ([] = today's camera; presets draw
+    the mount too: RANDOMISED_BASELINE_SCALE), clustering calibrated on n_val: its checkpoint,
+    its training views and its validation views."""
+    mount = bool(presets)
+    train = _views(_render(part, p, presets, False, f"{tag}-train", n_train, seed, mount))
+    val = _views(_render(part, p, presets, False, f"{tag}-val", n_val, seed, mount))
     folder = work / tag
     d_max = p.train.d_max_m if p.train.d_max_m is not None else part.diameter_m / 2.0
     log.info("%s: training %s on %d scenes", part.name, tag, len(train))
