@@ -544,8 +544,9 @@ class RegisterParams(_Strict):
     mode: Literal["segments", "whole_scene", "segments_then_scene"]
     # The whole-scene pass votes from the points the network calls a part's (`parts`: a carton
     # or a desk beside the bin then gets no pose), or from every cleaned point (`all`: a part the
-    # network calls background can still be found, and so can a part-like carton).
-    scene_votes_from: Literal["parts", "all"] = "parts"
+    # network calls background can still be found, and so can a part-like carton, which the
+    # checks below must then refuse).
+    scene_votes_from: Literal["parts", "all"] = "all"
     max_instances: int = Field(ge=1)
     # Poses with more than this share of their camera-facing surface in space the camera saw
     # through (in front of what it measured) are dropped; 1 = no such check; null = the value
@@ -562,6 +563,11 @@ class RegisterParams(_Strict):
     # a carton face of the real carton frame 0.17. Only where the network is sure it is not the
     # part: its foreground head is trained on renders and calls much of a real frame a part's.
     min_part_share: float = Field(0.3, ge=0, le=1)
+    # ... unless at least this share of the surface the camera should have seen is measured on
+    # the pose (visible support; null = never): on a sensor it never saw, the foreground head
+    # called whole parts background whose right poses had 0.95-0.99 (bench sensors, PhoXi-class
+    # bins), while the cup posed on the real frame's cartons had 0.72-0.82.
+    part_share_waived_at_support: float | None = Field(0.95, ge=0, le=1)
 
 
 class SuctionParams(_Strict):

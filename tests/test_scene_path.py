@@ -164,17 +164,25 @@ def test_poses_reaching_into_the_floor_are_dropped(t_joint, models):
 def test_poses_on_points_the_network_calls_no_parts_are_dropped(t_joint, models):
     """The network's foreground head and the geometry must agree: with one part's points marked
     "no part", its pose is dropped and the others kept; with every part's points marked a part's,
-    none is dropped."""
+    none is dropped. Unless the capture measures at least part_share_waived_at_support of the
+    pose's surface in view: then the geometry alone keeps it."""
     scene, xyz, shape = _capture(t_joint, seed=31, n_objects=6)
     cloud = clean(xyz, None, shape, models.import_params, seed=0)
     labels = scene.labels.reshape(-1)[cloud.pixel_index].astype(np.int32)
-    params = changed(models.register_params, mode="segments")
+    params = changed(models.register_params, mode="segments", part_share_waived_at_support=None)
     every = register(cloud, labels, models.ppf, params, seed=0, is_part=labels >= 0)
     assert every.n_not_part == 0 and len(every.poses) >= 3
     target = every.poses[0].segment
-    marked = register(cloud, labels, models.ppf, params, seed=0, is_part=(labels >= 0) & (labels != target))
+    is_part = (labels >= 0) & (labels != target)
+    marked = register(cloud, labels, models.ppf, params, seed=0, is_part=is_part)
     assert marked.n_not_part == 1
     assert sorted(p.segment for p in marked.poses) == sorted(p.segment for p in every.poses if p.segment != target)
+    support = every.poses[0].visible_support
+    for waiver, kept in ((support, True), (min(1.0, support + 0.01), False)):
+        again = register(
+            cloud, labels, models.ppf, changed(params, part_share_waived_at_support=waiver), seed=0, is_part=is_part
+        )
+        assert (target in [p.segment for p in again.poses]) == kept and again.n_not_part == int(not kept)
 
 
 def test_the_stages_give_a_capture_the_answer_the_service_gave(t_joint, model_folder, models, tmp_path):

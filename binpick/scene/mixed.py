@@ -188,7 +188,9 @@ def process_mixed(
             clouds[name],
             segments.labels if segments is not None else None,
             m.ppf,
-            m.register_params,
+            # Another part's points neither vote for this part nor let its geometry overrule the
+            # network: two tees alike fit each other's points, and only the network tells them apart.
+            m.register_params.model_copy(update={"scene_votes_from": "parts", "part_share_waived_at_support": None}),
             seeds.register,
             segments.is_part if segments is not None else None,
         ).poses

@@ -208,7 +208,8 @@ def register(
     # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
     # cylinder, its gear in the air), is not there, whatever its fit to the points near it. Nor
     # is one on points the network calls no part's (a cup fitted onto a carton face): the
-    # geometry and the network must both say so. Nor is one reaching deep into the floor the
+    # geometry and the network must both say so, unless the capture measures nearly all of the
+    # pose's surface in view (a foreground head on a sensor it never saw). Nor is one reaching deep into the floor the
     # cleaning found: nothing measured can contradict it there (the floor hides it), but no part
     # lies inside the floor.
     resolved = with_verification(params, None)
@@ -237,8 +238,10 @@ def register(
         if support < least and support < support_cut(least, noise_about(pose.T_cam_from_model), inlier_m):
             n_unsupported += 1
             continue
+        waived = params.part_share_waived_at_support is not None and support >= params.part_share_waived_at_support
         if (
             is_part is not None
+            and not waived
             and part_share(ppf, pose.T_cam_from_model, cloud_tree, is_part, inlier_m) < params.min_part_share
         ):
             n_not_part += 1
