@@ -371,6 +371,25 @@ def test_a_shaft_fitted_onto_a_plain_cylinder_lacks_visible_support(shaft):
     assert visible_support(model, right, sparse, tree, inlier) > 0.9
 
 
+def _lone_t_joint(t_joint):
+    """A T-joint on the floor rendered as our camera sees it: its measured points (n, 3) and its pose."""
+    scene = render_scene(
+        t_joint,
+        make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))[None],
+        PARAMS.generate,
+        changed(PARAMS.camera, downscale=2),
+        ViewParams(0.002, 0.006),
+        np.random.default_rng(3),
+    )
+    xyz = scene.xyz_m.reshape(-1, 3).astype(np.float64)
+    return xyz[np.isfinite(xyz[:, 2])], scene.T_cam_from_model[0]
+
+
+def _with_ray_noise(xyz, sigma_m):
+    """The points (n, 3) moved along their rays by normal noise of sigma_m (a noisier sensor)."""
+    return xyz * (1.0 + np.random.default_rng(5).normal(0.0, sigma_m, len(xyz)) / np.linalg.norm(xyz, axis=1))[:, None]
+
+
 def test_the_support_cut_eases_with_the_noise_the_capture_shows(t_joint, ppf):
     """A T-joint rendered as our camera sees it shows less depth noise than half the score's
     inlier distance (1.4 mm): the cut stays; with 2 mm more along each ray (a Kinect-class
@@ -385,18 +404,8 @@ def test_the_support_cut_eases_with_the_noise_the_capture_shows(t_joint, ppf):
     assert support_cut(0.7, 0.0, inlier) == 0.7 and support_cut(0.7, 0.5 * inlier, inlier) == 0.7
     assert support_cut(0.7, inlier, inlier) == pytest.approx(0.7 - SUPPORT_NOISE_RELIEF / 2)
     assert support_cut(0.7, 1.5 * inlier, inlier) == support_cut(0.7, 3 * inlier, inlier) == 0.7 - SUPPORT_NOISE_RELIEF
-    scene = render_scene(
-        t_joint,
-        make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))[None],
-        PARAMS.generate,
-        changed(PARAMS.camera, downscale=2),
-        ViewParams(0.002, 0.006),
-        np.random.default_rng(3),
-    )
-    xyz = scene.xyz_m.reshape(-1, 3).astype(np.float64)
-    xyz = xyz[np.isfinite(xyz[:, 2])]
-    noisy = xyz * (1.0 + np.random.default_rng(5).normal(0.0, 0.002, len(xyz)) / np.linalg.norm(xyz, axis=1))[:, None]
-    T = scene.T_cam_from_model[0]
+    xyz, T = _lone_t_joint(t_joint)
+    noisy = _with_ray_noise(xyz, 0.002)
     for points, cut in ((xyz, 0.7), (noisy, 0.7 - SUPPORT_NOISE_RELIEF)):
         points = np.ascontiguousarray(points[voxel_downsample_indices(points, 0.002)])
         near = points[np.linalg.norm(points - (T[:3, :3] @ t_joint.centre_m + T[:3, 3]), axis=1) < 0.04]
@@ -505,17 +514,7 @@ def test_a_noisy_capture_widens_the_inlier_distance_and_a_clean_one_keeps_it(t_j
     from binpick.registration.constants import NOISE_INLIER_SIGMAS, Scales
     from binpick.scene.register import with_capture_noise
 
-    scene = render_scene(
-        t_joint,
-        make_T(np.eye(3), np.array([0.0, 0.0, 0.012]))[None],
-        PARAMS.generate,
-        changed(PARAMS.camera, downscale=2),
-        ViewParams(0.002, 0.006),
-        np.random.default_rng(3),
-    )
-    xyz = scene.xyz_m.reshape(-1, 3).astype(np.float64)
-    xyz = xyz[np.isfinite(xyz[:, 2])]
-    T = scene.T_cam_from_model[0]
+    xyz, T = _lone_t_joint(t_joint)
     turned = T @ make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.6), np.zeros(3))
     plain = PARAMS.registration
     for added_m in (0.0, 0.002):
