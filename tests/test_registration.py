@@ -518,9 +518,7 @@ def test_a_noisy_capture_widens_the_inlier_distance_and_a_clean_one_keeps_it(t_j
     turned = T @ make_T(axis_angle_to_R(np.array([0, 0, 1.0]), 0.6), np.zeros(3))
     plain = PARAMS.registration
     for added_m in (0.0, 0.002):
-        noisy = (
-            xyz * (1.0 + np.random.default_rng(5).normal(0.0, added_m, len(xyz)) / np.linalg.norm(xyz, axis=1))[:, None]
-        )
+        noisy = _with_ray_noise(xyz, added_m)
         points = np.ascontiguousarray(noisy[voxel_downsample_indices(noisy, 0.002)])
         noise = local_noise_m(points, KDTree(image_coordinates(points)), points)
         widened = with_capture_noise(plain, noise, ppf.diameter_m)

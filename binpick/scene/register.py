@@ -209,9 +209,9 @@ def register(
     # cylinder, its gear in the air), is not there, whatever its fit to the points near it. Nor
     # is one on points the network calls no part's (a cup fitted onto a carton face): the
     # geometry and the network must both say so, unless the capture measures nearly all of the
-    # pose's surface in view (a foreground head on a sensor it never saw). Nor is one reaching deep into the floor the
-    # cleaning found: nothing measured can contradict it there (the floor hides it), but no part
-    # lies inside the floor.
+    # pose's surface in view (a foreground head on a sensor it never saw). Nor is one reaching
+    # deep into the floor the cleaning found: nothing measured can contradict it there (the
+    # floor hides it), but no part lies inside the floor.
     resolved = with_verification(params, None)
     limit, least = resolved.max_seen_through, resolved.min_visible_support
     assert limit is not None and least is not None  # with_verification resolves both
