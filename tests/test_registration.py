@@ -531,3 +531,76 @@ def test_a_noisy_capture_widens_the_inlier_distance_and_a_clean_one_keeps_it(t_j
         right_plain = score_pose(ppf, T, near, Scales.of(ppf, plain).inlier_m)
         right, wrong = score_pose(ppf, T, near, inlier), score_pose(ppf, turned, near, inlier)
         assert right_plain < plain.min_score <= right and right > wrong + 0.05, (right_plain, right, wrong)
+
+
+def _two_lying_t_joints(t_joint, shadow_from_x_m=None, only_second_seen=False):
+    """Two T-joints lying on the floor 13 cm apart (bin frame x -0.07 and +0.06), as the
+    whole-scene pass gets them: points (n, 3) and normals on the 2 mm grid, which part each point
+    is (n,), the view (the camera's z-buffer, visibility.py) and the true poses (2, 4, 4).
+    shadow_from_x_m: the second part's points beyond this bin x are not measured (a projector's
+    shadow: in neither the points nor the view); only_second_seen: the view is that of a render
+    of the second part alone (the camera saw the floor where the first lies)."""
+    from binpick.geometry.transforms import invert_T
+    from binpick.registration.visibility import DepthView, _zbuffer
+    from binpick.view import view_normals
+
+    poses = np.stack([make_T(np.eye(3), np.array([x, 0.0, 0.012])) for x in (-0.07, 0.06)])
+    camera, grid = changed(PARAMS.camera, downscale=2), ViewParams(0.002, 0.006)
+    scene = render_scene(t_joint, poses, PARAMS.generate, camera, grid, np.random.default_rng(3))
+    h, w = scene.labels.shape
+    xyz, labels = scene.xyz_m.reshape(-1, 3).astype(np.float64), scene.labels.reshape(-1)
+    measured = np.isfinite(xyz[:, 2])
+    if shadow_from_x_m is not None:
+        x_bin = transform_points(invert_T(scene.T_cam_from_bin), xyz)[:, 0]
+        measured &= ~((labels == 1) & (x_bin > shadow_from_x_m))
+    seen = xyz[measured]
+    if only_second_seen:
+        alone = render_scene(t_joint, poses[1:], PARAMS.generate, camera, grid, np.random.default_rng(3)).xyz_m
+        seen = alone.reshape(-1, 3)[np.isfinite(alone.reshape(-1, 3)[:, 2])]
+    view = DepthView(_zbuffer(seen, scene.K, (h, w)), scene.K)
+    on_part = measured & (labels >= 0)
+    keep = voxel_downsample_indices(xyz[on_part], 0.002)
+    points = xyz[on_part][keep]
+    return points, view_normals(points, grid).astype(np.float64), labels[on_part][keep], view, scene.T_cam_from_model
+
+
+def _found_parts(found, T_true, ppf):
+    """Which true part each found pose lies on (within 5 degrees and 5 mm), -1 for none."""
+    out = []
+    for f in found:
+        errors = [
+            pose_errors(f.T_cam_from_model, T, ppf.dense_points_m, ppf.symmetries, ppf.diameter_m) for T in T_true
+        ]
+        ok = [e["rot_err_deg"] < 5.0 and e["trans_err_mm"] < 5.0 for e in errors]
+        out.append(int(np.argmax(ok)) if any(ok) else -1)
+    return out
+
+
+def test_the_whole_scene_pass_looks_on_while_a_part_as_large_as_a_tenth_of_its_surface_is_left(t_joint, ppf):
+    """Once the first T-joint is posed, what is left is the second one with more than half of it in
+    the projector's shadow: 0.15 of the model's voting-grid points, below a fifth (the old stopping
+    share) and above MIN_FREE_SHARE. The pass goes on and poses it."""
+    from binpick.registration.constants import MIN_FREE_SHARE, Scales
+
+    points, normals, which, view, T_true = _two_lying_t_joints(t_joint, shadow_from_x_m=0.065)
+    grid = voxel_downsample_indices(points, Scales.of(ppf, PARAMS.registration).sample_step_m)
+    left = np.sum(which[grid] == 1) / len(ppf.points_m)
+    assert MIN_FREE_SHARE < left < 0.2, left
+    found = match_scene(ppf, points, normals, PARAMS.registration, np.random.default_rng(0), view=view)
+    assert sorted(_found_parts(found, T_true, ppf)) == [0, 1]
+
+
+def test_the_whole_scene_pass_passes_over_a_pose_the_camera_saw_through(t_joint, ppf):
+    """The view saw the floor where the first T-joint's points lie (a pose there lies where the
+    camera saw through it, as a flipped pose's branch does in the air): with the verification's
+    limit the pass returns the second part alone; without it, both."""
+    from binpick.registration.constants import DEFAULT_MAX_SEEN_THROUGH
+
+    points, normals, _, view, T_true = _two_lying_t_joints(t_joint, only_second_seen=True)
+    rng = np.random.default_rng
+    limited = match_scene(
+        ppf, points, normals, PARAMS.registration, rng(0), view=view, max_seen_through=DEFAULT_MAX_SEEN_THROUGH
+    )
+    assert _found_parts(limited, T_true, ppf) == [1]
+    unlimited = match_scene(ppf, points, normals, PARAMS.registration, rng(0), view=view)
+    assert sorted(_found_parts(unlimited, T_true, ppf)) == [0, 1]

@@ -139,6 +139,7 @@ def match_scene(
     known: Sequence[np.ndarray] = (),
     votes_from: np.ndarray | None = None,
     view: DepthView | None = None,
+    max_seen_through: float | None = None,
 ) -> list[PartPose]:
     """Every instance of the part in a whole scene, without segments: votes from reference
     points all over the scene, the strongest pose clusters refined and scored, poses scoring
@@ -151,6 +152,11 @@ def match_scene(
             fitted and scored on every point.
     view : what the camera saw (its z-buffer): facing surface with no measurement on its ray
             does not count against a pose's score (verification.whole_scene_share).
+    max_seen_through : with the view, a pose more of whose facing surface than this lies where
+            the camera saw through it (verification.seen_through) is not there: it is passed over
+            before it takes the points it fits, so the right pose of those points is still looked
+            for (a T-joint standing on edge, whose flipped pose fits its top as well and puts its
+            branch in the air). None: every pose that scores is kept here.
     """
     if scene_points.ndim != 2 or scene_points.shape[1] != 3 or scene_normals.shape != scene_points.shape:
         raise ValueError("expected scene points and normals (n, 3)")
@@ -210,7 +216,9 @@ def match_scene(
             continue
         T = refine_icp(model, T, local, scales.fine_icp_m, params.icp_iterations, FINE_STRIDE)
         score = score_pose(model, T, fine, inlier, score_tree, whole_scene=True, view=view)
-        if score >= params.min_score:
+        if score >= params.min_score and not (
+            view is not None and max_seen_through is not None and seen_through(model, T, view) > max_seen_through
+        ):
             estimates.append(PartPose(T_cam_from_model=T, score=score))
             support.append(explained(T))
             settled = np.concatenate([settled, T[None]])

@@ -195,6 +195,7 @@ def register(
             known=[p.T_cam_from_model for p in poses],
             votes_from=is_part if params.scene_votes_from == "parts" else None,
             view=view,
+            max_seen_through=with_verification(params, None).max_seen_through,
         )
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
