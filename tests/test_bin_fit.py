@@ -3,6 +3,7 @@
 import numpy as np
 import trimesh
 
+from binpick.cell.bin_box import BinBox
 from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import camera_of, render
@@ -219,3 +220,18 @@ def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
     assert "narrower than the part" in implausible(box([0.3, 0.08], 0.1), 0.12)[0]
     assert "tilted 70 degrees" in implausible(box([0.4, 0.3], 0.15, tilt_deg=70.0), 0.12)[0]
     assert implausible(box([1.0, 0.8], 0.5), None) == []  # no part model: only the bin's own limits
+
+
+def test_the_box_of_a_generated_bin_lies_on_its_inner_faces():
+    """Every point of the box of a generated bin, seen from a turned camera, lies on the bin's
+    meshes (the floor's top, the walls' inner faces), and its floor is the plane the parts rest on."""
+    bin_params = PARAMS.generate.bin
+    T_cam_from_bin = invert_T(make_T(axis_angle_to_R(np.array([0.8, -0.5, 0.3]), 0.4), np.array([0.05, -0.1, 0.9])))
+    box = BinBox.of_generated(bin_params, T_cam_from_bin)
+    surface = transform_points(invert_T(T_cam_from_bin), box.surface_points(0.02))
+    meshes = trimesh.util.concatenate(bin_meshes(bin_params))
+    _, distance, _ = trimesh.proximity.closest_point(meshes, surface)
+    assert np.max(distance) < 1e-6
+    np.testing.assert_allclose(
+        box.inner_max_m - box.inner_min_m, [bin_params.inner_x_m, bin_params.inner_y_m, bin_params.wall_height_m]
+    )

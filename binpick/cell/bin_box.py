@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from binpick.geometry.transforms import transform_points
-from binpick.params import ImportCaptureParams
+from binpick.params import BinParams, ImportCaptureParams
 
 # A bin box's floor is the support plane unless the plane found in the capture agrees with it
 # within these (then the measured plane is used: it is where the parts lie today).
@@ -41,6 +41,15 @@ class BinBox:
             np.asarray(params.roi_min_m, float),
             np.asarray(params.roi_max_m, float),
             None if params.roi_wall_heights_m is None else np.asarray(params.roi_wall_heights_m, float),
+        )
+
+    @classmethod
+    def of_generated(cls, bin: BinParams, T_cam_from_bin: np.ndarray) -> BinBox:
+        """The box of a generated bin (generation/bin.py: its floor's centre at the bin frame's
+        origin, z up) seen from a camera at T_cam_from_bin (4, 4)."""
+        half = np.array([bin.inner_x_m / 2.0, bin.inner_y_m / 2.0])
+        return cls(
+            np.asarray(T_cam_from_bin, dtype=np.float64), np.append(-half, 0.0), np.append(half, bin.wall_height_m)
         )
 
     def as_import_settings(self) -> dict[str, object]:

@@ -249,8 +249,7 @@ def _finetuned(
         H, W = scene.labels.shape
         # The cell knows its bin: the box generate_scene drew.
         drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
-        half = np.array([drawn.inner_x_m / 2, drawn.inner_y_m / 2])
-        box = BinBox(scene.T_cam_from_bin, np.append(-half, 0.0), np.append(half, drawn.wall_height_m))
+        box = BinBox.of_generated(drawn, scene.T_cam_from_bin)
         try:
             result = process(
                 scene.xyz_m.reshape(-1, 3),
