@@ -44,7 +44,7 @@ MAX_SHARED_SUPPORT = 0.3
 # Whole-scene matching after poses are known votes only from the points they leave unexplained,
 # and not at all when those are fewer than this share of the model's points on the voting grid
 # (less than a tenth of a part's surface: edges and noise, no part the pass could fit). A fifth
-# stopped the pass before a T-joint standing on edge in a bin's corner (0.11 of its points left
+# stopped the pass before a T-joint standing on end in a bin's corner (0.11 of its points left
 # in one patch) or one half in a projector's shadow (0.15).
 MIN_FREE_SHARE = 0.1
 # A segment this share of whose points (voting grid) poses found on larger segments explain is
