@@ -138,6 +138,10 @@ def register(
     # finalists by them, and every pose is verified against them below.
     view = DepthView(cloud.seen_depth_m, cloud.seen_K)
     cloud_tree = KDTree(np.ascontiguousarray(cloud.points_m, dtype=np.float64)) if len(cloud.points_m) else None
+    # The verification's limits, which the whole-scene pass also applies as it goes.
+    resolved = with_verification(params, None)
+    limit, least = resolved.max_seen_through, resolved.min_visible_support
+    assert limit is not None and least is not None  # with_verification resolves both
     if mode in ("segments", "segments_then_scene"):
         if labels is None:
             raise ValueError(f"registration mode {mode!r} needs segment labels")
@@ -195,7 +199,7 @@ def register(
             known=[p.T_cam_from_model for p in poses],
             votes_from=is_part if params.scene_votes_from == "parts" else None,
             view=view,
-            max_seen_through=with_verification(params, None).max_seen_through,
+            max_seen_through=limit,
         )
         per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
         poses += more
@@ -213,9 +217,6 @@ def register(
     # pose's surface in view (a foreground head on a sensor it never saw). Nor is one reaching
     # deep into the floor the cleaning found: nothing measured can contradict it there (the
     # floor hides it), but no part lies inside the floor.
-    resolved = with_verification(params, None)
-    limit, least = resolved.max_seen_through, resolved.min_visible_support
-    assert limit is not None and least is not None  # with_verification resolves both
     kept_poses = []
     n_unsupported = n_not_part = n_in_the_floor = 0
     inlier_m = Scales.of(ppf, params).inlier_m
