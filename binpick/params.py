@@ -588,12 +588,19 @@ class SuctionParams(_Strict):
 
 
 class JawParams(_Strict):
-    """A parallel-jaw gripper: two box fingers closing along the tool's x axis, the tool centre
-    point midway between the finger pads' centres; a palm behind the fingers and a tool cylinder
-    behind the palm. Fingers open to the grasp width plus open_margin_m (at most opening_max_m)
-    to approach; contacts need normals within friction_deg of the closing axis."""
+    """A parallel-jaw gripper: two box fingers closing along the tool's x axis, each touching the
+    part with a pad at its tip (pad_length_m long, the whole finger by default), the tool centre
+    point midway between the pads' centres; a palm behind the fingers and a tool cylinder behind
+    the palm. Fingers open to the grasp width plus open_margin_m (at most opening_max_m) to
+    approach; contacts need normals within friction_deg of the closing axis."""
 
     finger_length_m: float = Field(gt=0, description="along the approach")
+    pad_length_m: float | None = Field(
+        None,
+        gt=0,
+        description="the contact pad at the finger's tip, along the approach (null: the whole finger); a short pad"
+        " on a long finger reaches across a part thicker than the finger (a shaft) without the palm touching it",
+    )
     finger_width_m: float = Field(gt=0, description="across the approach and the closing axis")
     finger_thickness_m: float = Field(gt=0, description="along the closing axis")
     opening_min_m: float = Field(ge=0)
@@ -612,7 +619,19 @@ class JawParams(_Strict):
     def _opening(self) -> JawParams:
         if self.opening_min_m >= self.opening_max_m:
             raise ValueError("jaw.opening_min_m must be below jaw.opening_max_m")
+        if self.pad_length_m is not None and self.pad_length_m > self.finger_length_m:
+            raise ValueError("jaw.pad_length_m must not exceed jaw.finger_length_m")
         return self
+
+    @property
+    def pad_m(self) -> float:
+        """The pad's length along the approach."""
+        return self.finger_length_m if self.pad_length_m is None else self.pad_length_m
+
+    @property
+    def palm_from_tcp_m(self) -> float:
+        """How far behind the tool centre point the fingers meet the palm."""
+        return self.finger_length_m - self.pad_m / 2.0
 
 
 PICK_ORDER_KEYS = ("height", "score", "clearance")

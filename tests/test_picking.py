@@ -11,6 +11,7 @@ import pytest
 import trimesh
 import yaml
 from conftest import ROOT, box_part_model
+from scipy.spatial import cKDTree
 
 from binpick.cell.bin_box import BinBox
 from binpick.errors import InputError
@@ -30,6 +31,7 @@ from binpick.picking.gripper import (
     signed_distance,
     swept,
 )
+from binpick.picking.measured import contact_seen
 from binpick.picking.obstacles import BIN, CAPTURED
 from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, plan_picks
 
@@ -127,6 +129,41 @@ def test_jaw_grasps_close_across_the_box(box_part, pick_settings):
         local = (box_part.points_m - T[:3, 3]) @ T[:3, :3]
         opening = min(pick_settings.jaw.opening_max_m, width + 2 * pick_settings.jaw.open_margin_m)
         assert signed_distance(local, jaw_primitives(pick_settings.jaw, opening)).min() > 0
+
+
+def test_a_shaft_thicker_than_half_the_finger_is_gripped_across_only_with_a_pad_at_the_tip(pick_settings):
+    """A 50 mm rod in 40 mm fingers: padded along the whole finger the tool centre point lies
+    20 mm in front of the palm, inside the rod, so no grasp closes across its body; with a 10 mm
+    pad at the tip the palm stands 35 mm back and grasps close across the body on chords of the
+    rod, the fingers' tips 5 mm past the tool centre point."""
+    rod = make_part_model(
+        "rod",
+        trimesh.creation.cylinder(radius=0.025, height=0.2, sections=48),
+        SymmetryParams(kind="revolution"),
+        20000,
+        np.random.default_rng(0),
+        "m",
+    )
+    jaw = pick_settings.jaw.model_copy(update={"finger_length_m": 0.04, "opening_max_m": 0.08})
+    whole = pick_settings.model_copy(update={"jaw": jaw})
+    tip = pick_settings.model_copy(update={"jaw": jaw.model_copy(update={"pad_length_m": 0.01})})
+
+    def across(grasps):
+        """Closing across the axis, approaching from the side (not from an end, past the rod)."""
+        pairs = zip(grasps.T_model_from_tool, grasps.width_m, strict=True)
+        return [(T, w) for T, w in pairs if abs(T[2, 0]) < 0.1 and abs(T[2, 2]) < 0.1]
+
+    assert across(jaw_grasps(rod, whole)) == []
+    body = across(jaw_grasps(rod, tip))
+    assert len(body) >= 5
+    for T, width in body:
+        # A chord of the rod, its contacts' normals within the friction cone of the closing axis.
+        off_axis = float(np.linalg.norm(T[:2, 3]))
+        assert off_axis <= 0.025 * np.sin(np.radians(tip.jaw.friction_deg))
+        assert width == pytest.approx(2.0 * np.sqrt(0.025**2 - off_axis**2), abs=5e-4)
+        fingers = jaw_primitives(tip.jaw, width)[:2]
+        assert [f.hi[2] for f in fingers] == pytest.approx([0.005, 0.005])
+        assert [f.lo[2] for f in fingers] == pytest.approx([-0.035, -0.035])
 
 
 def test_signed_distance_and_floor_height_of_primitives():
@@ -449,6 +486,23 @@ def test_a_grasp_whose_contact_the_camera_did_not_measure_is_refused(box_part, p
     assert not plan.picks and "not where the camera measured" in plan.unpicked[0][1]
 
 
+def test_a_jaw_grasp_across_a_shaft_sees_the_shafts_top_between_its_fingers(pick_settings):
+    """A rod of 25 mm radius lying across the view, gripped from the camera at its axis by long
+    fingers with pads at their tips: the camera measures only the rod's top, 25 mm behind the
+    pads' centres but between the fingers, and the contact counts as measured; the same surface
+    measured 0.1 m farther away (the pose in the air) does not."""
+    phi = np.radians(np.linspace(-80.0, 80.0, 33))
+    y = np.linspace(-0.05, 0.05, 21)
+    P, Y = np.meshgrid(phi, y)
+    top = np.column_stack([0.025 * np.sin(P.ravel()), Y.ravel(), 0.5 - 0.025 * np.cos(P.ravel())])
+    T_cam_from_tool = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))  # approach +z, closing along x
+    jaw = pick_settings.jaw.model_copy(update={"finger_length_m": 0.08, "pad_length_m": 0.02, "opening_max_m": 0.085})
+    settings = pick_settings.model_copy(update={"jaw": jaw})
+    for captured, seen in ((top, True), (top + [0.0, 0.0, 0.1], False)):
+        tree = cKDTree(captured)
+        assert contact_seen(T_cam_from_tool, "jaw", 0.05, captured, tree, settings) is seen
+
+
 def test_a_suction_contact_on_a_patch_tilted_from_the_cup_is_refused(box_part, pick_settings):
     """Measured points on the cup's contact plane within its seal tolerance are not enough: a
     patch tilted 30 degrees from the approach (a pose turned the wrong way about an edge) has
@@ -665,8 +719,6 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
 
 
 def test_a_tool_moved_off_its_axis_hits_what_lies_on_its_way_and_not_beside_it(pick_settings):
-    from scipy.spatial import cKDTree
-
     from binpick.picking.gripper import suction_primitives
     from binpick.picking.obstacles import moved_tool_hits
 

@@ -62,15 +62,16 @@ def jaw_opening_m(j: JawParams, width_m: float) -> float:
 
 
 def jaw_primitives(j: JawParams, opening_m: float) -> list[Primitive]:
-    """Two fingers with their inner faces opening_m apart, the palm behind them, the tool behind that."""
-    half_l, half_w = j.finger_length_m / 2.0, j.finger_width_m / 2.0
+    """Two fingers with their inner faces opening_m apart, from their tips (half a pad past the
+    tool centre point) back to the palm, the palm behind them, the tool behind that."""
+    half_w, tip, back = j.finger_width_m / 2.0, j.pad_m / 2.0, -j.palm_from_tcp_m
     inner = opening_m / 2.0
     outer = j.opening_max_m / 2.0 + j.finger_thickness_m
-    palm_top = -half_l - j.palm_depth_m
+    palm_top = back - j.palm_depth_m
     return [
-        Box(np.array([inner, -half_w, -half_l]), np.array([inner + j.finger_thickness_m, half_w, half_l])),
-        Box(np.array([-inner - j.finger_thickness_m, -half_w, -half_l]), np.array([-inner, half_w, half_l])),
-        Box(np.array([-outer, -j.palm_width_m / 2.0, palm_top]), np.array([outer, j.palm_width_m / 2.0, -half_l])),
+        Box(np.array([inner, -half_w, back]), np.array([inner + j.finger_thickness_m, half_w, tip])),
+        Box(np.array([-inner - j.finger_thickness_m, -half_w, back]), np.array([-inner, half_w, tip])),
+        Box(np.array([-outer, -j.palm_width_m / 2.0, palm_top]), np.array([outer, j.palm_width_m / 2.0, back])),
         Cylinder(j.tool_radius_m, palm_top - j.tool_length_m, palm_top),
     ]
 

@@ -14,7 +14,7 @@ from binpick.params import PickParams
 # part's surface sample (own points) and the capture (contacts on sparse captures).
 SPACING_PROBES = 2000
 # A grasp's contact must be measured: at least this many captured points under the suction cup
-# (or between the jaw's pads), this share of the cup's within its seal tolerance (plus the noise
+# (or between the jaw's fingers), this share of the cup's within its seal tolerance (plus the noise
 # allowance below) of the contact plane. A pose off by a rotation the camera cannot tell (a pipe
 # turned about its axis, its branch hidden) otherwise places grasps in the air.
 SEEN_MIN_POINTS = 5
@@ -121,9 +121,12 @@ def contact_seen(
     if kind == "suction":
         reach = max(params.suction.cup_radius_m, SEEN_SPACINGS * spacing_m)
     else:
-        reach = float(
-            np.sqrt((width_m / 2) ** 2 + (params.jaw.finger_width_m / 2) ** 2 + (params.jaw.finger_length_m / 2) ** 2)
-        )
+        # Between the fingers, from their tips back to the palm: the camera sees a shaft gripped
+        # by pads at its axis on its top, a radius behind them. Across the fingers the band is
+        # widened on a sparse capture, as the cup's disc is.
+        j = params.jaw
+        half_y = max(j.finger_width_m / 2.0, SEEN_SPACINGS * spacing_m / 2.0)
+        reach = float(np.sqrt((width_m / 2) ** 2 + half_y**2 + max(j.palm_from_tcp_m, j.pad_m / 2) ** 2))
     near = captured_near(tree, len(captured), c, reach)
     if len(near) < SEEN_MIN_POINTS:
         return False
@@ -148,7 +151,8 @@ def contact_seen(
         return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
     between = (
         (np.abs(local[:, 0]) < width_m / 2)
-        & (np.abs(local[:, 1]) < params.jaw.finger_width_m / 2)
-        & (np.abs(local[:, 2]) < params.jaw.finger_length_m / 2)
+        & (np.abs(local[:, 1]) < half_y)
+        & (local[:, 2] > -j.palm_from_tcp_m)
+        & (local[:, 2] < j.pad_m / 2)
     )
     return int(between.sum()) >= SEEN_MIN_POINTS

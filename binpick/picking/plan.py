@@ -19,7 +19,7 @@ bin's axis (the tool's way up checked too; the post-grasp pose then lies above t
 and its contact is where the camera measured a surface: under a suction cup the captured points
 lie on the contact plane (within the seal tolerance, widened by the noise the capture shows
 about the pose) and the plane they span faces the cup,
-between a jaw's pads there are captured points. A part's pick is its best-ranked grasp that is
+between a jaw's fingers (tip to palm) there are captured points. A part's pick is its best-ranked grasp that is
 kept (grasps are tried best first, up to max_candidates_per_part). Parts with a pick are ordered
 by the keys in `order`: `height` (of the part's centre above the support plane, in steps of
 height_tolerance_m, highest first), `score` (the pose's, highest first), `clearance` (of the
