@@ -29,6 +29,7 @@ import numpy as np
 from binpick.cell.retries import FailedGrips
 from binpick.cell.robot import (
     ARM_STOPPED,
+    GRASP_LOST,
     MAX_FAILURES_IN_A_ROW,
     NO_GRIP,
     PICKS_PER_CAPTURE,
@@ -240,11 +241,12 @@ def run_cell(
             t1 = time.perf_counter()
             state = execute_pick(robot, first.arm, first.width_m)
             record["move_s"] = round(time.perf_counter() - t1, 4)
-            if state == NO_GRIP:
+            if state in (NO_GRIP, GRASP_LOST):
                 failed_grips.failed(
                     result.registration.poses[first.pose_index].T_cam_from_model,
                     models.part.centre_m,
                     first.T_cam_from_grasp,
+                    held=state == GRASP_LOST,
                 )
         record["state"] = state
         write_text(here / "cycle.json", json.dumps(record, indent=1) + "\n")

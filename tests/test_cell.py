@@ -75,13 +75,16 @@ def test_a_stop_request_ends_the_run_before_the_next_cycle(tmp_path, models):
     assert run_cell(tmp_path, PARAMS, "t_joint", None, Untouched(), models, stop=stop).ended == "stop requested"  # type: ignore[arg-type]
 
 
-def test_a_part_the_gripper_failed_to_hold_is_left_alone_in_the_next_cycle(tmp_path, t_joint, models):
+@pytest.mark.parametrize("failure", [NO_GRIP, GRASP_LOST])
+def test_a_part_the_gripper_failed_to_hold_is_left_alone_in_the_next_cycle(tmp_path, t_joint, models, failure):
+    """The first grip fails, at the grasp (no vacuum) or on the way up (the part torn off where
+    it lay): the next cycle leaves that part alone and picks another."""
     from flows.cell_run import run_cell, simulated_cell
 
     sim, camera = simulated_cell(PARAMS, t_joint, 3, seed=4)
 
-    class NoSealOnce:
-        """The simulated robot, its vacuum failing at the first grasp (the part is not touched)."""
+    class FailsOnce:
+        """The simulated robot, its first grip failing (the part is not moved)."""
 
         def __init__(self):
             self.failed = False
@@ -89,16 +92,18 @@ def test_a_part_the_gripper_failed_to_hold_is_left_alone_in_the_next_cycle(tmp_p
         def grip(self, width_m):
             if not self.failed:
                 self.failed = True
-                return False
+                # NO_GRIP: the vacuum sensor says nothing is held; GRASP_LOST: it says the part is
+                # held at the grasp and then nothing is (torn off as the lift starts, where it lay).
+                return failure == GRASP_LOST
             return sim.grip(width_m)
 
         def __getattr__(self, name):
             return getattr(sim, name)
 
-    summary = run_cell(tmp_path, PARAMS, "t_joint", NoSealOnce(), camera, models, max_cycles=2)  # type: ignore[arg-type]
+    summary = run_cell(tmp_path, PARAMS, "t_joint", FailsOnce(), camera, models, max_cycles=2)  # type: ignore[arg-type]
     sim.close()
     first, second = sorted(p for p in summary.folder.iterdir() if p.is_dir())
-    assert json.loads((first / "cycle.json").read_text())["state"] == NO_GRIP
+    assert json.loads((first / "cycle.json").read_text())["state"] == failure
     assert json.loads((second / "cycle.json").read_text())["state"] == "placed"
     tried, then = (json.loads((c / "picks.json").read_text()) for c in (first, second))
     assert [u["reason"] for u in then["unpicked"]].count(GRIP_FAILED) == 1
@@ -287,3 +292,31 @@ def test_a_part_on_the_heap_above_the_rim_is_in_the_bin_and_one_beside_it_is_not
     beside = in_bin_at([b.inner_x_m / 2 + 0.05, 0.0, 0.02])
     sim.close()
     assert above_the_rim and not beside
+
+
+def test_the_jaws_close_across_a_lone_part_and_carry_it_to_the_place_touching_nothing_else(t_joint):
+    """The jaw gripper with pads at the fingers' tips (whole-finger pads put the fingertips into
+    the floor under a lying pipe: no grasp) on a lone T-joint: the jaws come down around the
+    part, close on it by friction and carry it to the place, touching nothing on the way."""
+    from binpick.scene.process import process
+    from binpick.seeding import SceneSeeds
+    from flows.bench.picking import bench_models
+    from flows.cell_run import simulated_cell
+
+    T_flange_from_tcp = np.eye(4)
+    T_flange_from_tcp[2, 3] = 0.165  # the jaw tool: 0.12 + palm 0.02 + the 0.03 finger less half its 0.01 pad
+    jaw = PARAMS.pick.jaw.model_copy(update={"pad_length_m": 0.01})
+    p = PARAMS.model_copy(
+        update={
+            "pick": PARAMS.pick.model_copy(update={"gripper": "jaw", "jaw": jaw}),
+            "cell": PARAMS.cell.model_copy(update={"T_flange_from_tcp": T_flange_from_tcp.tolist()}),
+        }
+    )
+    jaw_models = dataclasses.replace(bench_models(t_joint, p, None), cell_params=p.cell)
+    sim, camera = simulated_cell(p, t_joint, 1, seed=2)
+    capture = camera.grab()
+    plan = process(capture.xyz_m, None, capture.shape, jaw_models, SceneSeeds.of(0, "jaw"), sim.joints()).picks
+    assert plan is not None and plan.picks and plan.picks[0].arm is not None
+    done = sim.execute(plan.picks[0].arm, sim.joints(), plan.picks[0].width_m)
+    sim.close()
+    assert (done.outcome, done.touched) == ("placed", set())

@@ -44,3 +44,12 @@ def test_where_a_grip_failed_is_remembered_across_retries():
     tcp = np.array([[0.03, 0.01, 0.58], [0.03, 0.018, 0.58], [0.03, 0.022, 0.58]])
     assert near_contacts(tcp, grips.contacts_m(), 0.01).tolist() == [True, True, False]
     assert near_contacts(tcp, np.zeros((0, 3)), 0.01).tolist() == [False, False, False]
+
+
+def test_a_part_lost_on_the_way_up_is_left_alone_but_where_it_held_is_not_ruled_out():
+    T_part = make_T(np.eye(3), np.array([0.02, 0.01, 0.6]))
+    T_grasp = make_T(np.eye(3), np.array([0.03, 0.01, 0.58]))
+    grips = FailedGrips()
+    grips.failed(T_part, CENTRE_M, T_grasp, held=True)
+    assert near_failed(centre_cam(T_part)[None], grips.centres_m(), DIAMETER_M).tolist() == [True]
+    assert len(grips.contacts_m()) == 0

@@ -1,14 +1,17 @@
 """Parts a grip failed on: a cell does not send the arm to the same part at once again.
 
-When the gripper holds nothing at the grasp (the suction cup found no seal, the jaws closed on
-air), the pose it was sent to was wrong or the grasp does not hold on that part as it lies. The
-next capture sees the same part where it was, usually posed the same way, so the same pick
-would fail again: in the simulated cell a T-joint posed 3 mm and 20 degrees off failed three
-times in a row and stopped a bin half full. The part is left alone, an obstacle like any other,
-until no other part can be picked; then it is tried again (the heap around it has changed, and
-with it what the camera sees of it), but not where the grip failed: a grasp whose contact lies
-within the gripper's own size of a failed one meets the same surface (in the simulated cell the
-pipe's cup failed to seal three times on one part, each time at the same spot).
+When the gripper holds nothing at the grasp (the suction cup found no seal, the jaws closed on air),
+or loses the part on its way up (torn off against a neighbour it is hooked on), the pose it was sent
+to was wrong or the grasp does not hold on that part as it lies. The next capture sees the same part
+where it was, usually posed the same way, so the same pick would fail again: in the simulated cell a
+T-joint posed 3 mm and 20 degrees off failed three times in a row and stopped a bin half full; a
+ring screw torn off its cup against the bin wall at 180 ms after the grip was sent to the same grasp
+again and lost again. The part is left alone, an obstacle like any other, until no other part can be
+picked; then it is tried again (the heap around it has changed, and with it what the camera sees of
+it), but not where a grip found no hold: a grasp whose contact lies within the gripper's own size of
+such a failed one meets the same surface (in the simulated cell the pipe's cup failed to seal three
+times on one part, each time at the same spot). A part lost on the way up had held there: its
+contact stays open (the neighbour it was hooked on may be gone by its turn).
 
 Camera frame, metres (the camera is fixed over the bin, so a spot in its frame stays put).
 """
@@ -39,12 +42,17 @@ class FailedGrips:
         not known (a controller reports where it failed; no part is left alone)."""
         return cls(_contacts=list(np.array(contacts_m, dtype=np.float64).reshape(-1, 3)))
 
-    def failed(self, T_cam_from_model: np.ndarray, centre_m: np.ndarray, T_cam_from_grasp: np.ndarray) -> None:
+    def failed(
+        self, T_cam_from_model: np.ndarray, centre_m: np.ndarray, T_cam_from_grasp: np.ndarray, held: bool = False
+    ) -> None:
         """A grip failed on the part posed at T_cam_from_model (4, 4); centre_m (3,) the part's
-        centre in its model frame; T_cam_from_grasp (4, 4) the tool centre point it was sent to."""
+        centre in its model frame; T_cam_from_grasp (4, 4) the tool centre point it was sent to;
+        held: the grip held and the part was lost on the way up (the surface took the grip: the
+        part is left alone, its contact is not ruled out)."""
         T = np.asarray(T_cam_from_model, dtype=np.float64)
         self._spots.append(T[:3, :3] @ np.asarray(centre_m, dtype=np.float64) + T[:3, 3])
-        self._contacts.append(np.asarray(T_cam_from_grasp, dtype=np.float64)[:3, 3].copy())
+        if not held:
+            self._contacts.append(np.asarray(T_cam_from_grasp, dtype=np.float64)[:3, 3].copy())
 
     def retry(self) -> bool:
         """No other part could be picked: the parts left alone are tried again. Whether there were any."""

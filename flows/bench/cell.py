@@ -273,9 +273,12 @@ def _clear_bin(
             if recording is not None:
                 touched = f", touched {' and '.join(sorted(done.touched))}" if done.touched else ""
                 recording.attempt(tally.attempts, part, poses[keep], motion, f"{done.outcome}{touched}")
-            if done.outcome in ("no seal", "no hold"):  # what the robot's vacuum sensor or jaws tell
+            if done.outcome in ("no seal", "no hold", "dropped"):  # what the vacuum sensor or the jaws tell
                 failed_grips.failed(
-                    result.registration.poses[first.pose_index].T_cam_from_model, part.centre_m, first.T_cam_from_grasp
+                    result.registration.poses[first.pose_index].T_cam_from_model,
+                    part.centre_m,
+                    first.T_cam_from_grasp,
+                    held=done.outcome == "dropped",
                 )
             tally.removed += int(done.outcome in ("placed", "misplaced"))
             tally.lost += sim.remove_outside()
