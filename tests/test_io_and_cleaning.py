@@ -8,7 +8,7 @@ from binpick.io.capture import load_capture
 from binpick.io.cloud import load_cloud, save_cloud
 from binpick.io.ply import PointCloudData, load_ply, save_ply
 from binpick.io.poses import PartPose, load_poses, save_poses
-from binpick.scene.cleaning import _long_and_low, _square_to, clean_capture
+from binpick.scene.cleaning import _at_the_edge, _long_and_low, _square_to, clean_capture
 
 from settings import PARAMS, changed
 
@@ -235,6 +235,28 @@ def test_a_wall_runs_along_the_floor_and_a_part_side_does_not():
     assert not _long_and_low(
         np.vstack([side, patch(0.2, 0.26, 0.12, 400), patch(0.4, 0.45, 0.1, 300)]), floor, plane, 0.02
     )
+
+
+def test_a_walls_own_rim_counts_on_neither_side_of_it():
+    """The last wall x = 0.2 of a nearly empty bin (floor z = 0, the bin at x < 0.2, walls 0.08 m
+    high): what is left is the rims of the walls (the 10 mm top faces: this wall's beyond its face,
+    two others' inside) and one part leaning on it. Counting this wall's rim, a quarter of the
+    points lie beyond it and it is no wall; without it, it is one. A plane through a heap, parts
+    on both sides at every height, is still none."""
+    rng = np.random.default_rng(0)
+    floor, plane = np.array([0.0, 0.0, 1.0, 0.0]), np.array([1.0, 0.0, 0.0, -0.2])
+
+    def box(lo, hi, n):
+        return rng.uniform(lo, hi, (n, 3))
+
+    own_rim = box([0.2, -0.1, 0.079], [0.21, 0.1, 0.081], 800)
+    other_rims = box([-0.2, -0.11, 0.079], [0.2, -0.1, 0.081], 900)
+    part = box([0.15, -0.02, 0.01], [0.195, 0.02, 0.07], 1100)
+    left = np.vstack([own_rim, other_rims, part])
+    assert not _at_the_edge(left, floor, plane, 0.002)
+    assert _at_the_edge(left, floor, plane, 0.002, top_m=0.08)
+    heap = np.vstack([box([0.1, -0.1, 0.0], [0.2, 0.1, 0.1], 1500), box([0.2, -0.1, 0.0], [0.3, 0.1, 0.1], 1500)])
+    assert not _at_the_edge(heap, floor, plane, 0.002, top_m=0.08)
 
 
 def test_walls_stand_square_to_each_other():

@@ -39,6 +39,10 @@ WALL_RUN_GAP_VOXELS = 5.0
 # A bin is a box: each wall stands parallel or square to the first one found, within this angle
 # (a plane along a diagonal row of parts is not a wall).
 WALL_SQUARE_TOLERANCE_DEG = 10.0
+# A wall's rim (its top face) lies within this of its inner face (a wall this thick at most), at
+# the height of its top within this many plane thresholds.
+WALL_RIM_M = 0.03
+RIM_HEIGHT_THRESHOLDS = 3.0
 
 
 def bin_reference_point(floor: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -51,15 +55,30 @@ def bin_reference_point(floor: np.ndarray, points: np.ndarray) -> np.ndarray:
     return c - (c @ n + d) * n
 
 
-def _at_the_edge(others: np.ndarray, floor: np.ndarray, plane: np.ndarray, threshold_m: float) -> bool:
+def _at_the_edge(
+    others: np.ndarray, floor: np.ndarray, plane: np.ndarray, threshold_m: float, top_m: float = np.inf
+) -> bool:
     """A bin wall stands at the edge of what is left: WALL_INNER_SHARE of the other points lie on
     one side of it. A plane through a heap of parts (the flank of a pile of long cylinders) has
-    parts on both sides and is not a wall."""
+    parts on both sides and is not a wall. The wall's own rim (top_m: the height of its top above
+    the floor) lies beside its face and counts on neither side: in a bin nearly emptied the rims
+    of the walls outnumbered the one part left leaning on the last wall, which was kept in the
+    cloud and took the part's pose from the whole-scene pass."""
+    if len(others) == 0:
+        return True
+    beside = np.abs(others @ plane[:3] + plane[3]) <= WALL_RIM_M
+    rim = beside & (np.abs(others @ floor[:3] + floor[3] - top_m) <= RIM_HEIGHT_THRESHOLDS * threshold_m)
+    others = others[~rim]
     if len(others) == 0:
         return True
     side = (others @ plane[:3] + plane[3]) > -threshold_m
     share = float(side.mean())
     return max(share, 1.0 - share) >= WALL_INNER_SHARE
+
+
+def _top_m(on_plane: np.ndarray, floor: np.ndarray) -> float:
+    """The height above the floor of a wall plane's points' top (k, 3): its 99th percentile."""
+    return float(np.percentile(on_plane @ floor[:3] + floor[3], 99)) if len(on_plane) else np.inf
 
 
 def _long_and_low(on_plane: np.ndarray, floor: np.ndarray, plane: np.ndarray, gap_m: float) -> bool:
@@ -246,7 +265,7 @@ def clean_capture(
                 break
             if (
                 abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
-                or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m)
+                or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m, _top_m(pts[inliers], floor))
                 or not _square_to(plane, walls)
                 or not _long_and_low(pts[inliers], floor, plane, WALL_RUN_GAP_VOXELS * view.voxel_size_m)
             ):
