@@ -95,18 +95,17 @@ def test_a_large_part_sampled_sparsely_still_gets_suction_grasps(pick_settings):
         )
 
 
+def rod_part(radius_m: float, length_m: float, sections: int):
+    """A cylinder part along its model z, declared a solid of revolution."""
+    mesh = trimesh.creation.cylinder(radius=radius_m, height=length_m, sections=sections)
+    return make_part_model("rod", mesh, SymmetryParams(kind="revolution"), 20000, np.random.default_rng(0), "m")
+
+
 def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings):
     """A rod of 12 facets declared a solid of revolution: its side grasps approach along the
     cylinder's own normal (straight at the axis), not their facet's, which lies up to 15 degrees
     around from it."""
-    rod = make_part_model(
-        "rod",
-        trimesh.creation.cylinder(radius=0.02, height=0.1, sections=12),
-        SymmetryParams(kind="revolution"),
-        20000,
-        np.random.default_rng(0),
-        "m",
-    )
+    rod = rod_part(radius_m=0.02, length_m=0.1, sections=12)
     grasps = suction_grasps(rod, pick_settings)
     side = [T for T in grasps.T_model_from_tool if abs(T[2, 2]) < 0.5]
     assert len(side) >= 5
@@ -136,14 +135,7 @@ def test_a_shaft_thicker_than_half_the_finger_is_gripped_across_only_with_a_pad_
     20 mm in front of the palm, inside the rod, so no grasp closes across its body; with a 10 mm
     pad at the tip the palm stands 35 mm back and grasps close across the body on chords of the
     rod, the fingers' tips 5 mm past the tool centre point."""
-    rod = make_part_model(
-        "rod",
-        trimesh.creation.cylinder(radius=0.025, height=0.2, sections=48),
-        SymmetryParams(kind="revolution"),
-        20000,
-        np.random.default_rng(0),
-        "m",
-    )
+    rod = rod_part(radius_m=0.025, length_m=0.2, sections=48)
     jaw = pick_settings.jaw.model_copy(update={"finger_length_m": 0.04, "opening_max_m": 0.08})
     whole = pick_settings.model_copy(update={"jaw": jaw})
     tip = pick_settings.model_copy(update={"jaw": jaw.model_copy(update={"pad_length_m": 0.01})})
