@@ -64,8 +64,6 @@ def _at_the_edge(
     the floor) lies beside its face and counts on neither side: in a bin nearly emptied the rims
     of the walls outnumbered the one part left leaning on the last wall, which was kept in the
     cloud and took the part's pose from the whole-scene pass."""
-    if len(others) == 0:
-        return True
     beside = np.abs(others @ plane[:3] + plane[3]) <= WALL_RIM_M
     rim = beside & (np.abs(others @ floor[:3] + floor[3] - top_m) <= RIM_HEIGHT_THRESHOLDS * threshold_m)
     others = others[~rim]
