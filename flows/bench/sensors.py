@@ -41,6 +41,7 @@ from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.scene import generate_scene
 from binpick.geometry.transforms import transform_points
+from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.learning import label_capture
@@ -240,10 +241,12 @@ def _finetuned(
     work: Path,
 ) -> tuple[Path, dict[str, float]]:
     """The base network fine-tuned on its synthetic training views plus the captures it labelled
-    itself, kept at its best on the validation views and recalibrated on them (binpick learn's
-    recipe)."""
+    itself, kept at its best on the validation views plus a share of the captures
+    (learn.heldout_share) and recalibrated on them (binpick learn's recipe)."""
+    from flows.learn import validation_split
+
     models = _with_network(built, p, base)
-    labelled = []
+    labelled: dict[str, LabelledCapture] = {}
     n_trusted = 0
     for k, (scene, s) in enumerate(captures):
         H, W = scene.labels.shape
@@ -272,14 +275,16 @@ def _finetuned(
             box,
         )
         if len(c.T_cam_from_model):
-            labelled.append(c)
+            labelled[f"capture-{k}"] = c
             n_trusted += len(c.T_cam_from_model)
+    train_names, val_names = validation_split(list(labelled), p.learn.heldout_share)
+    real_val = Views.of_captures([labelled[n] for n in val_names])
     state = read_checkpoint(base)
     folder = work / "finetune"
     best = finetune_fpcc(
         state,
-        synthetic_train + Views.of_captures(labelled),
-        synthetic_val,
+        synthetic_train + Views.of_captures([labelled[n] for n in train_names]),
+        synthetic_val + real_val,
         p.train,
         p.learn.finetune_epochs,
         p.learn.finetune_learning_rate,
@@ -288,11 +293,11 @@ def _finetuned(
         progress=False,
     )
     out = folder / "model.pt"
-    write_finetuned(best, out, state, state["sha256"], [f"capture-{k}" for k in range(len(labelled))], [])
+    write_finetuned(best, out, state, state["sha256"], sorted(labelled), [])
     recalibrate(
         out,
         out,
-        synthetic_val,
+        synthetic_val + real_val,
         p.segment,
         p.evaluate.iou_threshold,
         np.random.default_rng(derive_int(seed, "calibrate-finetuned", part.name)),
@@ -300,6 +305,7 @@ def _finetuned(
     return out, {
         "n_captures": float(len(captures)),
         "n_labelled_captures": float(len(labelled)),
+        "n_validation_captures": float(len(val_names)),
         "n_trusted_poses": float(n_trusted),
     }
 
