@@ -79,6 +79,14 @@ def check_project_path(path: str, what: str) -> str:
     return path
 
 
+# An explicit cell.T_flange_from_tcp puts the flange within this of where the modelled gripper ends.
+TOOL_MOUNT_TOLERANCE_M = 0.001
+GRIPPER_LENGTH_KEYS = {
+    "suction": "pick.suction.cup_length_m + tool_length_m",
+    "jaw": "pick.jaw.finger_length_m - pad_length_m / 2 + palm_depth_m + tool_length_m",
+}
+
+
 class _Strict(BaseModel):
     # populate_by_name: the `register` section is the attribute `registration`, because
     # `register` is taken by Python's ABC machinery on every pydantic model.
@@ -713,6 +721,15 @@ class PickParams(_Strict):
     def _rigid(cls, T: list[list[float]] | None) -> list[list[float]] | None:
         return None if T is None else rigid_matrix(T, "pick.T_base_from_cam")
 
+    @property
+    def gripper_length_m(self) -> float:
+        """How far behind the tool centre point the modelled gripper ends, where it meets the
+        flange: the suction cup and its tool, or the jaws' fingers (back from the pad's middle),
+        palm and tool (binpick/picking/gripper.py)."""
+        if self.gripper == "suction":
+            return self.suction.cup_length_m + self.suction.tool_length_m
+        return self.jaw.palm_from_tcp_m + self.jaw.palm_depth_m + self.jaw.tool_length_m
+
 
 def rigid_matrix(T: list[list[float]], name: str) -> list[list[float]]:
     """T, checked to be a 4 x 4 rigid transform (ValueError naming `name` otherwise)."""
@@ -765,8 +782,9 @@ class CellParams(_Strict):
         description="the arm (URDF from airo-models or example-robot-data, ur_analytic_ik IK); null: picks "
         "checked for the gripper only"
     )
-    T_flange_from_tcp: list[list[float]] = Field(
-        description="the tool on the flange: its centre point (the cup's lip, the jaws' middle) in the flange frame"
+    T_flange_from_tcp: list[list[float]] | None = Field(
+        description="the tool on the flange: its centre point (the cup's lip, the jaws' middle) in the flange frame; "
+        "null: straight out along the flange's z by the pick gripper's modelled length"
     )
     home_q_rad: list[float] = Field(min_length=6, max_length=6, description="joint angles the cell starts from")
     place: PlaceParams
@@ -788,8 +806,8 @@ class CellParams(_Strict):
 
     @field_validator("T_flange_from_tcp")
     @classmethod
-    def _rigid(cls, T: list[list[float]]) -> list[list[float]]:
-        return rigid_matrix(T, "cell.T_flange_from_tcp")
+    def _rigid(cls, T: list[list[float]] | None) -> list[list[float]] | None:
+        return None if T is None else rigid_matrix(T, "cell.T_flange_from_tcp")
 
 
 class RenderDemoParams(_Strict):
@@ -950,6 +968,28 @@ class Params(_Strict):
                 raise ValueError(f"{key} names {', '.join(unknown)}, not in parts")
         if any(n < 0 for n in self.pick.part_quota.values()):
             raise ValueError(f"pick.part_quota counts picks: 0 or more, got {self.pick.part_quota}")
+        return self._tool_on_the_flange()
+
+    def _tool_on_the_flange(self) -> Params:
+        """The cell's T_flange_from_tcp: when null, the pick gripper straight out along the
+        flange's z; when set (for an arm), it must put the flange where the modelled gripper ends,
+        or the arm check would leave a gap between them unchecked, or a tool inside the wrist."""
+        length = self.pick.gripper_length_m
+        if self.cell.T_flange_from_tcp is None:
+            T = np.eye(4)
+            T[2, 3] = length
+            return self.model_copy(update={"cell": self.cell.model_copy(update={"T_flange_from_tcp": T.tolist()})})
+        if self.cell.arm is not None:
+            T = np.asarray(self.cell.T_flange_from_tcp, dtype=float)
+            flange_in_tcp = -T[:3, :3].T @ T[:3, 3]
+            if np.linalg.norm(flange_in_tcp - [0.0, 0.0, -length]) > TOOL_MOUNT_TOLERANCE_M:
+                x, y, z = flange_in_tcp
+                raise ValueError(
+                    f"cell.T_flange_from_tcp puts the flange at ({x:.3f}, {y:.3f}, {z:.3f}) m in the tool frame, but "
+                    f"pick's {self.pick.gripper} gripper ends {length:.3f} m straight behind its tool centre point "
+                    f"({GRIPPER_LENGTH_KEYS[self.pick.gripper]}): make them agree, or set it to null to mount the "
+                    "gripper as modelled"
+                )
         return self
 
 

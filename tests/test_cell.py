@@ -298,20 +298,18 @@ def test_the_jaws_close_across_a_lone_part_and_carry_it_to_the_place_touching_no
     """The jaw gripper with pads at the fingers' tips (whole-finger pads put the fingertips into
     the floor under a lying pipe: no grasp) on a lone T-joint: the jaws come down around the
     part, close on it by friction and carry it to the place, touching nothing on the way."""
+    from binpick.params import Params
     from binpick.scene.process import process
     from binpick.seeding import SceneSeeds
     from flows.bench.picking import bench_models
     from flows.cell_run import simulated_cell
 
-    T_flange_from_tcp = np.eye(4)
-    T_flange_from_tcp[2, 3] = 0.165  # the jaw tool: 0.12 + palm 0.02 + the 0.03 finger less half its 0.01 pad
-    jaw = PARAMS.pick.jaw.model_copy(update={"pad_length_m": 0.01})
-    p = PARAMS.model_copy(
-        update={
-            "pick": PARAMS.pick.model_copy(update={"gripper": "jaw", "jaw": jaw}),
-            "cell": PARAMS.cell.model_copy(update={"T_flange_from_tcp": T_flange_from_tcp.tolist()}),
-        }
-    )
+    raw = PARAMS.model_dump(by_alias=True)
+    raw["pick"].update(gripper="jaw", jaw={**raw["pick"]["jaw"], "pad_length_m": 0.01})
+    raw["cell"]["T_flange_from_tcp"] = None  # mounted as modelled
+    p = Params.model_validate(raw)
+    # The jaw tool on the flange: 0.12 + palm 0.02 + the 0.03 finger less half its 0.01 pad.
+    assert np.asarray(p.cell.T_flange_from_tcp)[2, 3] == pytest.approx(0.165)
     jaw_models = dataclasses.replace(bench_models(t_joint, p, None), cell_params=p.cell)
     sim, camera = simulated_cell(p, t_joint, 1, seed=2)
     capture = camera.grab()

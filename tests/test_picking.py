@@ -639,6 +639,36 @@ def test_pick_settings_refuse_a_non_rigid_base_transform(tmp_path):
         load_params(path)
 
 
+def test_the_tool_on_the_flange_follows_the_gripper_unless_set_and_then_must_agree_with_it(tmp_path):
+    from binpick.errors import ParamsError
+
+    raw = yaml.safe_load((ROOT / "params.yaml").read_text())
+    raw["cell"]["T_flange_from_tcp"] = None
+    path = tmp_path / "params.yaml"
+
+    def flange_z(settings: dict) -> float:
+        path.write_text(yaml.safe_dump(settings))
+        T = np.asarray(load_params(path).cell.T_flange_from_tcp)
+        assert np.allclose(T[:3, :3], np.eye(3)) and np.allclose(T[:2, 3], 0.0)
+        return float(T[2, 3])
+
+    s, j = raw["pick"]["suction"], raw["pick"]["jaw"]
+    assert flange_z(raw) == pytest.approx(s["cup_length_m"] + s["tool_length_m"])
+    raw["pick"]["gripper"] = "jaw"
+    j.update(finger_length_m=0.08, pad_length_m=0.02, palm_depth_m=0.03, tool_length_m=0.1)
+    assert flange_z(raw) == pytest.approx(0.08 - 0.01 + 0.03 + 0.1)
+    # Set by hand 1 cm short of the modelled jaws: refused, naming both; set right: kept.
+    raw["cell"]["T_flange_from_tcp"] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.19], [0, 0, 0, 1]]
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ParamsError, match=r"cell.T_flange_from_tcp puts the flange .* jaw gripper ends 0.200 m"):
+        load_params(path)
+    raw["cell"]["T_flange_from_tcp"][2][3] = 0.2
+    assert flange_z(raw) == pytest.approx(0.2)
+    # Without an arm nothing is mounted: not checked.
+    raw["cell"].update(arm=None, T_flange_from_tcp=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.19], [0, 0, 0, 1]])
+    assert flange_z(raw) == pytest.approx(0.19)
+
+
 def test_pick_settings_refuse_a_fallback_cone_narrower_than_the_cone(tmp_path):
     from binpick.errors import ParamsError
 
