@@ -90,6 +90,14 @@ def test_a_tilted_bench_camera_looks_at_the_bin_centre_at_its_tilt():
     assert [tilt_band(t) for t in (0.0, 14.9, 15.0, 44.0)] == ["0-15", "0-15", "15-30", "30-45"]
 
 
+def test_the_sensor_bench_judges_no_pick_only_where_a_part_was_there_to_pick():
+    from flows.bench.sensors import judges_the_pick
+
+    assert judges_the_pick(sent=True, n_pickable=0) and judges_the_pick(sent=True, n_pickable=3)
+    assert judges_the_pick(sent=False, n_pickable=1)  # a visible part, no pick: a failure
+    assert not judges_the_pick(sent=False, n_pickable=0)  # nothing to see, nothing sent: right
+
+
 def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
     from flows.bench.picking import bench_picking
 

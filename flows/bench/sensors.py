@@ -15,7 +15,8 @@ rendered with every preset and with today's camera, through the real scene path.
 (as bench clutter),
 pick_success_rate (the first pick of each capture judged as bench picking judges it: the right
 part touched, the gripper's path free of the other parts and the bin; a capture without a pick
-counts as a failure), seg_precision, seg_recall (the network's instances on the scene's view).
+counts as a failure unless it shows no part at least half visible, n_pick_captures the captures
+judged), seg_precision, seg_recall (the network's instances on the scene's view).
 
 Fine-tuning (`finetune`): the `today` network segments captures of sensor B (bench clutter bins
 rendered with that preset), its poses verified with margin label them (binpick.learning), it is
@@ -185,7 +186,7 @@ def _test(
     ppf = models.ppf
     rows: list[dict[str, float]] = []
     seg = SegmentationCounts()
-    good = 0
+    good = judged = 0
     for k, (scene, s) in enumerate(scenes):
         # The bin generate_scene drew (sensor presets draw from a stream of their own).
         drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
@@ -200,6 +201,7 @@ def _test(
             poses, plan = [], None
         rows.append(_score(poses, scene, ppf, part, drawn.inner_x_m, drawn.inner_y_m))
         seg = seg.add(segment_and_count(models.segmenter, scene, p.segment, p.evaluate.iou_threshold, seed, k)[1])
+        judged += int(judges_the_pick(plan is not None and bool(plan.picks), rows[-1]["n_pickable"]))
         if plan is not None and plan.picks:
             first = plan.picks[0]
             target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
@@ -217,10 +219,19 @@ def _test(
     summary = seg.summary()
     return {
         **_summary(rows),
-        "pick_success_rate": good / len(scenes) if scenes else 0.0,
+        "pick_success_rate": good / judged if judged else 0.0,
+        "n_pick_captures": float(judged),
         "seg_precision": summary["precision"],
         "seg_recall": summary["recall"],
     }
+
+
+def judges_the_pick(sent: bool, n_pickable: float) -> bool:
+    """Whether a capture counts for pick_success_rate: a pick was sent (judged right or wrong), or
+    none was where the capture shows a part at least half visible (a failure). A bin whose parts
+    the camera does not see (a lone part under a distractor, or in a projector's shadow) has
+    nothing to pick: sending no pick there is right, not a failure."""
+    return sent or n_pickable > 0
 
 
 def _surface(mesh) -> np.ndarray:
