@@ -9,9 +9,7 @@ labelled again is reviewed again.
 
 `binpick learn finetune` (and the scheduled retraining, once learn.min_new_scenes reviewed
 captures are new) fine-tunes the served network on the part's synthetic training scenes plus the
-approved captures, holding back learn.heldout_share of the captures, and as large a share of
-the rest validates it (the epoch kept and the clustering's cuts are chosen on those with the
-synthetic validation scenes). It then scores the served
+approved captures, holding back learn.heldout_share of the captures. It then scores the served
 and the new network on the held-back captures (on their labelled points) and on the synthetic
 test scenes; only when the new one loses at most learn.max_drop of precision and recall on both
 does it become data/fpcc/<part>/served.pt, registered in MLflow as fpcc-<part> with the alias
@@ -184,25 +182,7 @@ def served_checkpoint(root: Path, part: str) -> Path | None:
 def heldout(name: str, share: float) -> bool:
     """Whether a capture is held back from fine-tuning: by a hash of its name, so that it stays
     on the same side as captures are added."""
-    return _hashed_share(name) < share
-
-
-def validates(name: str, share: float) -> bool:
-    """Whether a capture fine-tuning learns from is kept to validate it instead (to choose its
-    epoch and calibrate its clustering on the cell's own sensor): by a second hash of its name."""
-    return _hashed_share(f"validation/{name}") < share
-
-
-def _hashed_share(name: str) -> float:
-    return int(hashlib.sha256(name.encode()).hexdigest()[:8], 16) / 0xFFFFFFFF
-
-
-def validation_split(names: list[str], share: float) -> tuple[list[str], list[str]]:
-    """The captures fine-tuning learns from and those that validate it (validates); all learn
-    when none would be left to learn from."""
-    val = [n for n in names if validates(n, share)]
-    train = [n for n in names if n not in val]
-    return (train, val) if train else (list(names), [])
+    return int(hashlib.sha256(name.encode()).hexdigest()[:8], 16) / 0xFFFFFFFF < share
 
 
 def no_worse(before: dict[str, float], after: dict[str, float], max_drop: float) -> bool:
@@ -250,38 +230,29 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
         )
         return {**outcome, "finetuned": False, "served": False}
     test = [p for p in approved if heldout(p.stem, lp.heldout_share)]
-    rest = [p for p in approved if not heldout(p.stem, lp.heldout_share)]
-    if not test or not rest:
+    train = [p for p in approved if not heldout(p.stem, lp.heldout_share)]
+    if not test or not train:
         raise BinpickError(
-            f"{part}: {len(approved)} approved captures give {len(rest)} to learn from and {len(test)} to judge by; "
+            f"{part}: {len(approved)} approved captures give {len(train)} to learn from and {len(test)} to judge by; "
             "both need at least one (approve more captures)"
         )
-    # The epoch kept and the clustering's cuts are chosen on the cell's sensor as well as on the
-    # renderer: chosen on synthetic views alone, a pipe's network fine-tuned on Kinect-class
-    # captures lost half its segmentation recall on that sensor while gaining on ours
-    # (docs/benchmarks.md, the sensor gap).
-    train_names, val_names = validation_split([p.stem for p in rest], lp.heldout_share)
-    train = [p for p in rest if p.stem in train_names]
     layout = Layout(root)
     scenes = layout.scenes(part)
     synthetic_train, synthetic_val = load_views(scenes / "train"), load_views(scenes / "val")
     real = Views.of_captures([load_labelled_capture(p) for p in train])
-    real_val = Views.of_captures([load_labelled_capture(p) for p in rest if p.stem in val_names])
     work = layout.work(part) / "finetune"
     log.info(
-        "%s: fine-tuning %s on %d synthetic + %d real scenes, validating on %d + %d, judging on %d held-back captures",
+        "%s: fine-tuning %s on %d synthetic + %d real scenes, judging on %d held-back captures",
         part,
         current.name,
         len(synthetic_train),
         len(real),
-        len(synthetic_val),
-        len(real_val),
         len(test),
     )
     best = finetune_fpcc(
         state,
         synthetic_train + real,
-        synthetic_val + real_val,
+        synthetic_val,
         params.train,
         lp.finetune_epochs,
         lp.finetune_learning_rate,
@@ -298,14 +269,14 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
         candidate,
         state,
         base_sha,
-        sorted(learnt | {p.stem for p in rest}),
+        sorted(learnt | {p.stem for p in train}),
         sorted((seen - learnt) | {p.stem for p in test}),
     )
     # The clustering's cuts are chosen for the network they cut: the fine-tuned one's, again.
     recalibrate(
         candidate,
         candidate,
-        synthetic_val + real_val,
+        synthetic_val,
         params.segment,
         params.evaluate.iou_threshold,
         np.random.default_rng(derive_int(params.seed, "calibrate-finetuned", part)),
@@ -318,7 +289,6 @@ def finetune(root: Path, params: Params, part: str, force: bool = False, progres
             "finetuned": True,
             "served": serve,
             "n_train_real": len(real),
-            "n_val_real": len(real_val),
             "n_heldout_real": len(test),
             **{f"before_{k}": v for k, v in before.items()},
             **{f"after_{k}": v for k, v in after.items()},

@@ -351,27 +351,6 @@ def test_calibration_finds_the_embedding_threshold_that_separates_the_instances(
     assert chosen["embedding_threshold"] < 1.3 and chosen["precision"] == chosen["recall"] == 1.0
 
 
-def test_calibration_counts_an_instance_on_ignored_points_neither_right_nor_wrong():
-    """A labelled capture knows the parts it posed with margin; the others' points are IGNORE.
-    The network finds all three bands; the views label two, and the third is ignored: the
-    calibration sees every instance it can judge right (it counted the third as a false one)."""
-    from binpick.labels import IGNORE
-    from binpick.network.calibrate import calibrate_clustering
-
-    rng = np.random.default_rng(0)
-    views = []
-    for _ in range(2):
-        pts = np.concatenate(
-            [rng.uniform([-0.04 + 0.1 * b, -0.02, 0.5], [0.04 + 0.1 * b, 0.02, 0.51], (300, 3)) for b in range(3)]
-        )
-        labels = np.repeat([0, 1, IGNORE], 300)
-        views.append((pts, np.tile([0.0, 0.0, -1.0], (len(pts), 1)), labels))
-    chosen = calibrate_clustering(
-        _OracleNet(), views, "normals", 0.03, 2048, 0.03, 10, 1.5, 0.5, np.random.default_rng(1)
-    )
-    assert chosen["precision"] == chosen["recall"] == 1.0
-
-
 class _SliverNet(_OracleNet):
     """The oracle, but the last eighth of every band along x is embedded apart, with a high centre
     score: a sliver of each part becomes an instance of its own."""

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from binpick.labels import IGNORE, NOT_A_PART
+from binpick.labels import NOT_A_PART
 from binpick.metrics.segmentation import SegmentationCounts, scene_counts
 from binpick.network.checkpoint import CalibratedClustering, InferenceSettings, load_network, write_with_clustering
 from binpick.network.infer import (
@@ -84,14 +84,11 @@ def calibrate_clustering(
     """The grid point with the best min(precision, recall) on the views (points (N, 3) metres,
     normals (N, 3), labels (N,)), ties to the higher sum; returns its centre_threshold,
     embedding_threshold, min_instance_points, precision and recall. Ground-truth instances with
-    fewer than min_points points are not scored, and no smaller instance is kept. A labelled
-    capture's ignored points (IGNORE: a part nobody posed with margin) count for neither side, so
-    an instance found there is neither right nor wrong."""
+    fewer than min_points points are not scored, and no smaller instance is kept."""
     predicted: list[list[Block]] = [
         predict_blocks(model, p, n, features, length_scale_m, n_points, rng) for p, n, _ in views
     ]
     foreground_logit = choose_foreground_logit(views, predicted)
-    scored = [labels != IGNORE for _, _, labels in views]
     sizes = [np.bincount(labels[labels >= 0]) for _, _, labels in views]
     sizes_scored = np.concatenate([s[s >= min_points] for s in sizes]) if sizes else np.zeros(0)
     median_size = float(np.median(sizes_scored)) if len(sizes_scored) else 0.0
@@ -102,9 +99,10 @@ def calibrate_clustering(
             for min_size in size_grid:
                 cp = ClusterParams(centre, nms_radius_m, rel * eps2, min_size, foreground_logit)
                 counts = SegmentationCounts()
-                for (points, _, labels), blocks, known in zip(views, predicted, scored, strict=False):
-                    found = label_blocks(points, blocks, cp)[known]
-                    counts = counts.add(scene_counts(found, labels[known], iou_threshold, min_points))
+                for (points, _, labels), blocks in zip(views, predicted, strict=False):
+                    counts = counts.add(
+                        scene_counts(label_blocks(points, blocks, cp), labels, iou_threshold, min_points)
+                    )
                 s = counts.summary()
                 rank = (min(s["precision"], s["recall"]), s["precision"] + s["recall"])
                 if best is None or rank > best[0]:

@@ -42,7 +42,6 @@ from binpick.errors import BinpickError
 from binpick.generation.bin import bin_meshes
 from binpick.generation.scene import generate_scene
 from binpick.geometry.transforms import transform_points
-from binpick.io.labelled_capture import LabelledCapture
 from binpick.io.part_model import PartModel
 from binpick.io.scene import SyntheticScene
 from binpick.learning import label_capture
@@ -252,12 +251,10 @@ def _finetuned(
     work: Path,
 ) -> tuple[Path, dict[str, float]]:
     """The base network fine-tuned on its synthetic training views plus the captures it labelled
-    itself, kept at its best on the validation views plus a share of the captures
-    (learn.heldout_share) and recalibrated on them (binpick learn's recipe)."""
-    from flows.learn import validation_split
-
+    itself, kept at its best on the validation views and recalibrated on them (binpick learn's
+    recipe)."""
     models = _with_network(built, p, base)
-    labelled: dict[str, LabelledCapture] = {}
+    labelled = []
     n_trusted = 0
     for k, (scene, s) in enumerate(captures):
         H, W = scene.labels.shape
@@ -286,16 +283,14 @@ def _finetuned(
             box,
         )
         if len(c.T_cam_from_model):
-            labelled[f"capture-{k}"] = c
+            labelled.append(c)
             n_trusted += len(c.T_cam_from_model)
-    train_names, val_names = validation_split(list(labelled), p.learn.heldout_share)
-    real_val = Views.of_captures([labelled[n] for n in val_names])
     state = read_checkpoint(base)
     folder = work / "finetune"
     best = finetune_fpcc(
         state,
-        synthetic_train + Views.of_captures([labelled[n] for n in train_names]),
-        synthetic_val + real_val,
+        synthetic_train + Views.of_captures(labelled),
+        synthetic_val,
         p.train,
         p.learn.finetune_epochs,
         p.learn.finetune_learning_rate,
@@ -304,11 +299,11 @@ def _finetuned(
         progress=False,
     )
     out = folder / "model.pt"
-    write_finetuned(best, out, state, state["sha256"], sorted(labelled), [])
+    write_finetuned(best, out, state, state["sha256"], [f"capture-{k}" for k in range(len(labelled))], [])
     recalibrate(
         out,
         out,
-        synthetic_val + real_val,
+        synthetic_val,
         p.segment,
         p.evaluate.iou_threshold,
         np.random.default_rng(derive_int(seed, "calibrate-finetuned", part.name)),
@@ -316,7 +311,6 @@ def _finetuned(
     return out, {
         "n_captures": float(len(captures)),
         "n_labelled_captures": float(len(labelled)),
-        "n_validation_captures": float(len(val_names)),
         "n_trusted_poses": float(n_trusted),
     }
 

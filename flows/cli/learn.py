@@ -75,8 +75,7 @@ def learn_finetune_cmd(
         for k in ("real_precision", "real_recall", "synthetic_precision", "synthetic_recall")
     )
     typer.echo(
-        f"{part}: fine-tuned on {result['n_train_real']} captures, validated on {result['n_val_real']}, "
-        f"judged on {result['n_heldout_real']}: {figures}; "
+        f"{part}: fine-tuned on {result['n_train_real']} captures, judged on {result['n_heldout_real']}: {figures}; "
         + (f"served (version {result['version']})" if result["served"] else "worse, not served")
     )
 
