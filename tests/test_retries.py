@@ -53,3 +53,18 @@ def test_a_part_lost_on_the_way_up_is_left_alone_but_where_it_held_is_not_ruled_
     grips.failed(T_part, CENTRE_M, T_grasp, held=True)
     assert near_failed(centre_cam(T_part)[None], grips.centres_m(), DIAMETER_M).tolist() == [True]
     assert len(grips.contacts_m()) == 0
+
+
+def test_a_simulated_pick_reports_its_failure_as_a_robot_does():
+    """The cell benchmark reads the simulator's outcome in the robot's words, as `binpick cell
+    run` reads a robot: the same failures leave a part alone."""
+    from binpick.cell.robot import GRASP_LOST, NO_GRIP, Execution
+
+    states = {o: Execution(o, None).state for o in ("placed", "misplaced", "no seal", "no hold", "dropped")}
+    assert states == {
+        "placed": "placed",
+        "misplaced": "placed",
+        "no seal": NO_GRIP,
+        "no hold": NO_GRIP,
+        "dropped": GRASP_LOST,
+    }

@@ -94,6 +94,15 @@ class Execution:
     out_of_view_s: float = 0.0
     lost: str = ""  # a dropped part: what it touched as it tore off
 
+    @property
+    def state(self) -> str:
+        """The outcome as a robot reports it (execute_pick's states): NO_GRIP when nothing was
+        held at the grasp, GRASP_LOST when the part fell on the way, "placed" when it was
+        released at the place (where it came to rest is the outcome's business)."""
+        if self.outcome in ("no seal", "no hold"):
+            return NO_GRIP
+        return GRASP_LOST if self.outcome == "dropped" else "placed"
+
 
 def execute_pick(robot: Robot, motion: ArmMotion, width_m: float = 0.0) -> str:
     """Run one pick's motion on the robot: to the grasp, grip, out and over to the place, release.

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from binpick.cell.retries import FailedGrips
-from binpick.cell.robot import MAX_FAILURES_IN_A_ROW, PICKS_PER_CAPTURE, Execution
+from binpick.cell.robot import GRASP_LOST, MAX_FAILURES_IN_A_ROW, NO_GRIP, PICKS_PER_CAPTURE, Execution
 from binpick.cell.simulation import SimulatedCell
 from binpick.errors import BinpickError
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
@@ -273,12 +273,12 @@ def _clear_bin(
             if recording is not None:
                 touched = f", touched {' and '.join(sorted(done.touched))}" if done.touched else ""
                 recording.attempt(tally.attempts, part, poses[keep], motion, f"{done.outcome}{touched}")
-            if done.outcome in ("no seal", "no hold", "dropped"):  # what the vacuum sensor or the jaws tell
+            if done.state in (NO_GRIP, GRASP_LOST):  # what the vacuum sensor or the jaws tell, as in cell run
                 failed_grips.failed(
                     result.registration.poses[first.pose_index].T_cam_from_model,
                     part.centre_m,
                     first.T_cam_from_grasp,
-                    held=done.outcome == "dropped",
+                    held=done.state == GRASP_LOST,
                 )
             tally.removed += int(done.outcome in ("placed", "misplaced"))
             tally.lost += sim.remove_outside()
