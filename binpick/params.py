@@ -968,8 +968,9 @@ class Params(_Strict):
                 raise ValueError(f"{key} names {', '.join(unknown)}, not in parts")
         if any(n < 0 for n in self.pick.part_quota.values()):
             raise ValueError(f"pick.part_quota counts picks: 0 or more, got {self.pick.part_quota}")
-        return self._tool_on_the_flange()
+        return self
 
+    @model_validator(mode="after")
     def _tool_on_the_flange(self) -> Params:
         """The cell's T_flange_from_tcp: when null, the pick gripper straight out along the
         flange's z; when set (for an arm), it must put the flange where the modelled gripper ends,

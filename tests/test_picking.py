@@ -26,6 +26,7 @@ from binpick.picking.gripper import (
     Box,
     Cylinder,
     covering_spheres,
+    gripper_primitives,
     jaw_primitives,
     lowest_height,
     signed_distance,
@@ -657,6 +658,11 @@ def test_the_tool_on_the_flange_follows_the_gripper_unless_set_and_then_must_agr
     raw["pick"]["gripper"] = "jaw"
     j.update(finger_length_m=0.08, pad_length_m=0.02, palm_depth_m=0.03, tool_length_m=0.1)
     assert flange_z(raw) == pytest.approx(0.08 - 0.01 + 0.03 + 0.1)
+    # The length is where the gripper the checks sweep ends (its two descriptions agree).
+    pick = load_params(path).pick
+    for kind in ("suction", "jaw"):
+        rearmost = min(float(q.lo[2]) if isinstance(q, Box) else q.z0 for q in gripper_primitives(pick, kind))
+        assert -rearmost == pytest.approx(pick.model_copy(update={"gripper": kind}).gripper_length_m)
     # Set by hand 1 cm short of the modelled jaws: refused, naming both; set right: kept.
     raw["cell"]["T_flange_from_tcp"] = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0.19], [0, 0, 0, 1]]
     path.write_text(yaml.safe_dump(raw))

@@ -64,13 +64,13 @@ def _at_the_edge(
     the floor) lies beside its face and counts on neither side: in a bin nearly emptied the rims
     of the walls outnumbered the one part left leaning on the last wall, which was kept in the
     cloud and took the part's pose from the whole-scene pass."""
-    beside = np.abs(others @ plane[:3] + plane[3]) <= WALL_RIM_M
-    rim = beside & (np.abs(others @ floor[:3] + floor[3] - top_m) <= RIM_HEIGHT_THRESHOLDS * threshold_m)
-    others = others[~rim]
-    if len(others) == 0:
+    to_plane = others @ plane[:3] + plane[3]
+    rim = (np.abs(to_plane) <= WALL_RIM_M) & (
+        np.abs(others @ floor[:3] + floor[3] - top_m) <= RIM_HEIGHT_THRESHOLDS * threshold_m
+    )
+    if rim.all():
         return True
-    side = (others @ plane[:3] + plane[3]) > -threshold_m
-    share = float(side.mean())
+    share = float((to_plane[~rim] > -threshold_m).mean())
     return max(share, 1.0 - share) >= WALL_INNER_SHARE
 
 
