@@ -4,7 +4,7 @@ import numpy as np
 import trimesh
 
 from binpick.cell.bin_box import BinBox
-from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle
+from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle, sides_out_of_view
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import camera_of, render
 from binpick.geometry.pointcloud import fit_plane_ransac
@@ -235,3 +235,77 @@ def test_the_box_of_a_generated_bin_lies_on_its_inner_faces():
     np.testing.assert_allclose(
         box.inner_max_m - box.inner_min_m, [bin_params.inner_x_m, bin_params.inner_y_m, bin_params.wall_height_m]
     )
+
+
+def test_a_large_bin_seen_by_a_coarse_noisy_sensor_from_two_metres():
+    # A 0.9 x 0.75 x 0.2 m bin whose floor lies on the ground (generation/bin.py), one long part
+    # clear of its walls and a carton on the ground beside it, seen from 1.9 m with 20 degrees of
+    # tilt by a Kinect-class sensor: depth in 10 mm steps plus 4 mm of noise, on a 12 mm voxel
+    # grid. The floor's scatter pokes above the 18 mm kept over it, and the points lie 8-12 mm
+    # apart: the rim must still be one ring around the part, not specks.
+    from binpick.geometry.pointcloud import voxel_downsample_indices
+
+    bin_params = PARAMS.generate.bin.model_copy(
+        update={"inner_x_m": 0.9, "inner_y_m": 0.75, "wall_height_m": 0.2, "wall_thickness_m": 0.01}
+    )
+    part = trimesh.creation.box(extents=[0.30, 0.06, 0.06])
+    part.apply_translation([0.05, 0.08, 0.03])
+    carton = trimesh.creation.box(extents=[0.2, 0.2, 0.25])
+    carton.apply_translation([0.9 / 2 + 0.01 + 0.06 + 0.1, 0.0, 0.125])  # 6 cm beyond the +x wall
+    # The camera orbits the bin's centre: it still looks at it.
+    T_bin_from_camera = make_T(
+        axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(20.0)), np.zeros(3)
+    ) @ T_bin_from_cam(1.9)
+    T_cam_from_bin = invert_T(T_bin_from_camera)
+    meshes = [
+        (transform_points(T_cam_from_bin, np.asarray(m.vertices)), np.asarray(m.faces))
+        for m in [*bin_meshes(bin_params), part, carton]
+    ]
+    labels_of_meshes = [-1] * len(bin_meshes(bin_params)) + [1, -1]
+    frame = render(meshes, labels_of_meshes, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
+    xyz = frame.xyz_m.reshape(-1, 3)
+    ok = np.all(np.isfinite(xyz), axis=1)
+    pts, labels = xyz[ok], frame.labels.reshape(-1)[ok]
+    rng = np.random.default_rng(0)
+    rays = pts / pts[:, 2:3]
+    z = np.round(pts[:, 2] / 0.01) * 0.01 + rng.normal(0.0, 0.004, len(pts))
+    noisy = rays * z[:, None]
+    keep = voxel_downsample_indices(noisy, 0.012)
+    grid, grid_labels = noisy[keep], labels[keep]
+    floor, _ = fit_plane_ransac(grid, 0.015, 1000, 0)
+    box = fit_bin_box(grid, floor if floor[3] > 0 else -floor, 0.018)
+    outer = np.array([bin_params.inner_x_m, bin_params.inner_y_m]) + 2 * bin_params.wall_thickness_m
+    size = box.inner_max_m[:2] - box.inner_min_m[:2]
+    assert np.all(np.abs(size - outer) < 0.05), size
+    in_box = transform_points(invert_T(box.T_cam_from_bin), grid)
+    inside = np.all((in_box[:, :2] >= box.inner_min_m[:2]) & (in_box[:, :2] <= box.inner_max_m[:2]), axis=1)
+    assert inside[grid_labels == 1].all()  # the part in the bin ...
+    carton_in_bin = transform_points(invert_T(T_cam_from_bin), grid)
+    on_carton = (carton_in_bin[:, 0] > 0.52) & (carton_in_bin[:, 2] > 0.05)
+    assert on_carton.sum() > 20 and not inside[on_carton].any()  # ... the carton beside it not
+    assert sides_out_of_view(box, noisy) == []
+    # A narrower view, ending a quarter of the way across the bin: the box ends where the view
+    # does, and that is noticed.
+    seen = grid[grid[:, 0] / grid[:, 2] < 0.1]
+    floor, _ = fit_plane_ransac(seen, 0.015, 1000, 0)
+    cut = fit_bin_box(seen, floor if floor[3] > 0 else -floor, 0.018)
+    assert sides_out_of_view(cut, seen)
+
+
+def test_a_wall_of_a_given_box_stands_at_one_of_its_sides():
+    # A 1.0 x 0.8 m box turned 30 degrees about its up axis, 1.5 m below a camera.
+    T_cam_from_bin = invert_T(T_bin_from_cam(1.5)) @ make_T(
+        axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(30.0)), np.zeros(3)
+    )
+    box = BinBox(T_cam_from_bin, np.array([-0.5, -0.4, 0.01]), np.array([0.5, 0.4, 0.3]))
+
+    def plane(normal_bin, point_bin):
+        n = T_cam_from_bin[:3, :3] @ (np.asarray(normal_bin) / np.linalg.norm(normal_bin))
+        return np.append(n, -n @ transform_points(T_cam_from_bin, np.asarray(point_bin, float)[None])[0])
+
+    assert box.is_wall(plane([1.0, 0.0, 0.0], [0.48, 0.0, 0.0]))  # the +x wall's inner face
+    assert box.is_wall(plane([0.0, -1.0, 0.0], [0.1, -0.38, 0.1]))  # the -y wall, normal either way
+    assert not box.is_wall(plane([1.0, 0.0, 0.0], [0.1, 0.0, 0.0]))  # parallel, through the parts
+    assert not box.is_wall(plane([1.0, 0.0, 0.0], [0.0, 0.38, 0.0]))  # at the +y side, across it
+    tilted = [np.cos(np.radians(20.0)), np.sin(np.radians(20.0)), 0.0]
+    assert not box.is_wall(plane(tilted, [0.48, 0.0, 0.0]))  # 20 degrees off the side

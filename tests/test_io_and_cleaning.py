@@ -320,3 +320,44 @@ def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region()
     kept, flat = _kept_voxel_keys(xyz, got_keep, n_keep, key_lo, span, 1.0 / voxel)
     assert 100 < len(expected) < keep.sum()
     assert np.array_equal(kept[first_in_each_voxel(flat, int(np.prod(span)))], expected)
+
+
+def test_a_given_bin_box_sets_the_floor_and_the_walls():
+    """A bin whose floor is covered by a layer of six flat parts lying side by side, cropped to its
+    box just above its floor (as `binpick fit-bin` gives it): the parts' tops, the largest plane
+    left, are not taken for the floor (every part keeps its top), and no plane through the parts
+    is taken for a wall: the walls found stand at the box's sides."""
+    import trimesh
+
+    from binpick.cell.bin_box import BinBox
+    from binpick.generation.bin import T_bin_from_cam, bin_meshes
+    from binpick.generation.camera import camera_of, render
+    from binpick.geometry.transforms import invert_T, transform_points
+
+    bin_params = PARAMS.generate.bin  # 0.30 x 0.20 m inside, 8 cm walls
+    plates = []
+    for x in (-0.1, 0.0, 0.1):
+        for y in (-0.05, 0.05):
+            plate = trimesh.creation.box(extents=[0.09, 0.09, 0.02])
+            plate.apply_translation([x, y, 0.01])
+            plates.append(plate)
+    T_cam_bin = invert_T(T_bin_from_cam(0.8))
+    scene = [*bin_meshes(bin_params), *plates]
+    meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in scene]
+    labels = [-1] * (len(scene) - len(plates)) + list(range(len(plates)))
+    frame = render(meshes, labels, camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
+    H, W = frame.labels.shape
+    half = np.array([bin_params.inner_x_m, bin_params.inner_y_m]) / 2 + bin_params.wall_thickness_m
+    box = BinBox(T_cam_bin, np.append(-half, 0.004), np.append(half, 0.1))
+    params = changed(PARAMS.import_capture, crop_to_walls=True, **box.as_import_settings())
+    cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), params, 0)
+    kept = frame.labels.reshape(-1)[cloud.pixel_index]
+    # The same frame without the box: the floor is in view and found, every part kept whole.
+    whole = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(PARAMS.import_capture), 0)
+    reference = frame.labels.reshape(-1)[whole.pixel_index]
+    for k in range(len(plates)):
+        assert (reference == k).sum() > 100 and (kept == k).sum() > 0.9 * (reference == k).sum(), k
+    assert np.allclose(cloud.floor_plane, np.append(T_cam_bin[:3, 2], -T_cam_bin[:3, 2] @ T_cam_bin[:3, 3]))
+    centre = T_cam_bin[:3, 3]
+    for plane in cloud.wall_planes:  # at the inner faces, 0.15 m and 0.10 m from the bin's axis
+        assert min(abs(abs(plane[:3] @ centre + plane[3]) - a) for a in (0.15, 0.10)) < 0.004, plane

@@ -15,6 +15,10 @@ from binpick.params import BinParams, ImportCaptureParams
 # within these (then the measured plane is used: it is where the parts lie today).
 BIN_PLANE_AGREEMENT_DEG = 10.0
 BIN_PLANE_AGREEMENT_M = 0.02
+# A plane found in a capture is one of a given box's walls when it is parallel to a side within
+# BIN_PLANE_AGREEMENT_DEG and lies in this outer share of the box's half size toward that side (a
+# fitted box runs to the walls' outer faces and a few centimetres of noise beyond).
+WALL_OUTER_SHARE = 0.25
 # The order of a box's four walls wherever they are listed (wall_heights_m, roi_wall_heights_m).
 WALL_SIDES = ("-x", "+x", "-y", "+y")
 
@@ -63,6 +67,24 @@ class BinBox:
             else [round(float(x), 4) for x in self.wall_heights_m],
         }
 
+    def is_wall(self, plane: np.ndarray) -> bool:
+        """Whether a plane (4,) a, b, c, d (unit normal, camera frame) is one of the box's side
+        walls: parallel to a side and near it (WALL_OUTER_SHARE)."""
+        T = np.asarray(self.T_cam_from_bin, dtype=np.float64)
+        lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
+        centre, half = (lo + hi) / 2, (hi - lo) / 2
+        centre_cam = T[:3, :3] @ centre + T[:3, 3]
+        n = np.asarray(plane[:3], float)
+        for axis in (0, 1):
+            along = float(n @ T[:3, axis])
+            if abs(along) < np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG)):
+                continue
+            # The plane's distance from the box's centre along that axis.
+            offset = abs(float(n @ centre_cam + plane[3]) / along)
+            if offset >= (1.0 - WALL_OUTER_SHARE) * half[axis]:
+                return True
+        return False
+
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
         return self.surface(spacing_m)[0]
@@ -93,13 +115,16 @@ class BinBox:
         return transform_points(self.T_cam_from_bin, np.concatenate(faces)), np.concatenate(normals) @ R.T
 
 
-def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+def support_frame(
+    floor_plane: np.ndarray, bin_box: BinBox | None = None, agreement_m: float = BIN_PLANE_AGREEMENT_M
+) -> tuple[np.ndarray, np.ndarray | None]:
     """up (3,) unit, camera frame, and the support plane (4,) with that normal (None when there is none).
 
     With a bin box, up is the box's z axis (toward the camera) and the plane its floor (bin
     frame z = 0), unless the plane found in the capture agrees with that floor within
-    BIN_PLANE_AGREEMENT_DEG and BIN_PLANE_AGREEMENT_M: on an oblique view the plane found may be
-    the table beside the box, or a wall. Without one, the plane found, else the camera's -z.
+    BIN_PLANE_AGREEMENT_DEG and agreement_m (metres, at the box's origin): on an oblique view the
+    plane found may be the table beside the box, or a wall. Without one, the plane found, else the
+    camera's -z.
     """
     plane = np.asarray(floor_plane, dtype=np.float64)
     found = None
@@ -118,7 +143,7 @@ def support_frame(floor_plane: np.ndarray, bin_box: BinBox | None = None) -> tup
         if (
             found is not None
             and found[:3] @ up >= np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG))
-            and abs(found[:3] @ origin + found[3]) <= BIN_PLANE_AGREEMENT_M
+            and abs(found[:3] @ origin + found[3]) <= agreement_m
         ):
             return found[:3], found
         return up, box_plane

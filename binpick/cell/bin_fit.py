@@ -16,11 +16,15 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
-from binpick.cell.bin_box import BinBox
-from binpick.geometry.pointcloud import plane_frame
+from binpick.cell.bin_box import WALL_SIDES, BinBox
+from binpick.geometry.pointcloud import fit_plane_ransac, plane_frame, voxel_downsample_indices
+from binpick.geometry.transforms import transform_points
+from binpick.params import ImportCaptureParams
 from binpick.scene.cleaning import bin_reference_point
 
-# Occupancy grid of what stands on the plane; gaps up to one cell join a region.
+# Occupancy grid of what stands on the plane; gaps up to one cell join a region. A cell is at
+# least the capture's point spacing (a coarse sensor far away leaves 8-12 mm between points, and a
+# finer grid would break a bin's rim into specks).
 GRID_CELL_M = 0.005
 # The box reaches this far above the tallest of most points of the region (percentile below).
 HEIGHT_MARGIN_M = 0.02
@@ -44,6 +48,15 @@ WALL_STEP_M = 0.01
 WALL_MIN_COVERAGE = 0.7
 WALL_LEVEL_M = 0.005
 WALL_MIN_LEVEL = 0.6
+# ... or within this many times the depth noise the support plane shows, on a noisier sensor.
+WALL_LEVEL_NOISE = 2.0
+# A box side whose foot lies within this share of the view's extent from its edge (or beyond) is
+# cut by the view: the capture ends there, not the bin.
+VIEW_EDGE_SHARE = 0.01
+# A region of fewer points is a speck of noise, not something standing on the plane.
+MIN_REGION_POINTS = 10
+# Points within this many standard deviations of the plane's scatter are the plane's, not on it.
+PLANE_SCATTER_SIGMAS = 3.0
 
 
 def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
@@ -69,6 +82,28 @@ def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return centre, angle, half
 
 
+def fit_capture_bin(points_m: np.ndarray, settings: ImportCaptureParams, seed: int) -> BinBox:
+    """The bin of one capture: the support plane (RANSAC with the import's plane settings) and the
+    box standing on it (fit_bin_box), on a voxel grid of the points (at least 2 mm: the box does
+    not need more, and a full frame would make the plane fit slow).
+
+    points_m : (n, 3) the capture's valid points, camera frame, metres.
+    Raises ValueError when no plane or nothing on it is found.
+    """
+    grid = points_m[voxel_downsample_indices(points_m, max(settings.voxel_size_m, 0.002))]
+    floor, _ = fit_plane_ransac(
+        grid,
+        settings.plane_threshold_m,
+        settings.plane_ransac_iterations,
+        seed,
+        settings.plane_ransac_confidence,
+        min_distance_m=settings.min_range_m,
+    )
+    if floor[3] < 0:  # the normal toward the camera
+        floor = -floor
+    return fit_bin_box(grid, floor, settings.keep_above_plane_m)
+
+
 def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) -> BinBox:
     """The bin standing on the support plane `floor` (a, b, c, d; normal toward the camera).
 
@@ -77,51 +112,99 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     """
     n = floor[:3]
     height = points_m @ n + floor[3]
-    above = points_m[height > keep_above_m]
+    on_plane = np.abs(height) <= keep_above_m
+    # The plane's own scatter (a robust standard deviation, 1.4826 MAD): a coarse sensor's floor
+    # (depth steps of 8-12 mm at 2 m) pokes above keep_above_m in specks that would join the bin
+    # to everything around it, so what stands on the plane stands clear of that scatter too. The
+    # box's floor is there as well: a crop that kept the scatter's top would hand the cleaning a
+    # layer of specks to take for the floor, a few centimetres up the parts.
+    noise_m = 1.4826 * float(np.median(np.abs(height[on_plane]))) if on_plane.any() else 0.0
+    floor_m = max(keep_above_m, PLANE_SCATTER_SIGMAS * noise_m)
+    standing = height > floor_m
+    above = points_m[standing]
     if len(above) < 10:
         raise ValueError("nothing stands on the support plane")
+    cell_m = max(GRID_CELL_M, point_spacing(points_m))
     axes, origin = plane_frame(floor)
     uv = (above - origin) @ axes.T
     lo = uv.min(0)
-    cells = np.floor((uv - lo) / GRID_CELL_M).astype(np.int64)
+    cells = np.floor((uv - lo) / cell_m).astype(np.int64)
     grid = np.zeros(cells.max(0) + 1, bool)
     grid[cells[:, 0], cells[:, 1]] = True
-    regions, count = ndimage.label(ndimage.binary_closing(grid, iterations=1) | grid)
+    # A bin standing on the plane is a ring of walls: what the ring encloses (parts clear of the
+    # walls, the floor between them when the plane is the bin's own floor) belongs to it.
+    regions, count = ndimage.label(ndimage.binary_fill_holes(ndimage.binary_closing(grid, iterations=1) | grid))
     ref_uv = (bin_reference_point(floor, points_m) - origin) @ axes.T
     labels = regions[cells[:, 0], cells[:, 1]]
-    # The region nearest the reference point (containing it, usually).
-    best, best_d = 0, np.inf
-    for k in range(1, count + 1):
-        member = labels == k
-        if member.sum() < 10:
-            continue
-        d = float(np.min(np.linalg.norm(uv[member] - ref_uv, axis=1)))
-        if d < best_d:
-            best, best_d = k, d
+    best = _bin_region(uv, labels, count, ref_uv)
     if best == 0:
         raise ValueError("no region of points stands on the support plane")
-    member = labels == best
-    centre, angle, half = min_area_rectangle(uv[member])
+    centre, angle, half = min_area_rectangle(uv[labels == best])
+    c, s = np.cos(angle), np.sin(angle)
+    # Everything within the rim's rectangle is the bin's: the parts clear of a broken ring's walls
+    # and those heaped over them.
+    xy = (uv - centre) @ np.array([[c, -s], [s, c]])  # along the box's x and y
+    member = np.all(np.abs(xy) <= half, axis=1) | (labels == best)
     x_axis = np.cos(angle) * axes[0] + np.sin(angle) * axes[1]
     z_axis = n / np.linalg.norm(n)
     y_axis = np.cross(z_axis, x_axis)
     T = np.eye(4)
     T[:3, :3] = np.column_stack([x_axis, y_axis, z_axis])
     T[:3, 3] = origin + centre[0] * axes[0] + centre[1] * axes[1]
-    member_height = height[height > keep_above_m][member]
+    member_height = height[standing][member]
     top = float(np.percentile(member_height, HEIGHT_PERCENTILE)) + HEIGHT_MARGIN_M
-    c, s = np.cos(angle), np.sin(angle)
-    xy = (uv[member] - centre) @ np.array([[c, -s], [s, c]])  # along the box's x and y
-    walls = np.minimum(measured_wall_heights(xy, member_height, half), top)
-    return BinBox(
-        T, np.array([-half[0], -half[1], keep_above_m]), np.array([half[0], half[1], top]), np.round(walls, 4)
+    walls = np.minimum(
+        measured_wall_heights(
+            xy[member], member_height, half, max(WALL_STEP_M, cell_m), max(WALL_LEVEL_M, WALL_LEVEL_NOISE * noise_m)
+        ),
+        top,
     )
+    return BinBox(T, np.array([-half[0], -half[1], floor_m]), np.array([half[0], half[1], top]), np.round(walls, 4))
 
 
-def measured_wall_heights(xy_m: np.ndarray, height_m: np.ndarray, half_m: np.ndarray) -> np.ndarray:
+def _bin_region(uv: np.ndarray, labels: np.ndarray, count: int, ref_uv: np.ndarray) -> int:
+    """The label (1..count; 0: none) of the bin among the regions standing on the plane: the one
+    whose smallest rectangle around it is largest among those holding the reference point (a
+    ring of walls, even broken into pieces, holds the point the camera looks at; a part clear of
+    the walls near that point does not enclose it), else the region nearest the point (a heap on
+    a table). uv : (n, 2) the points on the plane; labels : (n,) their regions (0: none)."""
+    best, best_area = 0, 0.0
+    nearest, nearest_d = 0, np.inf
+    for k in range(1, count + 1):
+        member = labels == k
+        if member.sum() < MIN_REGION_POINTS:
+            continue
+        d = float(np.min(np.linalg.norm(uv[member] - ref_uv, axis=1)))
+        if d < nearest_d:
+            nearest, nearest_d = k, d
+        centre, angle, half = min_area_rectangle(uv[member])
+        c, s = np.cos(angle), np.sin(angle)
+        if np.all(np.abs((ref_uv - centre) @ np.array([[c, -s], [s, c]])) <= half) and np.prod(half) > best_area:
+            best, best_area = k, float(np.prod(half))
+    return best if best else nearest
+
+
+def point_spacing(points_m: np.ndarray) -> float:
+    """The median distance from a point (n, 3) to its nearest neighbour, metres."""
+    from scipy.spatial import cKDTree
+
+    if len(points_m) < 2:
+        return 0.0
+    d, _ = cKDTree(points_m).query(points_m, k=2)
+    return float(np.median(d[:, 1]))
+
+
+def measured_wall_heights(
+    xy_m: np.ndarray,
+    height_m: np.ndarray,
+    half_m: np.ndarray,
+    step_m: float = WALL_STEP_M,
+    level_m: float = WALL_LEVEL_M,
+) -> np.ndarray:
     """(4,) the height of each side's wall (order -x, +x, -y, +y), metres above the floor: what
-    the points within WALL_BAND_M inside the side reach in WALL_MIN_COVERAGE of its steps, where
-    WALL_MIN_LEVEL of the steps top out within WALL_LEVEL_M of it (a level rim); else 0 (no wall).
+    the points within WALL_BAND_M inside the side reach in WALL_MIN_COVERAGE of its steps (step_m
+    long), where WALL_MIN_LEVEL of the steps top out within level_m of it (a level rim); else 0
+    (no wall).
 
     xy_m : (n, 2) the region's points in the box's frame (centre at 0), metres; height_m : (n,)
     their heights above the floor; half_m : (2,) the box's half sizes.
@@ -130,14 +213,44 @@ def measured_wall_heights(xy_m: np.ndarray, height_m: np.ndarray, half_m: np.nda
     for k, (axis, sign) in enumerate(((0, -1.0), (0, 1.0), (1, -1.0), (1, 1.0))):
         along = 1 - axis
         near = sign * xy_m[:, axis] >= half_m[axis] - WALL_BAND_M
-        n_steps = max(1, int(np.ceil(2 * half_m[along] / WALL_STEP_M)))
-        steps = np.clip(((xy_m[near, along] + half_m[along]) / WALL_STEP_M).astype(np.int64), 0, n_steps - 1)
+        n_steps = max(1, int(np.ceil(2 * half_m[along] / step_m)))
+        steps = np.clip(((xy_m[near, along] + half_m[along]) / step_m).astype(np.int64), 0, n_steps - 1)
         step_top = np.zeros(n_steps)
         np.maximum.at(step_top, steps, height_m[near])
         height = float(np.quantile(step_top, 1.0 - WALL_MIN_COVERAGE))
-        level = float(np.mean(np.abs(step_top - height) <= WALL_LEVEL_M))
+        level = float(np.mean(np.abs(step_top - height) <= level_m))
         heights[k] = height if level >= WALL_MIN_LEVEL else 0.0
     return heights
+
+
+def sides_out_of_view(box: BinBox, points_m: np.ndarray) -> list[str]:
+    """The box's sides (WALL_SIDES names) that reach the edge of the camera's view: the view cuts
+    the bin there, and the box ends where the capture does, not at the bin's rim.
+
+    points_m : (n, 3) the capture's valid points, camera frame (optical axis +z), metres; the view
+    is their extent in x/z and y/z, less VIEW_EDGE_SHARE of it.
+    """
+    ahead = points_m[points_m[:, 2] > 0]
+    if len(ahead) == 0:
+        return []
+    slopes = ahead[:, :2] / ahead[:, 2:3]
+    lo, hi = slopes.min(0), slopes.max(0)
+    margin = VIEW_EDGE_SHARE * (hi - lo)
+    lo, hi = lo + margin, hi - margin
+    a, b = np.asarray(box.inner_min_m, float), np.asarray(box.inner_max_m, float)
+    steps = np.linspace(0.0, 1.0, 11)
+    out = []
+    for k, (axis, at) in enumerate(((0, a[0]), (0, b[0]), (1, a[1]), (1, b[1]))):
+        along = 1 - axis
+        edge = np.zeros((len(steps), 3))
+        edge[:, axis] = at
+        edge[:, along] = a[along] + steps * (b[along] - a[along])  # the side's foot on the floor
+        cam = transform_points(box.T_cam_from_bin, edge)
+        cam = cam[cam[:, 2] > 0]
+        s = cam[:, :2] / cam[:, 2:3]
+        if len(s) < len(steps) or np.any((s < lo) | (s > hi)):
+            out.append(WALL_SIDES[k])
+    return out
 
 
 def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:

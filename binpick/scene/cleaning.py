@@ -9,6 +9,7 @@ import logging
 import numpy as np
 from numba import njit, prange
 
+from binpick.cell.bin_box import BinBox, support_frame
 from binpick.errors import BinpickError, NothingAboveTheFloor
 from binpick.geometry.pointcloud import first_in_each_voxel, fit_plane_ransac, sample_normals, statistical_outliers
 from binpick.geometry.transforms import invert_T
@@ -213,7 +214,16 @@ def clean_capture(
     behind = np.mean(pts @ plane[:3] + plane[3] < -params.plane_threshold_m)
     # |d| is the camera's distance to the plane: a plane through (or near) the camera is a fan of
     # rays (a few image rows), never a surface something rests on.
-    if inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION and plane[3] >= params.min_range_m:
+    found = inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION and plane[3] >= params.min_range_m
+    box = BinBox.of_import(params)
+    if box is not None:
+        # The bin is given: its floor is the floor unless the plane found lies on it (within the
+        # plane threshold). Cropped above its floor, the largest plane left in a box may be a
+        # layer of parts lying side by side, or the top of the floor's scatter on a coarse sensor.
+        given = support_frame(plane if found else np.full(4, np.nan), box, params.plane_threshold_m)[1]
+        assert given is not None  # a box always gives a plane
+        plane, found = given, True
+    if found:
         floor = plane
         above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
         removed_floor = int((~above).sum())
@@ -265,6 +275,7 @@ def clean_capture(
                 abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
                 or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m, _top_m(pts[inliers], floor))
                 or not _square_to(plane, walls)
+                or (box is not None and not box.is_wall(plane))
                 or not _long_and_low(pts[inliers], floor, plane, WALL_RUN_GAP_VOXELS * view.voxel_size_m)
             ):
                 search &= ~inliers

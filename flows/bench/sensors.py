@@ -50,7 +50,7 @@ from binpick.network.calibrate import recalibrate
 from binpick.network.checkpoint import read_checkpoint, write_finetuned
 from binpick.network.evaluate import segment_and_count
 from binpick.network.train import BEST, Views, finetune_fpcc, train_fpcc
-from binpick.params import Params
+from binpick.params import ImportCaptureParams, Params
 from binpick.scene.process import PartModels, chosen_verification, process
 from binpick.scene.register import with_verification
 from binpick.seeding import SceneSeeds, derive_int, derive_seed
@@ -178,21 +178,29 @@ def _test(
     scenes: list[tuple[SyntheticScene, np.random.SeedSequence]],
     truth: TrueSurface,
     seed: int,
+    bin_box: str = "none",
 ) -> dict[str, float]:
-    """The keys of one train/test pair over its test scenes."""
+    """The keys of one train/test pair over its test scenes; bin_box: the box each capture is
+    cropped to (BIN_BOXES)."""
     models = _with_network(base, p, checkpoint)
     assert models.segmenter is not None
     ppf = models.ppf
     rows: list[dict[str, float]] = []
     seg = SegmentationCounts()
-    good = judged = 0
+    good = judged = boxed = 0
     for k, (scene, s) in enumerate(scenes):
         # The bin generate_scene drew (sensor presets draw from a stream of their own).
         drawn, _ = drawn_bin(p.model_copy(update={"generate": _generate(p, [], True)}), part, s)
         H, W = scene.labels.shape
+        box = _cell_box(bin_box, scene, drawn, p, part, seed)
+        boxed += int(box is not None)
         try:
             result = process(
-                scene.xyz_m.reshape(-1, 3), None, (H, W), models, SceneSeeds.of(seed, f"sensors-{part.name}-{k}")
+                scene.xyz_m.reshape(-1, 3),
+                None,
+                (H, W),
+                _cropped(models, box),
+                SceneSeeds.of(seed, f"sensors-{part.name}-{k}"),
             )
             poses, plan = result.registration.poses, result.picks
         except BinpickError as exc:
@@ -220,9 +228,59 @@ def _test(
         **_summary(rows),
         "pick_success_rate": good / judged if judged else 0.0,
         "n_pick_captures": float(judged),
+        "n_bin_boxes": float(boxed),
         "seg_precision": summary["precision"],
         "seg_recall": summary["recall"],
     }
+
+
+# The bin box a test capture is cropped to: none (the cleaning alone finds the bin), the one
+# `binpick fit-bin` fits from the capture (where it would not refuse it), or the bin as drawn (a
+# cell whose box was set and checked by hand).
+BIN_BOXES = ("none", "fitted", "given")
+
+
+def _cell_box(mode: str, scene: SyntheticScene, drawn, p: Params, part: PartModel, seed: int) -> BinBox | None:
+    """The bin box of a test capture under `mode` (BIN_BOXES), camera frame; None: no box."""
+    if mode == "fitted":
+        return fit_bin_box_of(scene.xyz_m.reshape(-1, 3), p.import_capture, part.diameter_m, seed)
+    if mode == "given":
+        inner = BinBox.of_generated(drawn, scene.T_cam_from_bin)
+        # Parts heaped over the rim are still the bin's: the crop reaches a part's size above it.
+        top = np.array([*inner.inner_max_m[:2], drawn.wall_height_m + part.diameter_m])
+        return BinBox(inner.T_cam_from_bin, inner.inner_min_m, top, np.full(4, drawn.wall_height_m))
+    return None
+
+
+def _cropped(models: PartModels, box: BinBox | None) -> PartModels:
+    """The models with their import cropping to the box (unchanged without one)."""
+    if box is None:
+        return models
+    return replace(models, import_params=models.import_params.model_copy(update=box.as_import_settings()))
+
+
+def fit_bin_box_of(
+    xyz_m: np.ndarray, settings: ImportCaptureParams, part_diameter_m: float, seed: int
+) -> BinBox | None:
+    """The bin box `binpick fit-bin` fits from a capture (n, 3; NaN: no return), as a cell keeps
+    it once it is set up (README, "Your own part and camera", step 3), or None where fit-bin would
+    refuse it (no plane, nothing on it, implausible for the part)."""
+    from binpick.cell.bin_fit import fit_capture_bin, implausible, sides_out_of_view
+
+    valid = np.all(np.isfinite(xyz_m), axis=1) & (np.einsum("ij,ij->i", xyz_m, xyz_m) >= settings.min_range_m**2)
+    try:
+        box = fit_capture_bin(xyz_m[valid], settings, seed)
+    except ValueError as exc:
+        log.warning("no bin box fitted: %s", exc)
+        return None
+    problems = implausible(box, part_diameter_m)
+    cut = sides_out_of_view(box, xyz_m[valid])
+    if cut:
+        problems.append(f"the view ends at its {', '.join(cut)} side")
+    if problems:
+        log.warning("the fitted bin box is refused: %s", "; ".join(problems))
+        return None
+    return box
 
 
 def judges_the_pick(sent: bool, n_pickable: float) -> bool:
@@ -249,10 +307,11 @@ def _finetuned(
     captures: list[tuple[SyntheticScene, np.random.SeedSequence]],
     seed: int,
     work: Path,
+    bin_box: str = "none",
 ) -> tuple[Path, dict[str, float]]:
     """The base network fine-tuned on its synthetic training views plus the captures it labelled
     itself, kept at its best on the validation views and recalibrated on them (binpick learn's
-    recipe)."""
+    recipe); bin_box: the box each capture is processed cropped to (BIN_BOXES)."""
     models = _with_network(built, p, base)
     labelled = []
     n_trusted = 0
@@ -266,7 +325,7 @@ def _finetuned(
                 scene.xyz_m.reshape(-1, 3),
                 None,
                 (H, W),
-                models,
+                _cropped(models, _cell_box(bin_box, scene, drawn, p, part, seed)),
                 SceneSeeds.of(seed, f"sensors-capture-{part.name}-{k}"),
             )
         except BinpickError as exc:
@@ -326,11 +385,13 @@ def bench_sensors(
     leave_one_out: bool = True,
     seed: int = 0,
     trust_margin: float | None = None,
+    bin_box: str = "none",
 ) -> dict[str, object]:
     """settings: the project's params (its train section sizes the networks, its bin and camera
     are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
     network; n_test: cluttered test bins per test sensor; n_captures: captures of
-    finetune_sensor the cell labels itself; trust_margin: instead of learn.trust_margin."""
+    finetune_sensor the cell labels itself; trust_margin: instead of learn.trust_margin; bin_box:
+    the box every capture is cropped to (BIN_BOXES)."""
     from flows.bench.parts import bench_parts
 
     if trust_margin is not None:
@@ -347,8 +408,11 @@ def bench_sensors(
         "tilt_deg_max": TILT_DEG_MAX,
         "renderer_only": True,
         "trust_margin": settings.learn.trust_margin,
+        "bin_box": bin_box,
         "parts": {},
     }
+    if bin_box not in BIN_BOXES:
+        raise ValueError(f"--bin-box {bin_box!r} is not one of {', '.join(BIN_BOXES)}")
     presets = sorted(settings.generate.sensor.models)
     if finetune_sensor not in presets:
         raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")
@@ -368,7 +432,7 @@ def bench_sensors(
             randomised, _, _ = _train(part, p, presets, n_train, n_val, seed, work, RANDOMISED)
             for train_name, checkpoint in ((TODAY, today), (RANDOMISED, randomised)):
                 for test_name, scenes in tests.items():
-                    pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed)
+                    pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed, bin_box)
                     log.info(
                         "%s %s@%s: %s",
                         name,
@@ -381,7 +445,7 @@ def bench_sensors(
                     without, _, _ = _train(
                         part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}"
                     )
-                    pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed)
+                    pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed, bin_box)
                     log.info(
                         "%s without_%s@%s: %s",
                         name,
@@ -390,13 +454,13 @@ def bench_sensors(
                         {k: round(v, 3) for k, v in pairs[f"without_{q}@{q}"].items()},
                     )
             captures = _render(part, p, [finetune_sensor], True, f"captures-{finetune_sensor}", n_captures, seed)
-            tuned, labelling = _finetuned(part, p, built, today, today_train, today_val, captures, seed, work)
+            tuned, labelling = _finetuned(part, p, built, today, today_train, today_val, captures, seed, work, bin_box)
             finetune: dict[str, object] = {
                 "base": TODAY,
                 "sensor": finetune_sensor,
                 **labelling,
-                "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed),
-                "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed),
+                "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed, bin_box),
+                "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed, bin_box),
             }
         before, after, reference = (
             pairs[f"{TODAY}@{finetune_sensor}"],

@@ -191,6 +191,11 @@ def bench_sensors_cmd(
     trust_margin: float = typer.Option(
         None, min=0.0, max=1.0, help="the labelling's trust margin (default: learn.trust_margin)"
     ),
+    bin_box: str = typer.Option(
+        "none",
+        help="the box each capture is cropped to: none (the cleaning finds the bin), fitted (what binpick "
+        "fit-bin fits from the capture, where it would not refuse it) or given (the bin as drawn)",
+    ),
     params: Path = PARAMS,
 ) -> None:
     """Networks trained on today's camera, on the randomised sensor models and without each
@@ -210,6 +215,7 @@ def bench_sensors_cmd(
             finetune_sensor,
             leave_one_out,
             trust_margin=trust_margin,
+            bin_box=bin_box,
         )
     except ValueError as exc:
         fail(str(exc))

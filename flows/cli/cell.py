@@ -144,18 +144,16 @@ def fit_bin(
     the camera looks, its smallest enclosing rectangle and height); write a recording to check it
     (data/results/<capture>/bin.rrd) and print the import_capture settings that crop to it. Keep
     them in the capture's entry (--apply), or in the import_capture section for every capture of
-    the cell. A box larger than a bin gets, too small or long for the part, or seen from the side
-    is refused (exit 1) unless --force."""
+    the cell. A box larger than a bin gets, too small or long for the part, seen from the side, or
+    ending at the edge of the camera's view is refused (exit 1) unless --force."""
     import numpy as np
     import yaml
 
     from binpick.cell.bin_box import WALL_SIDES
-    from binpick.cell.bin_fit import fit_bin_box, implausible
-    from binpick.geometry.pointcloud import fit_plane_ransac
+    from binpick.cell.bin_fit import fit_capture_bin, implausible, sides_out_of_view
     from binpick.geometry.transforms import invert_T, transform_points
     from binpick.io.capture import load_capture
     from binpick.params import load_params
-    from binpick.view import ViewParams, view_grid
     from review.recording import write_bin_recording
 
     root = project_root()
@@ -167,18 +165,7 @@ def fit_bin(
         xyz = cap.xyz_m.reshape(-1, 3)
         valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
         pts = xyz[valid]
-        grid = pts[view_grid(pts, ViewParams(max(settings.voxel_size_m, 0.002), settings.normal_radius_m))]
-        floor, inliers = fit_plane_ransac(
-            grid,
-            settings.plane_threshold_m,
-            settings.plane_ransac_iterations,
-            p.seed,
-            settings.plane_ransac_confidence,
-            min_distance_m=settings.min_range_m,
-        )
-        if floor[3] < 0:
-            floor = -floor
-        box = fit_bin_box(grid, floor, settings.keep_above_plane_m)
+        box = fit_capture_bin(pts, settings, p.seed)
     except ValueError as exc:
         fail(f"{root / entry.file}: {exc}")
     in_bin = transform_points(invert_T(box.T_cam_from_bin), pts)
@@ -210,6 +197,9 @@ def fit_bin(
     diameters = [load_part_model(m).diameter_m for m in models if m.is_file()]
     diameter = max(diameters) if diameters else None
     problems = implausible(box, diameter)
+    cut = sides_out_of_view(box, pts)
+    if cut:
+        problems.append(f"the camera's view ends at its {', '.join(cut)} side (the rim there is not in the capture)")
     if problems:
         message = f"{root / entry.file}: the fitted box does not look like a bin: {'; '.join(problems)}"
         if not force:
