@@ -242,13 +242,14 @@ def _clear_mixed_bin(
         ours = np.flatnonzero(state.kinds == i)
         hit = _true_touch(first.pick, kind, T_cam[ours], truths[first.part])
         if hit is None:
-            if any(
-                _true_touch(first.pick, kind, T_cam[state.kinds == j], truths[q.name]) is not None
+            touched = [
+                q.name
                 for j, q in enumerate(parts)
-                if j != i
-            ):
+                if j != i and _true_touch(first.pick, kind, T_cam[state.kinds == j], truths[q.name]) is not None
+            ]
+            if touched:
                 tally.other_part += 1
-                log.info("the first pick names %s and touches an instance of another part", first.part)
+                log.info("the first pick names %s and touches an instance of %s", first.part, ", ".join(touched))
             else:
                 tally.missed += 1
             continue
