@@ -20,6 +20,7 @@ from binpick.cell.bin_box import WALL_SIDES, BinBox
 from binpick.geometry.pointcloud import fit_plane_ransac, plane_frame, voxel_downsample_indices
 from binpick.geometry.transforms import transform_points
 from binpick.params import ImportCaptureParams
+from binpick.picking.measured import point_spacing_m
 from binpick.scene.cleaning import bin_reference_point
 
 # Occupancy grid of what stands on the plane; gaps up to one cell join a region. A cell is at
@@ -124,7 +125,7 @@ def fit_bin_box(points_m: np.ndarray, floor: np.ndarray, keep_above_m: float) ->
     above = points_m[standing]
     if len(above) < 10:
         raise ValueError("nothing stands on the support plane")
-    cell_m = max(GRID_CELL_M, point_spacing(points_m))
+    cell_m = max(GRID_CELL_M, point_spacing_m(points_m))
     axes, origin = plane_frame(floor)
     uv = (above - origin) @ axes.T
     lo = uv.min(0)
@@ -182,16 +183,6 @@ def _bin_region(uv: np.ndarray, labels: np.ndarray, count: int, ref_uv: np.ndarr
         if np.all(np.abs((ref_uv - centre) @ np.array([[c, -s], [s, c]])) <= half) and np.prod(half) > best_area:
             best, best_area = k, float(np.prod(half))
     return best if best else nearest
-
-
-def point_spacing(points_m: np.ndarray) -> float:
-    """The median distance from a point (n, 3) to its nearest neighbour, metres."""
-    from scipy.spatial import cKDTree
-
-    if len(points_m) < 2:
-        return 0.0
-    d, _ = cKDTree(points_m).query(points_m, k=2)
-    return float(np.median(d[:, 1]))
 
 
 def measured_wall_heights(
