@@ -4,7 +4,7 @@ import numpy as np
 import trimesh
 
 from binpick.cell.bin_box import BinBox
-from binpick.cell.bin_fit import fit_bin_box, min_area_rectangle, sides_out_of_view
+from binpick.cell.bin_fit import fit_bin_box, implausible, min_area_rectangle, sides_out_of_view
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import camera_of, render
 from binpick.geometry.pointcloud import fit_plane_ransac
@@ -199,8 +199,6 @@ def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_p
 
 
 def test_a_box_that_is_no_bin_for_the_part_and_the_camera_is_flagged():
-    from binpick.cell.bin_box import BinBox
-    from binpick.cell.bin_fit import implausible
 
     def box(size_m, height_m, tilt_deg=0.0):
         R = axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi + np.radians(tilt_deg))  # z toward the camera
@@ -290,6 +288,8 @@ def test_a_large_bin_seen_by_a_coarse_noisy_sensor_from_two_metres():
     floor, _ = fit_plane_ransac(seen, 0.015, 1000, 0)
     cut = fit_bin_box(seen, floor if floor[3] > 0 else -floor, 0.018)
     assert sides_out_of_view(cut, seen)
+    assert any("the camera's view ends" in why for why in implausible(cut, None, seen))
+    assert implausible(box, None, noisy) == []
 
 
 def test_a_wall_of_a_given_box_stands_at_one_of_its_sides():

@@ -83,6 +83,12 @@ def min_area_rectangle(uv: np.ndarray) -> tuple[np.ndarray, float, np.ndarray]:
     return centre, angle, half
 
 
+def valid_points(xyz_m: np.ndarray, min_range_m: float) -> np.ndarray:
+    """(n,) bool: which points of a capture xyz_m (n, 3; NaN: no return), camera frame, the bin is
+    fitted from: measured and at least min_range_m from the camera."""
+    return np.all(np.isfinite(xyz_m), axis=1) & (np.einsum("ij,ij->i", xyz_m, xyz_m) >= min_range_m**2)
+
+
 def fit_capture_bin(points_m: np.ndarray, settings: ImportCaptureParams, seed: int) -> BinBox:
     """The bin of one capture: the support plane (RANSAC with the import's plane settings) and the
     box standing on it (fit_bin_box), on a voxel grid of the points (at least 2 mm: the box does
@@ -244,10 +250,11 @@ def sides_out_of_view(box: BinBox, points_m: np.ndarray) -> list[str]:
     return out
 
 
-def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:
+def implausible(box: BinBox, part_diameter_m: float | None, points_m: np.ndarray | None = None) -> list[str]:
     """Why a fitted box is unlikely to be the cell's bin (an empty list when nothing is): larger
     than a bin gets, too small or too long for the part (part_diameter_m; None: not checked),
-    or seen from the side (the camera's view along the optical axis +z, camera frame)."""
+    seen from the side (the camera's view along the optical axis +z, camera frame), or, given the
+    capture's valid points (n, 3), ending at the edge of the view (sides_out_of_view)."""
     size = box.inner_max_m - box.inner_min_m
     side, height = float(max(size[0], size[1])), float(box.inner_max_m[2])
     problems = []
@@ -264,4 +271,7 @@ def implausible(box: BinBox, part_diameter_m: float | None) -> list[str]:
     tilt = float(np.degrees(np.arccos(np.clip(-up[2] / np.linalg.norm(up), -1.0, 1.0))))
     if tilt > MAX_VIEW_TILT_DEG:
         problems.append(f"its floor tilted {tilt:.0f} degrees from the camera's view (at most {MAX_VIEW_TILT_DEG:g})")
+    cut = sides_out_of_view(box, points_m) if points_m is not None else []
+    if cut:
+        problems.append(f"the camera's view ends at its {', '.join(cut)} side (the rim there is not in the capture)")
     return problems

@@ -265,18 +265,15 @@ def fit_bin_box_of(
     """The bin box `binpick fit-bin` fits from a capture (n, 3; NaN: no return), as a cell keeps
     it once it is set up (README, "Your own part and camera", step 3), or None where fit-bin would
     refuse it (no plane, nothing on it, implausible for the part)."""
-    from binpick.cell.bin_fit import fit_capture_bin, implausible, sides_out_of_view
+    from binpick.cell.bin_fit import fit_capture_bin, implausible, valid_points
 
-    valid = np.all(np.isfinite(xyz_m), axis=1) & (np.einsum("ij,ij->i", xyz_m, xyz_m) >= settings.min_range_m**2)
+    points = xyz_m[valid_points(xyz_m, settings.min_range_m)]
     try:
-        box = fit_capture_bin(xyz_m[valid], settings, seed)
+        box = fit_capture_bin(points, settings, seed)
     except ValueError as exc:
         log.warning("no bin box fitted: %s", exc)
         return None
-    problems = implausible(box, part_diameter_m)
-    cut = sides_out_of_view(box, xyz_m[valid])
-    if cut:
-        problems.append(f"the view ends at its {', '.join(cut)} side")
+    problems = implausible(box, part_diameter_m, points)
     if problems:
         log.warning("the fitted bin box is refused: %s", "; ".join(problems))
         return None
@@ -394,6 +391,8 @@ def bench_sensors(
     the box every capture is cropped to (BIN_BOXES)."""
     from flows.bench.parts import bench_parts
 
+    if bin_box not in BIN_BOXES:
+        raise ValueError(f"--bin-box {bin_box!r} is not one of {', '.join(BIN_BOXES)}")
     if trust_margin is not None:
         settings = settings.model_copy(
             update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})}
@@ -411,8 +410,6 @@ def bench_sensors(
         "bin_box": bin_box,
         "parts": {},
     }
-    if bin_box not in BIN_BOXES:
-        raise ValueError(f"--bin-box {bin_box!r} is not one of {', '.join(BIN_BOXES)}")
     presets = sorted(settings.generate.sensor.models)
     if finetune_sensor not in presets:
         raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")

@@ -150,7 +150,7 @@ def fit_bin(
     import yaml
 
     from binpick.cell.bin_box import WALL_SIDES
-    from binpick.cell.bin_fit import fit_capture_bin, implausible, sides_out_of_view
+    from binpick.cell.bin_fit import fit_capture_bin, implausible, valid_points
     from binpick.geometry.transforms import invert_T, transform_points
     from binpick.io.capture import load_capture
     from binpick.params import load_params
@@ -163,7 +163,7 @@ def fit_bin(
         settings = load_params(params, entry.part_names[0]).import_capture_for(capture)
         cap = load_capture(root / entry.file, options)
         xyz = cap.xyz_m.reshape(-1, 3)
-        valid = np.all(np.isfinite(xyz), axis=1) & (np.einsum("ij,ij->i", xyz, xyz) >= settings.min_range_m**2)
+        valid = valid_points(xyz, settings.min_range_m)
         pts = xyz[valid]
         box = fit_capture_bin(pts, settings, p.seed)
     except ValueError as exc:
@@ -196,10 +196,7 @@ def fit_bin(
     models = [Layout(root).part_model(name) for name in entry.part_names]
     diameters = [load_part_model(m).diameter_m for m in models if m.is_file()]
     diameter = max(diameters) if diameters else None
-    problems = implausible(box, diameter)
-    cut = sides_out_of_view(box, pts)
-    if cut:
-        problems.append(f"the camera's view ends at its {', '.join(cut)} side (the rim there is not in the capture)")
+    problems = implausible(box, diameter, pts)
     if problems:
         message = f"{root / entry.file}: the fitted box does not look like a bin: {'; '.join(problems)}"
         if not force:
