@@ -17,14 +17,11 @@ from binpick.io.grasps import GraspSet, load_grasps, save_grasps
 from binpick.io.part_model import PartModel, load_part_model
 from binpick.params import Params, load_params
 from binpick.picking.coverage import (
-    SMALLER_CUP_STEP_M,
-    SMALLER_CUP_TRIES,
-    SMALLEST_CUP_M,
     covered_share,
     describe_side,
-    grasps_in_cone,
-    resting_sides,
+    grasp_sides,
     smaller_cup_covering,
+    smaller_cup_radii,
     stable_poses,
     widest_cone_deg,
 )
@@ -77,7 +74,7 @@ def _resting_coverage(params: Params, part: PartModel, sets: dict[str, GraspSet]
     cone = widest_cone_deg(params.pick)
     metrics: dict[str, float] = {}
     for kind, grasps in sets.items():
-        sides = resting_sides(T_rest, p_rest, grasps_in_cone(T_rest, grasps.T_model_from_tool[:, :3, 2], cone))
+        sides = grasp_sides(T_rest, p_rest, grasps, cone)
         metrics[f"resting_covered_{kind}"] = covered_share(sides)
         if kind != params.pick.gripper:
             continue
@@ -95,10 +92,10 @@ def _resting_coverage(params: Params, part: PartModel, sets: dict[str, GraspSet]
         if bare and kind == "suction" and generated:
             s = params.pick.suction
             r = smaller_cup_covering(part, params.pick, T_rest, p_rest, WARN_PROBABILITY)
-            if r is None:
-                smallest = max(SMALLEST_CUP_M, s.cup_radius_m - SMALLER_CUP_TRIES * SMALLER_CUP_STEP_M)
-                log.warning("%s: nor does a smaller suction cup, down to %.0f mm across", part.name, 2000 * smallest)
-            else:
+            tried = smaller_cup_radii(s.cup_radius_m)
+            if r is None and tried:
+                log.warning("%s: nor does a smaller suction cup, down to %.0f mm across", part.name, 2000 * min(tried))
+            elif r is not None:
                 log.warning(
                     "%s: a %.0f mm cup reaches every side (parts.%s.pick.suction: {cup_radius_m: %g, holding_force_n: "
                     "%.1f}: the force scales with the lip's area at the same vacuum)",

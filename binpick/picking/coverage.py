@@ -15,6 +15,7 @@ import numpy as np
 import trimesh
 
 from binpick.geometry.symmetry import symmetry_transforms
+from binpick.io.grasps import GraspSet
 from binpick.io.part_model import PartModel
 from binpick.params import PickParams
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, centre_of_mass, expand_by_symmetry, suction_grasps
@@ -77,6 +78,14 @@ def resting_sides(T_floor_from_model: np.ndarray, probability: np.ndarray, n_gra
     return [RestingSide(axis, p, n) for axis, p, n in sides]
 
 
+def grasp_sides(
+    T_floor_from_model: np.ndarray, probability: np.ndarray, grasps: GraspSet, cone_deg: float
+) -> list[RestingSide]:
+    """The resting sides (resting_sides) with the grasps' counts within cone_deg of straight down."""
+    approach = grasps.T_model_from_tool[:, :3, 2]
+    return resting_sides(T_floor_from_model, probability, grasps_in_cone(T_floor_from_model, approach, cone_deg))
+
+
 def covered_share(sides: list[RestingSide]) -> float:
     """The share of drops that end with at least one grasp in the cone."""
     # Rounded: the probabilities' float sum misses 1 by rounding steps (0.9999999999999997).
@@ -104,10 +113,14 @@ def suction_sides(
     grasps = expand_by_symmetry(
         suction_grasps(part, params), symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS)
     )
-    approach = grasps.T_model_from_tool[:, :3, 2]
-    return resting_sides(
-        T_floor_from_model, probability, grasps_in_cone(T_floor_from_model, approach, widest_cone_deg(params))
-    )
+    return grasp_sides(T_floor_from_model, probability, grasps, widest_cone_deg(params))
+
+
+def smaller_cup_radii(cup_radius_m: float) -> list[float]:
+    """The suction cup radii (metres) tried below cup_radius_m, largest first: SMALLER_CUP_STEP_M
+    apart, down to SMALLEST_CUP_M, SMALLER_CUP_TRIES at most (empty for a cup already that small)."""
+    steps = (cup_radius_m - k * SMALLER_CUP_STEP_M for k in range(1, SMALLER_CUP_TRIES + 1))
+    return [r for r in steps if r >= SMALLEST_CUP_M - 1e-9]
 
 
 def smaller_cup_covering(
@@ -117,17 +130,12 @@ def smaller_cup_covering(
     probability: np.ndarray,
     min_probability: float,
 ) -> float | None:
-    """The largest suction cup radius (metres) below params' own, in SMALLER_CUP_STEP_M steps down
-    to SMALLEST_CUP_M (SMALLER_CUP_TRIES at most), whose grasps reach every side at least
-    min_probability likely; None when none of those does. A smaller lip seals on narrower flats
+    """The largest suction cup radius (metres) of smaller_cup_radii whose grasps reach every side
+    at least min_probability likely; None when none of those does. A smaller lip seals on narrower flats
     (a lid's rim between its recess and its edge) but holds less (force goes with its area)."""
-    r = params.suction.cup_radius_m - SMALLER_CUP_STEP_M
-    for _ in range(SMALLER_CUP_TRIES):
-        if r < SMALLEST_CUP_M - 1e-9:
-            break
+    for r in smaller_cup_radii(params.suction.cup_radius_m):
         smaller = params.model_copy(update={"suction": params.suction.model_copy(update={"cup_radius_m": r})})
         sides = suction_sides(part, smaller, T_floor_from_model, probability)
         if all(s.n_grasps > 0 for s in sides if s.probability >= min_probability):
             return r
-        r -= SMALLER_CUP_STEP_M
     return None
