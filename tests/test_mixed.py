@@ -17,7 +17,7 @@ from binpick.geometry.transforms import make_T
 from binpick.io.poses import PartPose
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps
 from binpick.registration.model import train_ppf
-from binpick.scene.mixed import claimed_points, pose_quality, process_mixed, resolve_conflicts
+from binpick.scene.mixed import claimed_points, explained_weight, pose_quality, process_mixed, resolve_conflicts
 from binpick.scene.process import PartModels
 from binpick.seeding import SceneSeeds
 from binpick.view import ViewParams
@@ -114,12 +114,21 @@ def test_each_part_is_found_on_its_own_instances_and_no_pose_on_the_other_part(t
         assert 0 <= mp.pick.pose_index < len(result.poses[mp.part])
 
 
-def test_a_region_claimed_by_two_parts_goes_to_the_better_verified_pose():
+def test_a_region_claimed_by_two_parts_goes_to_the_pose_that_explains_more():
     # Poses 0 (part a) and 1 (part b) claim the same points; pose 2 (part b) lies elsewhere and pose
     # 3 (part a) overlaps pose 2 by a sliver.
     claims = [np.arange(0, 100), np.arange(10, 110), np.arange(200, 300), np.arange(290, 380)]
-    keep, lost = resolve_conflicts(claims, [0.6, 0.8, 0.5, 0.4], ["a", "b", "b", "a"])
+    keep, lost = resolve_conflicts(claims, [60.0, 80.0, 50.0, 36.0], ["a", "b", "b", "a"])
     assert keep == [False, True, True, True] and lost == [(0, 1)]
+    # A small part's pose on a stretch of a long one (its claim inside the long one's) verifies
+    # better than the long part's own pose, but explains far fewer of the measured points.
+    long_part = PartPose(np.eye(4), score=0.42, visible_support=0.93, seen_through=0.0)
+    on_it = PartPose(np.eye(4), score=0.55, visible_support=0.97, seen_through=0.0)
+    long_claim, on_it_claim = np.arange(0, 2000), np.arange(500, 700)
+    assert pose_quality(on_it) > pose_quality(long_part)
+    weights = [explained_weight(long_part, long_claim), explained_weight(on_it, on_it_claim)]
+    keep, lost = resolve_conflicts([long_claim, on_it_claim], weights, ["shaft", "pipe"])
+    assert keep == [True, False] and lost == [(1, 0)]
     # The same part's poses never compete here (its own registration told them apart).
     keep, _ = resolve_conflicts(claims[:2], [0.6, 0.8], ["a", "a"])
     assert keep == [True, True]
