@@ -604,3 +604,42 @@ def test_the_whole_scene_pass_passes_over_a_pose_the_camera_saw_through(t_joint,
     assert _found_parts(limited, T_true, ppf) == [1]
     unlimited = match_scene(ppf, points, normals, PARAMS.registration, rng(0), view=view)
     assert sorted(_found_parts(unlimited, T_true, ppf)) == [0, 1]
+
+
+def test_a_segment_pose_the_camera_saw_through_does_not_hide_its_points_from_the_whole_scene_pass(
+    t_joint, ppf, monkeypatch
+):
+    """Both T-joints in one segment, fitted with a pose the verification drops (the first T-joint's,
+    where the camera saw the floor): the whole-scene pass is told of the verified poses only, so
+    the points that pose lay on are not taken as explained, and the second T-joint is found."""
+    import binpick.scene.register as scene_register
+    from binpick.io.cloud import CleanCloud
+
+    points, normals, _, view, T_true = _two_lying_t_joints(t_joint, only_second_seen=True)
+    n = len(points)
+    cloud = CleanCloud(
+        points.astype(np.float32),
+        normals.astype(np.float32),
+        np.zeros((n, 3), np.uint8),
+        -np.ones(n, np.int64),
+        np.zeros(2, np.int64),
+        np.full(4, np.nan),
+        np.zeros((0, 4)),
+        np.zeros(3),
+        view.depth_m.astype(np.float32),
+        view.K,
+    )
+    seen_through_pose = PartPose(T_true[0], score=0.9)
+    monkeypatch.setattr(scene_register, "match_segment", lambda *args, **kwargs: seen_through_pose)
+    told: list[list[np.ndarray]] = []
+    real_match_scene = scene_register.match_scene
+
+    def match_scene(*args, **kwargs):
+        told.append(list(kwargs["known"]))
+        return real_match_scene(*args, **kwargs)
+
+    monkeypatch.setattr(scene_register, "match_scene", match_scene)
+    params = PARAMS.registration.model_copy(update={"mode": "segments_then_scene"})
+    result = scene_register.register(cloud, np.zeros(n, np.int64), ppf, params, 0)
+    assert told == [[]]  # the segment's pose was dropped before the pass, not handed to it
+    assert _found_parts(result.poses, T_true, ppf) == [1] and result.n_seen_through == 1

@@ -187,27 +187,6 @@ def register(
         kept = suppress_duplicates(ppf, found, params, cloud.points_m)
         poses = [found[k] for k in kept]
         n_duplicates = len(found) - len(kept) + n_explained
-    if mode in ("whole_scene", "segments_then_scene"):
-        t = time.perf_counter()
-        more = match_scene(
-            ppf,
-            cloud.points_m,
-            cloud.normals,
-            params,
-            rng,
-            params.max_instances,
-            known=[p.T_cam_from_model for p in poses],
-            votes_from=is_part if params.scene_votes_from == "parts" else None,
-            view=view,
-            max_seen_through=limit,
-        )
-        per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
-        poses += more
-        log.info("whole-scene matching added %d poses", len(more))
-    if not poses or cloud_tree is None:
-        return Registration([], n_segments, n_duplicates, per_instance_ms, capture_noise_m=capture_noise_m)
-    if len(ppf.near_symmetries):
-        poses = _resolve_near_symmetries(cloud, labels, poses, ppf, params, view)
     # Verification against what the camera saw: a pose whose surface lies where the sensor saw
     # through it (a cup fitted into a box wall, a part floating before the wall behind a desk),
     # or much of whose surface in view has nothing measured on it (a shaft fitted onto a plain
@@ -217,8 +196,7 @@ def register(
     # pose's surface in view (a foreground head on a sensor it never saw). Nor is one reaching
     # deep into the floor the cleaning found: nothing measured can contradict it there (the
     # floor hides it), but no part lies inside the floor.
-    kept_poses = []
-    n_unsupported = n_not_part = n_in_the_floor = 0
+    dropped = {"seen_through": 0, "unsupported": 0, "not_part": 0, "in_the_floor": 0}
     inlier_m = Scales.of(ppf, params).inlier_m
     model_centre = ppf.dense_points_m.mean(axis=0)
 
@@ -228,34 +206,68 @@ def register(
         _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
         return local_noise_m(points, image_tree, points[np.ravel(near)])
 
-    for pose in poses:
-        if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
-            n_in_the_floor += 1
-            continue
-        share = seen_through(ppf, pose.T_cam_from_model, view)
-        if share > limit:
-            continue
-        support = visible_support(ppf, pose.T_cam_from_model, view, cloud_tree, inlier_m)
-        # The cut only eases (support_cut <= least): the noise is measured only when it can matter.
-        if support < least and support < support_cut(least, noise_about(pose.T_cam_from_model), inlier_m):
-            n_unsupported += 1
-            continue
-        waived = params.part_share_waived_at_support is not None and support >= params.part_share_waived_at_support
-        if (
-            is_part is not None
-            and not waived
-            and part_share(ppf, pose.T_cam_from_model, cloud_tree, is_part, inlier_m) < params.min_part_share
-        ):
-            n_not_part += 1
-            continue
-        kept_poses.append(replace(pose, seen_through=share, visible_support=support))
-    n_seen_through = len(poses) - len(kept_poses) - n_unsupported - n_not_part - n_in_the_floor
-    if len(kept_poses) < len(poses):
+    def verified(candidates: list[PartPose]) -> list[PartPose]:
+        if not candidates or cloud_tree is None:
+            return []
+        if len(ppf.near_symmetries):
+            candidates = _resolve_near_symmetries(cloud, labels, candidates, ppf, params, view)
+        kept = []
+        for pose in candidates:
+            if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
+                dropped["in_the_floor"] += 1
+                continue
+            share = seen_through(ppf, pose.T_cam_from_model, view)
+            if share > limit:
+                dropped["seen_through"] += 1
+                continue
+            support = visible_support(ppf, pose.T_cam_from_model, view, cloud_tree, inlier_m)
+            # The cut only eases (support_cut <= least): the noise is measured only when it can matter.
+            if support < least and support < support_cut(least, noise_about(pose.T_cam_from_model), inlier_m):
+                dropped["unsupported"] += 1
+                continue
+            waived = params.part_share_waived_at_support is not None and support >= params.part_share_waived_at_support
+            if (
+                is_part is not None
+                and not waived
+                and part_share(ppf, pose.T_cam_from_model, cloud_tree, is_part, inlier_m) < params.min_part_share
+            ):
+                dropped["not_part"] += 1
+                continue
+            kept.append(replace(pose, seen_through=share, visible_support=support))
+        return kept
+
+    n_candidates = len(poses)
+    # The segments' poses are verified before the whole-scene pass: the points a pose explains
+    # are left out of that pass's votes, and a false pose on a part's points (a gear shaft posed
+    # across two shafts lying side by side, half of it where the camera saw through it) had hidden
+    # the part it lay on from the pass, then fallen to the verification, leaving that part unposed.
+    kept_poses = verified(poses)
+    if mode in ("whole_scene", "segments_then_scene"):
+        t = time.perf_counter()
+        more = match_scene(
+            ppf,
+            cloud.points_m,
+            cloud.normals,
+            params,
+            rng,
+            params.max_instances,
+            known=[p.T_cam_from_model for p in kept_poses],
+            votes_from=is_part if params.scene_votes_from == "parts" else None,
+            view=view,
+            max_seen_through=limit,
+        )
+        per_instance_ms += [1000.0 * (time.perf_counter() - t) / max(1, len(more))] * len(more)
+        log.info("whole-scene matching added %d poses", len(more))
+        n_candidates += len(more)
+        kept_poses += verified(more)
+    n_seen_through, n_unsupported = dropped["seen_through"], dropped["unsupported"]
+    n_not_part, n_in_the_floor = dropped["not_part"], dropped["in_the_floor"]
+    if len(kept_poses) < n_candidates:
         log.info(
             "dropped %d of %d poses: %d lying where the camera saw through them, %d with too little of their surface "
             "in view measured, %d on points the network calls no part's, %d reaching into the floor",
-            len(poses) - len(kept_poses),
-            len(poses),
+            n_candidates - len(kept_poses),
+            n_candidates,
             n_seen_through,
             n_unsupported,
             n_not_part,
