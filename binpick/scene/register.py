@@ -202,6 +202,7 @@ def register(
 
     def noise_about(T_cam_from_model: np.ndarray) -> float:
         """The sensor's noise about a pose, from the captured points nearest its centre."""
+        assert cloud_tree is not None  # verified() asks only when the cloud has points
         centre = T_cam_from_model[:3, :3] @ model_centre + T_cam_from_model[:3, 3]
         _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
         return local_noise_m(points, image_tree, points[np.ravel(near)])
