@@ -215,7 +215,9 @@ class PicksAnswer(BaseModel):
     unpicked: list[Unpicked]
     counts: dict[str, float]
     conflicts: list[Conflict] | None = Field(
-        None, description="a mixed bin: each pose that lost its region to a better-verified pose of another part"
+        None,
+        description="a mixed bin: each pose that lost its region to a pose of another part that explains more "
+        "of the capture",
     )
     request_id: str
     timings_s: dict[str, float]

@@ -1,6 +1,6 @@
 """Mixed bins: two kinds of part in one capture. Each part's poses land on its own instances, a
-region claimed by two parts goes to the better-verified pose, and the picks form one list that
-names each pick's part, in the priority given."""
+region claimed by two parts goes to the pose that explains more of the capture, and the picks
+form one list that names each pick's part, in the priority given."""
 
 from __future__ import annotations
 
