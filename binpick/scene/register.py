@@ -207,11 +207,15 @@ def register(
         _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
         return local_noise_m(points, image_tree, points[np.ravel(near)])
 
+    fine: _FineScene | None = None  # the near symmetries' grid of the cloud, built once
+
     def verified(candidates: list[PartPose]) -> list[PartPose]:
+        nonlocal fine
         if not candidates or cloud_tree is None:
             return []
         if len(ppf.near_symmetries):
-            candidates = _resolve_near_symmetries(cloud, labels, candidates, ppf, params, view)
+            fine = fine or _FineScene.of(cloud, Scales.of(ppf, params).refine_step_m)
+            candidates = _resolve_near_symmetries(cloud, labels, candidates, ppf, params, view, fine)
         kept = []
         for pose in candidates:
             if in_the_floor(ppf, pose.T_cam_from_model, cloud.floor_plane):
@@ -287,6 +291,21 @@ def register(
     )
 
 
+@dataclass(frozen=True)
+class _FineScene:
+    """The cloud on the refinement grid (points_m (k, 3) float64, camera frame) and its two trees:
+    ball_tree for the near-symmetry turns' ICP, score_tree for the whole-scene score."""
+
+    points_m: np.ndarray
+    ball_tree: cKDTree
+    score_tree: KDTree
+
+    @classmethod
+    def of(cls, cloud: CleanCloud, refine_step_m: float) -> _FineScene:
+        fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, refine_step_m)].astype(np.float64)
+        return cls(fine, cKDTree(fine), KDTree(np.ascontiguousarray(fine)))
+
+
 def _resolve_near_symmetries(
     cloud: CleanCloud,
     labels: np.ndarray | None,
@@ -294,13 +313,14 @@ def _resolve_near_symmetries(
     ppf: PPFModel,
     params: RegisterParams,
     view: DepthView,
+    fine_scene: _FineScene,
 ) -> list[PartPose]:
     """Each pose, or its turn by one of the part's near symmetries that what the camera saw
     supports better (registration/near_symmetry.py). A turned pose is scored again as its source
-    scores (on its segment's points, or on the whole scene's)."""
+    scores (on its segment's points, or on the whole scene's). fine_scene: the cloud on the
+    params' refinement grid (_FineScene.of)."""
     scales = Scales.of(ppf, params)
-    fine = cloud.points_m[voxel_downsample_indices(cloud.points_m, scales.refine_step_m)].astype(np.float64)
-    ball_tree, score_tree = cKDTree(fine), KDTree(np.ascontiguousarray(fine))
+    fine, ball_tree, score_tree = fine_scene.points_m, fine_scene.ball_tree, fine_scene.score_tree
     out = []
     n_turned = 0
     for pose in poses:
