@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import trimesh
+from scipy.spatial import cKDTree
 
-from binpick.picking.lift import lift_blockers, way_outs
+from binpick.picking.lift import in_footprint, lift_blockers, way_outs
 
 UP = np.array([0.0, 0.0, 1.0])  # this test's frame: z up (the camera's frame is any rigid turn of it)
 RADIUS_M, CONTACT_M = 0.003, 0.011
@@ -79,3 +80,20 @@ def test_a_part_against_a_wall_slides_up_along_it_and_is_not_pushed_into_it():
     # ... but pulled out toward it (30 degrees off the vertical) it is pushed into the wall.
     toward = np.array([np.sin(np.radians(30.0)), 0.0, np.cos(np.radians(30.0))])
     assert lift_blockers(part, normals, [(toward, 0.05)], wall, sources, RADIUS_M, CONTACT_M, inward) == {0}
+
+
+def test_the_footprint_filter_keeps_every_point_within_the_radius_of_the_footprint():
+    # A long thin footprint turned 30 degrees (a gear shaft seen along its lift) and points
+    # scattered over a bin ten times its size: every point a brute-force search puts within the
+    # radius is kept, and points farther than the radius plus two cells' diagonal are not.
+    rng = np.random.default_rng(3)
+    along = np.column_stack([rng.uniform(-0.22, 0.22, 4000), rng.uniform(-0.02, 0.02, 4000)])
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    footprint = along @ np.array([[c, s], [-s, c]])
+    points = rng.uniform(-0.5, 0.5, (50_000, 2))
+    kept = in_footprint(footprint, points, RADIUS_M)
+    nearest, _ = cKDTree(footprint).query(points)
+    assert np.all(kept[nearest <= RADIUS_M])
+    assert np.any(nearest <= RADIUS_M)
+    assert not np.any(kept[nearest > RADIUS_M + 2 * np.sqrt(2) * RADIUS_M])
+    assert kept.sum() < 0.1 * len(points)

