@@ -782,3 +782,49 @@ def test_wall_points_carry_their_walls_normal_and_a_bins_faces_face_inward():
     to_middle = middle - points
     assert np.all(np.einsum("ij,ij->i", inward, to_middle) > 0)
     np.testing.assert_allclose(np.linalg.norm(inward, axis=1), 1.0)
+
+
+def wall_with_a_hole(x_m: float, hole_half_m: float) -> np.ndarray:
+    """Captured points of a wall x = x_m from the floor (z 0.5) to its rim (z 0.4), y -0.1..0.1,
+    2 mm apart, less the stretch |y| < hole_half_m the part in front hid from the camera."""
+    ys, zs = np.meshgrid(np.linspace(-0.1, 0.1, 101), np.linspace(0.4, 0.5, 51))
+    keep = np.abs(ys.ravel()) >= hole_half_m
+    return np.column_stack([np.full(keep.sum(), x_m), ys.ravel()[keep], zs.ravel()[keep]])
+
+
+def test_the_unseen_stretch_of_a_wall_is_filled_on_its_plane_up_to_its_rim():
+    from binpick.picking.obstacles import unseen_walls
+
+    wall = np.array([1.0, 0.0, 0.0, -0.021])
+    captured = wall_with_a_hole(0.021, 0.04)
+    up = FLOOR[:3]  # toward the camera
+    points, normals = unseen_walls(captured, wall[None], up, FLOOR, 0.004, 0.003, 0.004)
+    # On the plane, inside the hole, between the floor and the rim; the hole covered.
+    np.testing.assert_allclose(points[:, 0], 0.021, atol=1e-9)
+    assert np.all(np.abs(points[:, 1]) < 0.04) and np.all((points[:, 2] >= 0.4 - 1e-9) & (points[:, 2] <= 0.5 + 1e-9))
+    probes = np.column_stack([np.full(50, 0.021), np.linspace(-0.035, 0.035, 50), np.linspace(0.405, 0.495, 50)])
+    assert cKDTree(points).query(probes)[0].max() <= 0.003
+    np.testing.assert_allclose(normals, np.tile(wall[:3], (len(points), 1)))
+    # A wall seen whole has no unseen stretch.
+    assert len(unseen_walls(wall_with_a_hole(0.021, 0.0), wall[None], up, FLOOR, 0.004, 0.003, 0.004)[0]) == 0
+
+
+def test_a_tool_into_the_stretch_of_a_wall_the_part_hid_is_refused(box_part, pick_settings):
+    # The box lies 1 mm from a wall whose stretch behind it the camera did not see; a grasp near
+    # the top face's wall-side edge brings the 30 mm tool through that stretch.
+    T = lying(0.0, 0.0)
+    wall = np.array([[1.0, 0.0, 0.0, -0.021]])
+    captured = np.concatenate([seen_surface(T, box_part), wall_with_a_hole(0.021, 0.04)])
+    edge = GraspSet(
+        "suction", ["edge"], tool_frame(np.array([0.012, 0.0, 0.01]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1)
+    )
+
+    def plan(walls):
+        return plan_picks(
+            T[None], np.array([0.9]), edge, box_part.points_m, box_part.normals, box_part.centre_m, captured,
+            FLOOR, pick_settings, wall_planes=walls, wall_band_m=0.004,
+        )  # fmt: skip
+
+    assert len(plan(None).picks) == 1  # the measured wall is 25 mm from the tool
+    refused = plan(wall)
+    assert not refused.picks and BIN in refused.unpicked[0][1]

@@ -11,7 +11,8 @@ A grasp on a detected part is kept when
   post-grasp pose (or up to it, see below), stays clearance_m away from: the captured points (everything the camera
   measured, floor and walls included, except the target's own points: those within own_points_m
   of its posed model's surface), the bin (the support plane, and the given box's walls and floor when
-  the bin is given in params), and the other detected parts at their estimated poses (their
+  the bin is given in params, else the walls found at import where the camera did not see them:
+  obstacles.unseen_walls), and the other detected parts at their estimated poses (their
   whole model surface, the sides the camera did not see included).
 and the part it holds comes out of the heap free (picking/lift.py): back along the approach, or
 (leave_straight_up), that dragging it into a neighbour and the approach tilted, straight up the
@@ -61,7 +62,13 @@ from binpick.picking.measured import (
     contact_seen,
     point_spacing_m,
 )
-from binpick.picking.obstacles import moved_tool_hits, source_name, surface_normals, tool_collisions
+from binpick.picking.obstacles import (
+    moved_tool_hits,
+    source_name,
+    surface_normals,
+    tool_collisions,
+    unseen_walls,
+)
 from binpick.picking.ranking import known_keys, rank_key
 
 # Obstacle points are thinned to a grid of this share of the clearance (at least 1 mm): closer
@@ -226,12 +233,18 @@ def plan_picks(
     # The part as the arm carries it out of the bin, about a centimetre between points.
     carried_sample = part_points[:: max(1, int((CARRIED_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
     captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
-    # Obstacle points with their source: -1 captured, -2 the given bin, k >= 0 detected part k.
-    bin_surface = bin_box.surface(grid * 2) if bin_box is not None else None
+    walls = np.zeros((0, 4)) if wall_planes is None else wall_planes
+    spacing_m = point_spacing_m(captured)
+    # Obstacle points with their source: -1 captured, -2 the bin (the given box's faces, else the
+    # stretches of the walls found at import that the camera did not see), k >= 0 detected part k.
+    bin_surface = (
+        bin_box.surface(grid * 2)
+        if bin_box is not None
+        else unseen_walls(captured, walls, up, plane, wall_band_m, PART_OBSTACLE_GRID_M, 2.0 * spacing_m)
+    )
     chunks = [captured] + ([bin_surface[0]] if bin_surface is not None else []) + posed
     # The walls' normals (NaN elsewhere): a part lifted along a wall it rests against is not
     # dragged into it.
-    walls = np.zeros((0, 4)) if wall_planes is None else wall_planes
     obstacle_normals = np.concatenate(
         [surface_normals(captured, walls, wall_band_m)]
         + ([bin_surface[1]] if bin_surface is not None else [])
@@ -248,7 +261,6 @@ def plan_picks(
     # obstacle points of an 8-part T-joint bin instead of 37-39 ms, and ball queries no slower.
     tree = cKDTree(obstacles, balanced_tree=False, compact_nodes=False) if len(obstacles) else None
     captured_tree = KDTree(image_coordinates(captured)) if len(captured) >= NOISE_NEIGHBOURS else None
-    spacing_m = point_spacing_m(captured)
     reach = (
         float(np.max(np.linalg.norm(model_sample - centre_m, axis=1))) + own_of.reach_m if len(model_sample) else 0.0
     )
