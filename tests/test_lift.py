@@ -8,7 +8,7 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.picking.lift import in_footprint, lift_blockers, way_outs
+from binpick.picking.lift import across_the_way_out, in_footprint, lift_blockers, way_outs
 
 UP = np.array([0.0, 0.0, 1.0])  # this test's frame: z up (the camera's frame is any rigid turn of it)
 RADIUS_M, CONTACT_M = 0.003, 0.011
@@ -97,3 +97,29 @@ def test_the_footprint_filter_keeps_every_point_within_the_radius_of_the_footpri
     assert np.any(nearest <= RADIUS_M)
     assert not np.any(kept[nearest > RADIUS_M + 2 * np.sqrt(2) * RADIUS_M])
     assert kept.sum() < 0.1 * len(points)
+
+
+def test_the_points_across_the_way_out_hold_every_blocker_of_every_way_within_the_cone():
+    # 300 small boxes scattered about the part, 5-60 mm up; ways out tilted up to 60 degrees in
+    # eight directions, 5 cm along and then up: the blockers found among the points kept are
+    # those found among all, and most points are left out.
+    rng = np.random.default_rng(5)
+    part, normals = box_surface((0.06, 0.04, 0.02), (0.0, 0.0, 0.01))
+    centres = np.column_stack([rng.uniform(-0.4, 0.4, (300, 2)), rng.uniform(0.005, 0.06, 300)])
+    boxes = [box_surface((0.01, 0.01, 0.01), tuple(c), n=60)[0] for c in centres]
+    obstacles = np.concatenate(boxes)
+    sources = np.repeat(np.arange(len(boxes)), [len(b) for b in boxes])
+    tilt = np.radians(60.0)
+    reach = (0.05 + CONTACT_M) * np.sin(tilt) + RADIUS_M
+    kept = across_the_way_out(part, UP, obstacles, reach)
+    assert kept.sum() < 0.2 * len(obstacles)
+    found_any = False
+    for angle in np.radians(np.arange(0.0, 360.0, 45.0)):
+        for t in (0.0, tilt / 2, tilt):
+            way = np.array([np.sin(t) * np.cos(angle), np.sin(t) * np.sin(angle), np.cos(t)])
+            moves = [(way, 0.05), (UP, 0.1)]
+            every = lift_blockers(part, normals, moves, obstacles, sources, RADIUS_M, CONTACT_M)
+            among_kept = lift_blockers(part, normals, moves, obstacles[kept], sources[kept], RADIUS_M, CONTACT_M)
+            assert among_kept == every
+            found_any |= bool(every)
+    assert found_any

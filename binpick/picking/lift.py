@@ -125,3 +125,28 @@ def in_footprint(footprint: np.ndarray, points: np.ndarray, radius_m: float) -> 
     out = np.zeros(len(points), bool)
     out[inside] = occupied[pij[inside, 0], pij[inside, 1]]
     return out
+
+
+def across_the_way_out(surface_m: np.ndarray, up: np.ndarray, points_m: np.ndarray, reach_m: float) -> np.ndarray:
+    """(k,) bool: the points (k, 3) within reach_m of the part's outline seen down the bin's up
+    axis (surface_m (n, 3), the part's surface at its pose; up (3,)). A way out tilted at most a
+    from up, moved d along it and then straight up, runs into nothing farther than
+    (d + contact) sin a + radius from that outline (lift_blockers' contact and radius): with
+    reach_m that, the points kept hold every blocker of every grasp of the part. About a gear
+    shaft the 170,000 obstacle points of its 1.4 m ball fall to those along its 0.44 m outline."""
+    surface = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
+    points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    if len(surface) == 0 or len(points) == 0:
+        return np.zeros(len(points), bool)
+    u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    basis = np.stack([e1, np.cross(u, e1)], axis=1)
+    outline = surface @ basis
+    flat = points @ basis
+    # Cells a tenth of the reach wide first (cheap, a superset), then the exact distance.
+    near = in_footprint(outline, flat, reach_m)
+    if near.any():
+        distance, _ = cKDTree(outline).query(flat[near], distance_upper_bound=reach_m * (1.0 + 1e-9))
+        near[np.flatnonzero(near)[~np.isfinite(distance)]] = False
+    return near

@@ -53,7 +53,7 @@ from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
 from binpick.picking.gripper import contact_size_m, gripper_primitives, swept
-from binpick.picking.lift import lift_blockers, way_outs
+from binpick.picking.lift import across_the_way_out, lift_blockers, way_outs
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
     OWN_NOISE_SIGMAS,
@@ -217,6 +217,7 @@ def plan_picks(
     cos_cone = np.cos(np.radians(params.approach_cone_deg))
     widest_deg = params.approach_cone_deg if params.fallback_cone_deg is None else params.fallback_cone_deg
     cos_widest = np.cos(np.radians(widest_deg))
+    sin_widest = np.sin(np.radians(min(widest_deg, 90.0)))
     back = max(params.pregrasp_distance_m, params.retreat_distance_m)
     grid = max(OBSTACLE_GRID_M, params.clearance_m / 2.0)
 
@@ -344,6 +345,10 @@ def plan_picks(
                 # The same for every grasp of the part: gathered once (170,000 points about a gear
                 # shaft took 14 ms a grasp).
                 ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
+                # Only what lies across the part's way out can stop it (lift.across_the_way_out:
+                # the way tilted at most to the widest cone, moved retreat_distance_m along).
+                sideways_m = (params.retreat_distance_m + lift_radius + 2 * limit) * sin_widest + lift_radius
+                ahead = ahead[across_the_way_out(posed[i], up, obstacles[ahead], sideways_m)]
                 ahead_points, ahead_sources, ahead_normals = obstacles[ahead], source[ahead], obstacle_normals[ahead]
             retreat: np.ndarray | None = None
             dragged: set[str] = set()
