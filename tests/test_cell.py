@@ -318,3 +318,30 @@ def test_the_jaws_close_across_a_lone_part_and_carry_it_to_the_place_touching_no
     done = sim.execute(plan.picks[0].arm, sim.joints(), plan.picks[0].width_m)
     sim.close()
     assert (done.outcome, done.touched) == ("placed", set())
+
+
+def test_the_bin_is_at_rest_in_the_cells_world_before_the_first_capture(t_joint):
+    """A part handed over 20 mm above where it rests (a pose from another world's physics) has
+    come down to rest before the cell's first capture: the camera shows what the arm will meet."""
+    from binpick.cell.simulation import SimulatedCell
+    from binpick.generation.bin import bin_meshes
+    from binpick.part.model import density_kg_m3
+    from binpick.robot.arm import load_arm
+    from flows.cell_run import simulated_cell
+
+    sim, _ = simulated_cell(PARAMS, t_joint, 1, seed=2)
+    (rest,), _ = sim.part_poses()
+    T_bin_from_base, in_view = sim.T_bin_from_base, sim.in_view
+    sim.close()
+    raised = rest.copy()
+    raised[2, 3] += 0.02
+    b = PARAMS.generate.bin
+    sim = SimulatedCell(
+        load_arm(PARAMS.cell.arm or "ur5e"), PARAMS.cell, PARAMS.pick, PARAMS.pick.gripper, t_joint,
+        density_kg_m3(PARAMS, t_joint.name), [(m.bounds[0], m.bounds[1]) for m in bin_meshes(b)],
+        (b.inner_x_m / 2.0, b.inner_y_m / 2.0), T_bin_from_base, raised[None], in_view,
+    )  # fmt: skip
+    (first,), _ = sim.part_poses()
+    sim.close()
+    assert abs(first[2, 3] - rest[2, 3]) < 0.002
+    assert np.allclose(first[:3, :3], rest[:3, :3], atol=0.02)
