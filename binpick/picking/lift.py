@@ -82,9 +82,7 @@ def lift_blockers(
         candidates = np.flatnonzero(ahead_of_part)
         if len(candidates) == 0:
             continue
-        e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        basis = np.stack([e1, np.cross(u, e1)], axis=1)
+        basis = _across(u)
         leading_2d = leading @ basis
         candidates_2d = obstacles_m[candidates] @ basis
         across = in_footprint(leading_2d, candidates_2d, radius_m)
@@ -98,6 +96,14 @@ def lift_blockers(
         hit[candidates[pairs["j"][(ahead > contact_m) & (ahead <= distance_m + contact_m)]]] = True
     found, counts = np.unique(sources[hit], return_counts=True)
     return {int(s) for s, n in zip(found, counts, strict=True) if n >= MIN_BLOCKING_POINTS}
+
+
+def _across(u: np.ndarray) -> np.ndarray:
+    """(3, 2): two unit axes perpendicular to the unit direction u (3,) and to each other; points
+    times it are their coordinates in the plane across u."""
+    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1)], axis=1)
 
 
 def in_footprint(footprint: np.ndarray, points: np.ndarray, radius_m: float) -> np.ndarray:
@@ -138,13 +144,10 @@ def across_the_way_out(surface_m: np.ndarray, up: np.ndarray, points_m: np.ndarr
     points = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     if len(surface) == 0 or len(points) == 0:
         return np.zeros(len(points), bool)
-    u = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    e1 = np.cross(u, [1.0, 0.0, 0.0] if abs(u[0]) < 0.9 else [0.0, 1.0, 0.0])
-    e1 /= np.linalg.norm(e1)
-    basis = np.stack([e1, np.cross(u, e1)], axis=1)
+    basis = _across(np.asarray(up, dtype=np.float64) / np.linalg.norm(up))
     outline = surface @ basis
     flat = points @ basis
-    # Cells a tenth of the reach wide first (cheap, a superset), then the exact distance.
+    # Cells at least the reach wide first (cheap, a superset), then the exact distance.
     near = in_footprint(outline, flat, reach_m)
     if near.any():
         distance, _ = cKDTree(outline).query(flat[near], distance_upper_bound=reach_m * (1.0 + 1e-9))

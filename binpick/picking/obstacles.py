@@ -136,12 +136,12 @@ def unseen_walls(
     normals: list[np.ndarray] = [np.zeros((0, 3))]
     if len(captured) == 0 or len(walls) == 0 or spacing_m <= 0:
         return points[0], normals[0]
-    tree = None
     for wall in walls:
         norm = float(np.linalg.norm(wall[:3]))
         n, origin = wall[:3] / norm, -wall[3] / norm * wall[:3] / norm  # origin: the plane's point nearest the camera
         along = np.cross(up, n)
-        on = captured[np.abs(captured @ n + wall[3] / norm) <= band_m]
+        off_plane = np.abs(captured @ n + wall[3] / norm)
+        on = captured[off_plane <= band_m]
         if len(on) < 3 or np.linalg.norm(along) < 0.5:  # no points, or not standing across the floor
             continue
         along /= np.linalg.norm(along)
@@ -161,10 +161,14 @@ def unseen_walls(
             indexing="ij",
         )
         grid = origin + U.reshape(-1, 1) * along + V.reshape(-1, 1) * rise
-        if tree is None:
-            tree = cKDTree(captured)
-        d, _ = tree.query(grid, distance_upper_bound=seen_m)
-        unseen = grid[~np.isfinite(d)]
+        # A captured point within seen_m of a grid point (on the plane) lies within seen_m of the
+        # plane: only those are searched, not the whole capture.
+        seen = captured[off_plane <= seen_m]
+        if len(seen):
+            d, _ = cKDTree(seen).query(grid, distance_upper_bound=seen_m)
+            unseen = grid[~np.isfinite(d)]
+        else:
+            unseen = grid
         points.append(unseen)
         normals.append(np.tile(n, (len(unseen), 1)))
     return np.concatenate(points), np.concatenate(normals)

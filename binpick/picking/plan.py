@@ -345,11 +345,13 @@ def plan_picks(
                 # The same for every grasp of the part: gathered once (170,000 points about a gear
                 # shaft took 14 ms a grasp).
                 ahead = near_lift[(source[near_lift] != i) & ~own[near_lift]]
+                ahead_points = obstacles[ahead]
                 # Only what lies across the part's way out can stop it (lift.across_the_way_out:
                 # the way tilted at most to the widest cone, moved retreat_distance_m along).
                 sideways_m = (params.retreat_distance_m + lift_radius + 2 * limit) * sin_widest + lift_radius
-                ahead = ahead[across_the_way_out(posed[i], up, obstacles[ahead], sideways_m)]
-                ahead_points, ahead_sources, ahead_normals = obstacles[ahead], source[ahead], obstacle_normals[ahead]
+                across = across_the_way_out(posed[i], up, ahead_points, sideways_m)
+                ahead, ahead_points = ahead[across], ahead_points[across]
+                ahead_sources, ahead_normals = source[ahead], obstacle_normals[ahead]
             retreat: np.ndarray | None = None
             dragged: set[str] = set()
             for k, direction in enumerate(way_outs(T_tool[:3, 2], up, params.leave_straight_up)):
