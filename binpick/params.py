@@ -670,6 +670,11 @@ class PickParams(_Strict):
         description="a grasp tilted from the bin's down axis whose part, pulled back along the approach, drags into "
         "a neighbour may leave straight up the bin instead, the tool's way up checked (picking/lift.py)",
     )
+    lift_past_parts: bool = Field(
+        True,
+        description="when no detected part comes out of the heap free, take the one whose way out only its "
+        "neighbours block (not the bin), those pushing the fewest parts first (picking/plan.py); false: report no pick",
+    )
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(

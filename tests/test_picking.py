@@ -716,7 +716,12 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     top = trimesh.sample.sample_surface_even(block, 4000, seed=1)[0]
     top = top[top[:, 2] < block_top]
     cones = pick_settings.model_copy(
-        update={"approach_cone_deg": 45.0, "fallback_cone_deg": None, "leave_straight_up": True}
+        update={
+            "approach_cone_deg": 45.0,
+            "fallback_cone_deg": None,
+            "leave_straight_up": True,
+            "lift_past_parts": False,
+        }
     )
     grasps = suction_grasps(box_part, cones)
 
@@ -744,6 +749,26 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
     bar = np.column_stack([a.ravel(), b.ravel(), np.full(a.size, bar_z)])
     blocked = plan(np.concatenate([edge, top, bar]))
     assert not blocked.picks and "the part lifts into captured points" in blocked.unpicked[0][1]
+    # Nothing comes out free and only measured points (no bin) are in the way: with
+    # lift_past_parts the part is taken past them, and the pick says what it pushes.
+    (past,) = plan(np.concatenate([edge, top, bar]), cones.model_copy(update={"lift_past_parts": True})).picks
+    assert past.lifts_past == ("captured points",)
+    assert pick.lifts_past == () and free.lifts_past == ()
+    # The block's face a bin wall found at import (its plane given): the bin is not pushed. Back
+    # along the approach runs into it; the pick leaves straight up past the measured bar ...
+    wall = np.array([[0.0, 1.0, 0.0, -0.025]])  # y = 0.025, the block's face toward the part
+
+    def plan_in_bin(captured, **update):
+        return plan_picks(
+            T[None], np.array([0.9]), grasps, box_part.points_m, box_part.normals, box_part.centre_m, captured,
+            FLOOR, cones.model_copy(update={"lift_past_parts": True, **update}), wall_planes=wall, wall_band_m=0.003,
+        )  # fmt: skip
+
+    (up_past,) = plan_in_bin(np.concatenate([edge, top, bar])).picks
+    assert up_past.lifts_past == ("captured points",) and np.allclose(up_past.retreat_cam, [0.0, 0.0, -1.0])
+    # ... and allowed only back along the approach, it is not taken: the wall stops it.
+    walled = plan_in_bin(np.concatenate([edge, top]), leave_straight_up=False)
+    assert not walled.picks and "the part lifts into bin" in walled.unpicked[0][1]
 
 
 def test_a_tool_moved_off_its_axis_hits_what_lies_on_its_way_and_not_beside_it(pick_settings):

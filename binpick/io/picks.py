@@ -55,6 +55,7 @@ def _pick_entry(
         "clearance_m": round(p.clearance_m, 6),
         "height_m": round(p.height_m, 6),
         "trusted": p.trusted,
+        "lifts_past": list(p.lifts_past),
         **({"width_m": round(p.width_m, 6)} if gripper == "jaw" else {}),
         "camera": {k: _T(v) for k, v in cam.items()},
         "base": {k: _T(T_base @ v) for k, v in cam.items()},

@@ -48,8 +48,9 @@ def lift_blockers(
     radius_m: float,
     contact_m: float,
     obstacle_normals: np.ndarray | None = None,
-) -> set[int]:
-    """The sources of the obstacles the part runs into on its way out.
+) -> dict[int, int]:
+    """The sources of the obstacles the part runs into on its way out, with how many of their
+    points it runs into (at least MIN_BLOCKING_POINTS each).
 
     surface_m (n, 3), normals (n, 3): the part's surface sample at its pose and outward normals;
     moves: (direction (3,), unit; distance m) in order, each starting where the last ended;
@@ -95,7 +96,7 @@ def lift_blockers(
         ahead = along[candidates[pairs["j"]]] - leading[pairs["i"]] @ u
         hit[candidates[pairs["j"][(ahead > contact_m) & (ahead <= distance_m + contact_m)]]] = True
     found, counts = np.unique(sources[hit], return_counts=True)
-    return {int(s) for s, n in zip(found, counts, strict=True) if n >= MIN_BLOCKING_POINTS}
+    return {int(s): int(n) for s, n in zip(found, counts, strict=True) if n >= MIN_BLOCKING_POINTS}
 
 
 def _across(u: np.ndarray) -> np.ndarray:
