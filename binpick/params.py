@@ -676,6 +676,12 @@ class PickParams(_Strict):
         "neighbours block (not the bin), those pushing the fewest parts first (picking/plan.py); false: report no pick",
     )
     clearance_m: float = Field(ge=0, description="the swept gripper keeps at least this from every obstacle")
+    room_m: float = Field(
+        0.006,
+        ge=0,
+        description="a part's grasps whose swept gripper keeps less than this from everything (but clearance_m) "
+        "are tried after its others: a neighbour leaning on the part falls into the room it leaves, toward the tool",
+    )
     own_points_m: float = Field(gt=0, description="captured points this near the target's posed model are its own")
     max_seen_through: float = Field(
         ge=0,

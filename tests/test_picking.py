@@ -238,7 +238,7 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settin
     ).picks[0]
     assert alone.clearance_m == pytest.approx(0.05)  # the cap
     G = alone.T_cam_from_grasp
-    for gap in (0.006, 0.015, 0.035):
+    for gap in (0.008, 0.015, 0.035):
         point = G[:3, 3] - 0.06 * G[:3, 2] + (pick_settings.suction.tool_radius_m + gap) * G[:3, 0]
         plan = plan_picks(
             T[None],
@@ -253,6 +253,31 @@ def test_clearance_is_the_distance_to_the_nearest_obstacle(box_part, pick_settin
         )
         assert plan.picks[0].grasp_id == alone.grasp_id
         assert plan.picks[0].clearance_m == pytest.approx(gap, abs=1e-6)
+
+
+def test_a_grasp_with_little_room_about_the_gripper_waits_for_the_parts_others(box_part, pick_settings):
+    """A point 4 mm beside the tool of the part's first pick (within room_m, beyond clearance_m):
+    another of its grasps, with room, is taken; where no grasp has the room asked, the first one
+    is."""
+    grasps = suction_grasps(box_part, pick_settings)
+    T = lying(0.0, 0.0)
+    seen = seen_surface(T, box_part)
+    assert pick_settings.clearance_m < 0.004 < pick_settings.room_m
+
+    def first_pick(captured):
+        return plan_one_box(T, grasps, box_part, captured, pick_settings).picks[0]
+
+    alone = first_pick(seen)
+
+    def beside(G):
+        return G[:3, 3] - 0.06 * G[:3, 2] + (pick_settings.suction.tool_radius_m + 0.004) * G[:3, 0]
+
+    other = first_pick(np.vstack([seen, beside(alone.T_cam_from_grasp)]))
+    assert other.grasp_id != alone.grasp_id and other.clearance_m >= pick_settings.room_m
+    # Room asked beyond the clearance's cap (every grasp is tight): the first is taken all the same.
+    roomy = pick_settings.model_copy(update={"room_m": 0.06})
+    tight = plan_one_box(T, grasps, box_part, seen, roomy).picks[0]
+    assert tight.grasp_id == alone.grasp_id and tight.clearance_m < roomy.room_m
 
 
 def plan_one_box(T, grasps, box_part, captured, settings, bin_box=None):

@@ -38,6 +38,7 @@ A part without a pick says why: every grasp outside the approach cone, or what t
 from __future__ import annotations
 
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -382,8 +383,13 @@ def _plan(
             again = near_contacts(tools[candidates, :3, 3], failed_contacts_m, contact_size_m(params, grasps.kind))
             failed_here = int(again.sum())
             candidates = candidates[~again]
-        for g in candidates:
-            n_tried += 1
+        # Grasps with less than room_m about the gripper wait until the part's others are tried:
+        # a neighbour leaning on the part drops into the room it leaves as it comes out, toward
+        # the tool (bench cell: a T-joint tipped 2.9 mm into the tool 0.13 s into the lift of its
+        # neighbour, the swept tool having passed 3.2 mm from it).
+        tight: list[int] = []
+        for g, deferred in _in_turn(candidates, in_cone, tight):
+            n_tried += int(not deferred)
             T_tool = tools[g]
             if not contact_seen(
                 T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m
@@ -397,6 +403,9 @@ def _plan(
             if hit:
                 causes.update(hit)
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(hit))))
+                continue
+            if clearance < params.room_m and not deferred:
+                tight.append(g)
                 continue
             # The part itself, out of the heap and up a diameter, must come free (lift.py).
             if near_lift is None:
@@ -525,6 +534,15 @@ def _plan(
     unpicked.sort(key=lambda u: u[0])
     rejected.sort(key=lambda r: r.pose_index)
     return PickPlan(picks, unpicked, rejected, up, n_tried)
+
+
+def _in_turn(candidates: np.ndarray, in_cone: np.ndarray, tight: list[int]) -> Iterator[tuple[int, bool]]:
+    """The grasps to try, (index, deferred): the tier within the cone, then the grasps of it that
+    the loop put in tight, then the same for the fallback tier."""
+    for tier in (candidates[in_cone[candidates]], candidates[~in_cone[candidates]]):
+        tight.clear()
+        yield from ((int(g), False) for g in tier)
+        yield from ((g, True) for g in list(tight))
 
 
 def _name(cause: str) -> str:
