@@ -102,6 +102,33 @@ def rod_part(radius_m: float, length_m: float, sections: int):
     return make_part_model("rod", mesh, SymmetryParams(kind="revolution"), 20000, np.random.default_rng(0), "m")
 
 
+def test_a_suction_grasp_beside_a_step_keeps_a_poses_error_from_it(pick_settings, monkeypatch):
+    """A 5 mm plate with a wall rising 15 mm above it along its +x end: the cups on the plate's
+    top keep SELF_MARGIN_M from the wall's face (a pose a millimetre off must not set the lip on
+    it); without the margin some come within it."""
+    import binpick.picking.grasps as grasps_module
+    from binpick.params import SymmetryParams
+    from binpick.part.model import make_part_model
+
+    plate = trimesh.creation.box(extents=(0.06, 0.04, 0.005))
+    plate.apply_translation((0.0, 0.0, 0.0025))
+    wall = trimesh.creation.box(extents=(0.01, 0.04, 0.02))
+    wall.apply_translation((0.035, 0.0, 0.01))  # its face toward the plate at x = 0.03
+    part = make_part_model(
+        "step", trimesh.util.concatenate([plate, wall]), SymmetryParams(), 20000, np.random.default_rng(0), "m"
+    )
+
+    def gaps_to_the_wall() -> np.ndarray:
+        T = suction_grasps(part, pick_settings).T_model_from_tool
+        on_top = (T[:, 2, 2] < -0.99) & (np.abs(T[:, 2, 3] - 0.005) < 1e-4)
+        assert on_top.sum() > 10
+        return 0.03 - T[on_top, 0, 3] - pick_settings.suction.cup_radius_m
+
+    assert gaps_to_the_wall().min() >= grasps_module.SELF_MARGIN_M > 0.0
+    monkeypatch.setattr(grasps_module, "SELF_MARGIN_M", 0.0)
+    assert gaps_to_the_wall().min() < 0.001
+
+
 def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings):
     """A rod of 12 facets declared a solid of revolution: its side grasps approach along the
     cylinder's own normal (straight at the axis), not their facet's, which lies up to 15 degrees
