@@ -105,7 +105,7 @@ def rod_part(radius_m: float, length_m: float, sections: int):
 def test_a_suction_grasp_beside_a_step_keeps_a_poses_error_from_it(pick_settings, monkeypatch):
     """A 5 mm plate with a wall rising 15 mm above it along its +x end: the cups on the plate's
     top keep SELF_MARGIN_M from the wall's face (a pose a millimetre off must not set the lip on
-    it); without the margin some come within it."""
+    it); without the margin and the lip's seal test some come within it."""
     import binpick.picking.grasps as grasps_module
     from binpick.params import SymmetryParams
     from binpick.part.model import make_part_model
@@ -125,8 +125,34 @@ def test_a_suction_grasp_beside_a_step_keeps_a_poses_error_from_it(pick_settings
         return 0.03 - T[on_top, 0, 3] - pick_settings.suction.cup_radius_m
 
     assert gaps_to_the_wall().min() >= grasps_module.SELF_MARGIN_M > 0.0
+    # Neither the margin nor the lip's seal tried a millimetre off (which meets the wall too).
     monkeypatch.setattr(grasps_module, "SELF_MARGIN_M", 0.0)
+    monkeypatch.setattr(grasps_module, "_seals", lambda *args: True)
     assert gaps_to_the_wall().min() < 0.001
+
+
+def test_a_suction_cups_lip_stays_on_a_washers_face_clear_of_its_hole_and_rim(pick_settings, monkeypatch):
+    """A washer (12-30 mm radius, 5 mm thick): every cup on its faces keeps its lip on the face,
+    about SEAL_OFFSET_M (1 mm, less the tessellation's few tenths) inside the hole's edge and the
+    rim. The point sample's patch test alone lets lips hang over both."""
+    import binpick.picking.grasps as grasps_module
+    from binpick.params import SymmetryParams
+    from binpick.part.model import make_part_model
+
+    washer = trimesh.creation.annulus(r_min=0.012, r_max=0.03, height=0.005)
+    part = make_part_model("washer", washer, SymmetryParams(), 20000, np.random.default_rng(0), "m")
+    r = pick_settings.suction.cup_radius_m
+
+    def lip_gaps() -> tuple[float, float]:
+        T = suction_grasps(part, pick_settings).T_model_from_tool
+        on_face = np.abs(np.abs(T[:, 2, 2]) - 1.0) < 1e-3
+        assert on_face.sum() > 20
+        radius = np.linalg.norm(T[on_face, :2, 3], axis=1)
+        return float(np.min(radius - r - 0.012)), float(np.min(0.03 - radius - r))
+
+    assert min(lip_gaps()) > grasps_module.SEAL_OFFSET_M - 0.0005
+    monkeypatch.setattr(grasps_module, "_seals", lambda *args: True)
+    assert max(lip_gaps()) < 0.0
 
 
 def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings):

@@ -21,7 +21,7 @@ import trimesh
 from scipy.spatial.transform import Rotation
 
 from binpick.cell.robot import NO_GRIP, Execution, execute_pick
-from binpick.cell.sim_contact import CONTACT_TOLERANCE_M, arrived, cup_seal, jaws_touch
+from binpick.cell.sim_contact import arrived, jaws_touch
 from binpick.cell.sim_world import add_arm, add_boxes, add_part, add_tool
 from binpick.generation.physics import SCALE, TIME_STEP_S, convex_parts_obj, quaternion_xyzw
 from binpick.geometry.transforms import invert_T, make_T, transform_points
@@ -30,6 +30,7 @@ from binpick.params import CellParams, PickParams
 from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion
 from binpick.picking.gripper import holding_force_n
+from binpick.picking.seal import CONTACT_TOLERANCE_M, cup_seal
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.trajectory import JointLimits, chain_motion, motion
 
@@ -430,7 +431,7 @@ class SimulatedCell:
         return self._body_pose(body) @ invert_T(self.T_model_from_body)
 
     def _sealed_part(self, T_bin_from_tcp: np.ndarray) -> int | None:
-        """The part whose true mesh the cup's lip seals on at this tool pose (sim_contact.cup_seal)."""
+        """The part whose true mesh the cup's lip seals on at this tool pose (picking/seal.py)."""
         for i, body in enumerate(self.parts):
             if body is not None:
                 sealed = cup_seal(self.rays, invert_T(self._model_pose(body)) @ T_bin_from_tcp, self.pick.suction)
