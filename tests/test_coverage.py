@@ -55,7 +55,8 @@ def tube():
 def test_a_tube_standing_on_its_end_ring_has_no_grasp_for_a_cup_wider_than_the_ring(tube, pick_settings):
     """The end rings are 7 mm wide: the 10 mm cup seals only on the outer wall, so a tube standing
     on end has no grasp within the cone and one lying on its side has; of the smaller cups tried
-    (8, 6, 4 mm across) the largest that fits the ring, 6 mm, reaches every side."""
+    (8, 6, 4 mm across) the largest whose lip stays on the ring with the pose a millimetre off
+    either way (grasps.SEAL_OFFSET_M: 2 mm narrower than the ring), 4 mm, reaches every side."""
     assert pick_settings.suction.cup_radius_m == pytest.approx(0.005)
     T, probability = stable_poses(tube)
     assert probability.sum() == pytest.approx(1.0)
@@ -66,4 +67,4 @@ def test_a_tube_standing_on_its_end_ring_has_no_grasp_for_a_cup_wider_than_the_r
     standing = sum(s.probability for s in bare)
     assert 0.0 < standing < 0.5
     assert covered_share(sides) == pytest.approx(1.0 - standing)
-    assert smaller_cup_covering(tube, pick_settings, T, probability, 0.01) == pytest.approx(0.003)
+    assert smaller_cup_covering(tube, pick_settings, T, probability, 0.01) == pytest.approx(0.002)

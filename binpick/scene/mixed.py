@@ -265,8 +265,9 @@ def _picks(
     failed: FailedGrips | None = None,
 ) -> tuple[list[MixedPick], dict[str, list[tuple[int, str]]], np.ndarray]:
     """Each part's picks with the other parts' posed bodies as obstacles, merged into one list:
-    the priority's parts first in its order, then by each part's own ranking (trusted first, then
-    pick.order), ties by part name."""
+    picks whose part comes out free before those taken past their neighbours (a part with no free
+    pick of its own kind gets those: pick.lift_past_parts), then the priority's parts in its
+    order, then by each part's own ranking (trusted first, then pick.order), ties by part name."""
     merged: list[tuple[tuple, MixedPick]] = []
     unpicked: dict[str, list[tuple[int, str]]] = {}
     # Each part's body as the others' obstacle: its surface sample on the grid a plan gives the
@@ -303,6 +304,6 @@ def _picks(
         up_cam = plan.up_cam
         rank = priority.index(name) if name in priority else len(priority)
         for p in plan.picks:
-            merged.append(((rank, *rank_key(p, m.pick_params), name), MixedPick(name, p)))
+            merged.append(((bool(p.lifts_past), rank, *rank_key(p, m.pick_params), name), MixedPick(name, p)))
     merged.sort(key=lambda kp: kp[0])
     return [mp for _, mp in merged], unpicked, up_cam
