@@ -173,7 +173,7 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         behind = local[:, 2] < -s.max_deviation_m
         if behind.any() and np.min(signed_distance(local[behind], body)) < SELF_MARGIN_M:
             continue
-        if not _seals(rays, tool_frame(c, -n), s):
+        if not _seals(rays, T, s):
             continue
         good.append(int(i))
     if not good:

@@ -37,6 +37,7 @@ A part without a pick says why: every grasp outside the approach cone, or what t
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -192,62 +193,17 @@ def plan_picks(
     failed_contacts_m: np.ndarray | None = None,
     wall_planes: np.ndarray | None = None,
     wall_band_m: float = 0.0,
-) -> PickPlan:
-    """Picks for the detected parts (the arguments: _plan's).
-
-    When no part comes out of the heap free and some were refused only for what their way out
-    pushes (pick.lift_past_parts), the parts are planned again with only the bin and its walls
-    stopping a lift: a part with its neighbour's end resting on it or two parts crossed,
-    the last of a heap, is taken anyway (the neighbour slides off or is lifted a little and
-    drops back), those pushing the fewest parts first. On rendered T-joint bins of the cell
-    benchmark, five of 20 parts ended in such a chain, each under the next, and the bin was
-    left with them.
-    """
-    args = (T_cam_from_model, scores, grasps, part_points_m, part_normals, centre_m, captured_m, floor_plane, params)
-    rest = dict(
-        bin_box=bin_box,
-        seen_through=seen_through,
-        arm=arm,
-        q_from=q_from,
-        skip=skip,
-        failed_contacts_m=failed_contacts_m,
-        wall_planes=wall_planes,
-        wall_band_m=wall_band_m,
-    )
-    plan = _plan(*args, max_picks=max_picks, past_parts=False, **rest)  # type: ignore[arg-type]
-    if plan.picks or not params.lift_past_parts or not any(LIFTS_INTO in why for _, why in plan.unpicked):
-        return plan
-    # Every part planned (their ranking by pushes is known only after): such heaps are the few
-    # parts left at the bottom of a bin.
-    past = _plan(*args, max_picks=None, past_parts=True, **rest)  # type: ignore[arg-type]
-    if not past.picks:
-        return plan
-    picks = sorted(past.picks, key=lambda p: (len(p.lifts_past), rank_key(p, params)))
-    return PickPlan(picks, past.unpicked, past.rejected, past.up_cam, plan.n_candidates + past.n_candidates)
-
-
-def _plan(
-    T_cam_from_model: np.ndarray,
-    scores: np.ndarray,
-    grasps: GraspSet,
-    part_points_m: np.ndarray,
-    part_normals: np.ndarray,
-    centre_m: np.ndarray,
-    captured_m: np.ndarray,
-    floor_plane: np.ndarray,
-    params: PickParams,
-    bin_box: BinBox | None = None,
-    seen_through: np.ndarray | None = None,
-    arm: ArmPlanner | None = None,
-    q_from: np.ndarray | None = None,
-    max_picks: int | None = None,
-    skip: np.ndarray | None = None,
-    failed_contacts_m: np.ndarray | None = None,
-    wall_planes: np.ndarray | None = None,
-    wall_band_m: float = 0.0,
     past_parts: bool = False,
 ) -> PickPlan:
     """Picks for the detected parts.
+
+    When no part comes out of the heap free and some were refused only for what their way out
+    pushes (pick.lift_past_parts), the parts are planned again (past_parts) with only the bin
+    and its walls stopping a lift: a part with its neighbour's end resting on it or two parts
+    crossed, the last of a heap, is taken anyway (the neighbour slides off or is lifted a little
+    and drops back), those pushing the fewest parts first. On rendered T-joint bins of the cell
+    benchmark, five of 20 parts ended in such a chain, each under the next, and the bin was left
+    with them.
 
     T_cam_from_model : (p, 4, 4) detected parts' poses; scores (p,)
     grasps           : the part's grasps of the configured gripper, model frame, best first
@@ -529,11 +485,24 @@ def _plan(
                     + where_failed,
                 )
             )
-    picks.sort(key=lambda p: rank_key(p, params))
     # Parts were tried in rank order; their refusals are listed by pose.
     unpicked.sort(key=lambda u: u[0])
     rejected.sort(key=lambda r: r.pose_index)
-    return PickPlan(picks, unpicked, rejected, up, n_tried)
+    if past_parts:
+        picks.sort(key=lambda p: (len(p.lifts_past), rank_key(p, params)))
+        return PickPlan(picks, unpicked, rejected, up, n_tried)
+    picks.sort(key=lambda p: rank_key(p, params))
+    if picks or not params.lift_past_parts or not any(LIFTS_INTO in why for _, why in unpicked):
+        return PickPlan(picks, unpicked, rejected, up, n_tried)
+    # Every part planned (their ranking by pushes is known only after): such heaps are the few
+    # parts left at the bottom of a bin.
+    past = plan_picks(
+        T_cam_from_model, scores, grasps, part_points_m, part_normals, centre_m, captured_m, floor_plane, params,
+        bin_box, seen_through, arm, q_from, None, skip, failed_contacts_m, wall_planes, wall_band_m, past_parts=True,
+    )  # fmt: skip
+    if not past.picks:
+        return PickPlan(picks, unpicked, rejected, up, n_tried)
+    return dataclasses.replace(past, n_candidates=n_tried + past.n_candidates)
 
 
 def _in_turn(candidates: np.ndarray, in_cone: np.ndarray, tight: list[int]) -> Iterator[tuple[int, bool]]:
