@@ -150,6 +150,18 @@ def test_a_bin_box_is_an_obstacle_only_as_high_as_its_walls():
     assert np.allclose(points[face(normals, [0.0, 0.0, 1.0]), 2], 0.0)  # the floor
     full, full_normals = BinBox(np.eye(4), box.inner_min_m, box.inner_max_m).surface(0.01)
     assert np.isclose(full[face(full_normals, [1.0, 0.0, 0.0]), 2].max(), 0.2)
+    # Its side walls as planes, normals into the bin: each of the wall's points lies on its
+    # plane, in a box seen from a camera turned and moved (the -x wall it lacks not among them).
+    T_cam_from_bin = make_T(axis_angle_to_R(np.array([0.3, -0.2, 0.9]), 0.7), np.array([0.05, -0.02, 0.9]))
+    seen = BinBox(T_cam_from_bin, box.inner_min_m, box.inner_max_m, box.wall_heights_m)
+    points_cam, normals_cam = seen.surface(0.01)
+    planes = seen.side_planes()
+    assert len(planes) == 3
+    for plane in planes:
+        on = np.all(np.isclose(normals_cam, plane[:3]), axis=1)
+        assert on.any() and np.allclose(points_cam[on] @ plane[:3] + plane[3], 0.0, atol=1e-9)
+    centre = T_cam_from_bin[:3, :3] @ np.array([0.0, 0.0, 0.1]) + T_cam_from_bin[:3, 3]
+    assert np.all(planes[:, :3] @ centre + planes[:, 3] > 0.09)
 
 
 def test_the_shared_icbin_frame_gives_no_pose_outside_its_box(shared_data, tmp_path):

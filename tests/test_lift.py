@@ -8,7 +8,14 @@ import numpy as np
 import trimesh
 from scipy.spatial import cKDTree
 
-from binpick.picking.lift import across_the_way_out, in_footprint, lift_blockers, way_outs
+from binpick.picking.lift import (
+    LEAVE_WALL_DEG,
+    across_the_way_out,
+    in_footprint,
+    lift_blockers,
+    walls_touched,
+    way_outs,
+)
 
 UP = np.array([0.0, 0.0, 1.0])  # this test's frame: z up (the camera's frame is any rigid turn of it)
 RADIUS_M, CONTACT_M = 0.003, 0.011
@@ -125,3 +132,29 @@ def test_the_points_across_the_way_out_hold_every_blocker_of_every_way_within_th
             assert among_kept == every
             found_any |= bool(every)
     assert found_any
+
+
+def test_a_part_resting_against_walls_leaves_them_and_does_not_slide_along_them():
+    # The box (0.06 x 0.04 x 0.02, centred at the origin, on the floor) in a corner: a wall 1 mm
+    # off its +x side (x = 0.031) and one on its -y side (y = -0.02); a third 0.1 m off.
+    part, _ = box_surface((0.06, 0.04, 0.02), (0.0, 0.0, 0.01))
+    planes = np.array([[1.0, 0.0, 0.0, -0.031], [0.0, -2.0, 0.0, -0.04], [0.0, 1.0, 0.0, -0.12]])
+    touched = walls_touched(part, np.array([0.0, 0.0, 0.01]), planes, 0.002)
+    assert np.allclose(sorted(map(tuple, touched)), [(-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)])
+    leave = np.radians(LEAVE_WALL_DEG)
+    # Straight down: up, tilted away from both walls alike.
+    (up,) = way_outs(-UP, UP, walls=touched)
+    assert np.allclose(up, [-np.sin(leave) / np.sqrt(2), np.sin(leave) / np.sqrt(2), np.cos(leave)])
+    # Against one wall: an approach tilted 20 degrees away from it leaves back along it first; one
+    # tilted toward the wall (back along it drags the part into the wall) only up, tilted away.
+    one = touched[:1]
+    tilt = np.radians(20.0)
+    away, toward = np.array([np.sin(tilt), 0.0, -np.cos(tilt)]), np.array([-np.sin(tilt), 0.0, -np.cos(tilt)])
+    back, up = way_outs(away, UP, walls=one)
+    assert np.allclose(back, -away) and np.allclose(up, [-np.sin(leave), 0.0, np.cos(leave)])
+    (up_only,) = way_outs(toward, UP, walls=one)
+    assert np.allclose(up_only, [-np.sin(leave), 0.0, np.cos(leave)])
+    # No wall touched: as before, and straight_up false keeps the approach's way alone.
+    assert len(way_outs(toward, UP, walls=np.zeros((0, 3)))) == 2
+    (only_back,) = way_outs(toward, UP, straight_up=False, walls=one)
+    assert np.allclose(only_back, -toward)

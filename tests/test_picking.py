@@ -32,6 +32,7 @@ from binpick.picking.gripper import (
     signed_distance,
     swept,
 )
+from binpick.picking.lift import LEAVE_WALL_DEG
 from binpick.picking.measured import contact_seen
 from binpick.picking.obstacles import BIN, CAPTURED
 from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, plan_picks
@@ -843,7 +844,10 @@ def test_a_part_dragged_into_its_neighbour_along_a_tilted_approach_leaves_straig
         )  # fmt: skip
 
     (up_past,) = plan_in_bin(np.concatenate([edge, top, bar])).picks
-    assert up_past.lifts_past == ("captured points",) and np.allclose(up_past.retreat_cam, [0.0, 0.0, -1.0])
+    # Up, tilted away from the wall the part rests against (lift.LEAVE_WALL_DEG): -y here.
+    leave = np.radians(LEAVE_WALL_DEG)
+    assert up_past.lifts_past == ("captured points",)
+    assert np.allclose(up_past.retreat_cam, [0.0, -np.sin(leave), -np.cos(leave)])
     # ... and allowed only back along the approach, it is not taken: the wall stops it.
     walled = plan_in_bin(np.concatenate([edge, top]), leave_straight_up=False)
     assert not walled.picks and "the part lifts into bin" in walled.unpicked[0][1]

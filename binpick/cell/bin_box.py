@@ -85,6 +85,22 @@ class BinBox:
                 return True
         return False
 
+    def side_planes(self) -> np.ndarray:
+        """(w, 4) the planes of its side walls (those it has), camera frame: a, b, c, d with
+        a x + b y + c z + d = 0, the unit normal facing into the bin."""
+        T = np.asarray(self.T_cam_from_bin, dtype=np.float64)
+        lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
+        heights = np.full(4, hi[2]) if self.wall_heights_m is None else np.asarray(self.wall_heights_m, float)
+        planes = []
+        sides = ((0, lo[0], 1.0), (0, hi[0], -1.0), (1, lo[1], 1.0), (1, hi[1], -1.0))  # WALL_SIDES' order
+        for k, (axis, value, inward) in enumerate(sides):
+            if heights[k] <= lo[2]:
+                continue  # no wall on this side
+            n = inward * T[:3, axis]
+            point = T[:3, :3] @ (np.eye(3)[axis] * value) + T[:3, 3]
+            planes.append(np.append(n, -n @ point))
+        return np.array(planes).reshape(-1, 4)
+
     def surface_points(self, spacing_m: float) -> np.ndarray:
         """(n, 3) camera frame: points on the inner faces of the walls and the floor."""
         return self.surface(spacing_m)[0]

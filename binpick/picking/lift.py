@@ -25,18 +25,57 @@ SLIDE_SIN = 0.17
 # An approach within this angle of the bin's down axis (cosine; about 5 degrees) leaves along the
 # approach only: straight up is the same way out.
 SAME_WAY_COS = 0.996
+# A part resting against a bin wall leaves it at this angle at least (degrees), not along it: the
+# arm's way up drifts toward the wall by a degree or so (a joint-space move, the bin's up axis
+# estimated from the capture), and a part pressed between a wall and a neighbour then holds fast.
+# Bench cell: a ring screw in a corner of its bin, lifted straight up along both walls, pressed
+# 29 N on them with the tool 0.4 mm off its line after 16 mm and tore off its 14.5 N cup.
+LEAVE_WALL_DEG = 6.0
 
 
-def way_outs(approach: np.ndarray, up: np.ndarray, straight_up: bool = True) -> list[np.ndarray]:
+def walls_touched(surface_m: np.ndarray, centre_m: np.ndarray, planes: np.ndarray, touch_m: float) -> np.ndarray:
+    """(k, 3) unit normals, facing the part, of the planes among `planes` (w, 4: a, b, c, d with
+    a x + b y + c z + d = 0; the bin's side walls) that lie within touch_m of the part's surface
+    sample surface_m (n, 3), whose centre_m (3,) is inside the bin; same frame, metres."""
+    planes = np.asarray(planes, dtype=np.float64).reshape(-1, 4)
+    surface_m = np.asarray(surface_m, dtype=np.float64).reshape(-1, 3)
+    if len(planes) == 0 or len(surface_m) == 0:
+        return np.zeros((0, 3))
+    planes = planes / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    planes = planes * np.where(planes[:, :3] @ np.asarray(centre_m, float) + planes[:, 3] < 0.0, -1.0, 1.0)[:, None]
+    nearest = np.min(surface_m @ planes[:, :3].T + planes[:, 3], axis=0)
+    return planes[nearest <= touch_m, :3]
+
+
+def way_outs(
+    approach: np.ndarray, up: np.ndarray, straight_up: bool = True, walls: np.ndarray | None = None
+) -> list[np.ndarray]:
     """The directions (unit, the frame of approach (3,) and up (3,)) a grasped part may leave by,
     first choice first: back along the approach, retracing the path the gripper check cleared on
     the way in; then, when straight_up and the approach is tilted, straight up the bin's axis. Pulled back along
     a tilted approach a part is dragged sideways through its neighbours: on the ring screw's
     curved faces (approaches up to 49 degrees from the vertical) every grasp of a heap of 10-20
-    did, though nothing lay above the parts."""
+    did, though nothing lay above the parts.
+
+    walls (k, 3): the unit normals, facing the part, of the walls it rests against (walls_touched):
+    every way out leaves them at LEAVE_WALL_DEG at least. Back along an approach that does not is
+    left out (straight_up false: kept, the only way allowed), and up is tilted away from them (not
+    when they face each other, a part across the bin)."""
     back = -np.asarray(approach, dtype=np.float64) / np.linalg.norm(approach)
     up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
-    return [back] if not straight_up or float(back @ up) >= SAME_WAY_COS else [back, up]
+    if not straight_up:
+        return [back]
+    normals = np.zeros((0, 3)) if walls is None else np.asarray(walls, dtype=np.float64).reshape(-1, 3)
+    leave_sin = np.sin(np.radians(LEAVE_WALL_DEG))
+    away = np.sum(normals - np.outer(normals @ up, up), axis=0)
+    if np.linalg.norm(away) > 1e-6:
+        away /= np.linalg.norm(away)
+        up = np.cos(np.radians(LEAVE_WALL_DEG)) * up + leave_sin * away
+    # A millimetre in a metre short of the angle still leaves (the tilted up itself, rounded).
+    leaves = bool(np.all(normals @ back >= leave_sin - 1e-3))
+    if leaves and float(back @ up) >= SAME_WAY_COS:
+        return [back]
+    return [back, up] if leaves else [up]
 
 
 def lift_blockers(

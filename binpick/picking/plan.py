@@ -55,7 +55,7 @@ from binpick.io.grasps import GraspSet
 from binpick.params import PickParams
 from binpick.picking.arm import ARM_REASONS, ArmMotion, ArmPlanner, turned
 from binpick.picking.gripper import contact_size_m, gripper_primitives, swept
-from binpick.picking.lift import across_the_way_out, lift_blockers, way_outs
+from binpick.picking.lift import across_the_way_out, lift_blockers, walls_touched, way_outs
 from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
     OWN_NOISE_SIGMAS,
@@ -252,6 +252,7 @@ def plan_picks(
     carried_sample = part_points[:: max(1, int((CARRIED_GRID_M / max(own_of.spacing_m, 1e-6)) ** 2))]
     captured = thin(np.asarray(captured_m, dtype=np.float64).reshape(-1, 3), grid)
     walls = np.zeros((0, 4)) if wall_planes is None else wall_planes
+    side_walls = bin_box.side_planes() if bin_box is not None else walls
     spacing_m = point_spacing_m(captured)
     # Obstacle points with their source: -1 captured, -2 the bin (the given box's faces, else the
     # stretches of the walls found at import that the camera did not see), k >= 0 detected part k.
@@ -379,11 +380,12 @@ def plan_picks(
                 ahead_sources, ahead_normals = source[ahead], obstacle_normals[ahead]
                 # The bin: its faces and the captured points on a wall (those with a known normal).
                 fixed = (ahead_sources == -2) | np.isfinite(ahead_normals[:, 0])
+                resting_on = walls_touched(posed[i], centres[i], side_walls, lift_radius + 2 * limit)
             retreat: np.ndarray | None = None
             dragged: set[str] = set()
             pushed: tuple[str, ...] = ()
-            for k, direction in enumerate(way_outs(T_tool[:3, 2], up, params.leave_straight_up)):
-                if k > 0 and tree is not None:
+            for direction in way_outs(T_tool[:3, 2], up, params.leave_straight_up, resting_on):
+                if float(direction @ -T_tool[:3, 2]) < 1.0 - 1e-9 and tree is not None:
                     # Off the tool's axis its own way out is not in the swept check above.
                     tool_hit = moved_tool_hits(
                         tool,
