@@ -39,7 +39,7 @@ from binpick.registration.verification import (
     visible_support,
 )
 from binpick.registration.visibility import DepthView
-from binpick.registration.voting import vote
+from binpick.registration.voting import aligned_scene, vote
 
 
 def match_segment(
@@ -186,8 +186,11 @@ def match_scene(
     refs = np.sort(rng.choice(free, size=n_refs, replace=False))
     candidates: list[tuple[np.ndarray, float]] = []
     # In chunks: the accumulator holds (references x model points x angle bins) counts.
+    # Every point's alignment once, not once a chunk (over a gear shaft's 1 m bin at a tee's grid,
+    # hundreds of chunks, it had cost a minute or more a capture).
+    aligned = aligned_scene(pts, nrm)
     for chunk in np.array_split(refs, int(np.ceil(len(refs) / SCENE_REFS_PER_CHUNK))):
-        candidates += vote(model, pts, nrm, chunk)
+        candidates += vote(model, pts, nrm, chunk, aligned)
     fine = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
     inlier = scales.inlier_m
     tree = cKDTree(fine)  # ball queries

@@ -21,15 +21,34 @@ from binpick.registration.model import _align_to_x
 _KERNELS = threading.Lock()
 
 
-def vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) -> list[tuple[np.ndarray, float]]:
-    """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference."""
+def aligned_scene(pts: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What the voting kernel reads of every scene point (n, 3 each): the unit normals and each
+    point's alignment (_align_to_x) as rotations (n, 3, 3) and translations (n, 3)."""
     T_s = _align_to_x(pts, nrm)
+    return (
+        nrm / np.linalg.norm(nrm, axis=1, keepdims=True),
+        np.ascontiguousarray(T_s[:, :3, :3]),
+        np.ascontiguousarray(T_s[:, :3, 3]),
+    )
+
+
+def vote(
+    model: PPFModel,
+    pts: np.ndarray,
+    nrm: np.ndarray,
+    refs: np.ndarray,
+    aligned: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+) -> list[tuple[np.ndarray, float]]:
+    """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference.
+    aligned: aligned_scene(pts, nrm), given when the caller votes in chunks of references over
+    the same points (once for all of them); computed here otherwise."""
+    unit_normals, R_s, t_s = aligned_scene(pts, nrm) if aligned is None else aligned
     with _KERNELS:
         group_start, keys, alpha_s = _scene_pairs(
             pts,
-            nrm / np.linalg.norm(nrm, axis=1, keepdims=True),
-            np.ascontiguousarray(T_s[:, :3, :3]),
-            np.ascontiguousarray(T_s[:, :3, 3]),
+            unit_normals,
+            R_s,
+            t_s,
             refs.astype(np.int64),
             model.diameter_m,
             model.distance_step_m,
@@ -60,7 +79,10 @@ def vote(model: PPFModel, pts: np.ndarray, nrm: np.ndarray, refs: np.ndarray) ->
     Rx[:, 0, 0] = Rx[:, 3, 3] = 1.0
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
     T_m = _align_to_x(model.points_m, model.normals)
-    poses = invert_T(T_s[refs[ref_rows]]) @ Rx @ T_m[m_r]
+    rows = refs[ref_rows]
+    T_s = np.zeros((len(rows), 4, 4))
+    T_s[:, :3, :3], T_s[:, :3, 3], T_s[:, 3, 3] = R_s[rows], t_s[rows], 1.0
+    poses = invert_T(T_s) @ Rx @ T_m[m_r]
     return list(zip(poses, peak_votes[valid].astype(np.float64), strict=False))
 
 

@@ -189,7 +189,11 @@ def process_mixed(
     found: dict[str, list[PartPose]] = {}
     clouds: dict[str, CleanCloud] = {}
     segment_s = 0.0
-    for name in names:
+    # Largest part first: its poses explain a share of the capture that a smaller part's
+    # whole-scene pass then does not vote over (a tee's fine grid over a bin of gear shafts, every
+    # point of which the tee's network calls a part, voted for 3-4 minutes a capture). Conflicts
+    # are still resolved over every part's poses below.
+    for name in sorted(names, key=lambda n: -models[n].part.diameter_m):
         m = models[name]
         clouds[name] = cleaned(m.import_params)
         s0 = time.perf_counter()
@@ -204,6 +208,7 @@ def process_mixed(
             m.register_params.model_copy(update={"scene_votes_from": "parts", "part_share_waived_at_support": None}),
             seeds.register,
             segments.is_part if segments is not None else None,
+            _explained(clouds[name].points_m, [(models[n], p) for n in found for p in found[n]]),
         ).poses
     t2 = time.perf_counter()
     flat = [(name, p) for name in names for p in found[name]]
@@ -250,6 +255,19 @@ def within_quota(picks: list[MixedPick], quota: dict[str, int]) -> tuple[list[Mi
             taken[mp.part] = taken.get(mp.part, 0) + 1
             kept.append(mp)
     return kept, over
+
+
+def _explained(points_m: np.ndarray, posed: list[tuple[PartModels, PartPose]]) -> np.ndarray | None:
+    """(n,) bool, the points (n, 3) that the poses of other parts claim (claimed_points); None
+    when there are none."""
+    points_m = np.asarray(points_m, dtype=np.float64)
+    if not posed or len(points_m) == 0:
+        return None
+    tree = cKDTree(points_m)
+    out = np.zeros(len(points_m), bool)
+    for m, pose in posed:
+        out[claimed_points(points_m, m.part.points_m[::CLAIM_STRIDE], pose.T_cam_from_model, _inlier_m(m), tree)] = True
+    return out
 
 
 def _inlier_m(m: PartModels) -> float:

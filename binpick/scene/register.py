@@ -116,6 +116,7 @@ def register(
     params: RegisterParams,
     seed: np.random.SeedSequence | int,
     is_part: np.ndarray | None = None,
+    explained_elsewhere: np.ndarray | None = None,
 ) -> Registration:
     """Poses of the part in the cloud, as params.mode says: `segments` fits the part onto every
     segment, keeps poses scoring at least min_score and drops repeats (the same pose, or support
@@ -123,7 +124,8 @@ def register(
     both, the whole scene only for points no segment pose explains. labels (n,) int: needed
     unless the mode is whole_scene. is_part (n,) bool: the points the network calls a part's
     (Segments.is_part; default all): with params.scene_votes_from `parts`, the whole-scene pass
-    votes only from them."""
+    votes only from them. explained_elsewhere (n,) bool: the points other parts' poses explain
+    (a mixed bin, binpick/scene/mixed.py): the whole-scene pass votes from none of them."""
     rng = np.random.default_rng(seed)
     points = np.asarray(cloud.points_m, dtype=np.float64)
     image_tree = KDTree(image_coordinates(points)) if len(points) >= NOISE_NEIGHBOURS else None
@@ -257,7 +259,9 @@ def register(
             rng,
             params.max_instances,
             known=[p.T_cam_from_model for p in kept_poses],
-            votes_from=is_part if params.scene_votes_from == "parts" else None,
+            votes_from=_votes_from(
+                is_part if params.scene_votes_from == "parts" else None, explained_elsewhere, len(points)
+            ),
             view=view,
             max_seen_through=limit,
         )
@@ -338,3 +342,11 @@ def _resolve_near_symmetries(
     if n_turned:
         log.info("turned %d of %d poses by a near symmetry of the part, as the capture showed it", n_turned, len(out))
     return out
+
+
+def _votes_from(is_part: np.ndarray | None, explained_elsewhere: np.ndarray | None, n: int) -> np.ndarray | None:
+    """(n,) bool, the points the whole-scene pass may vote from (None: all)."""
+    if explained_elsewhere is None:
+        return is_part
+    free = ~np.asarray(explained_elsewhere, bool)
+    return free if is_part is None else free & np.asarray(is_part, bool)
