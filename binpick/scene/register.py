@@ -259,9 +259,7 @@ def register(
             rng,
             params.max_instances,
             known=[p.T_cam_from_model for p in kept_poses],
-            votes_from=_votes_from(
-                is_part if params.scene_votes_from == "parts" else None, explained_elsewhere, len(points)
-            ),
+            votes_from=_votes_from(is_part if params.scene_votes_from == "parts" else None, explained_elsewhere),
             view=view,
             max_seen_through=limit,
         )
@@ -344,7 +342,7 @@ def _resolve_near_symmetries(
     return out
 
 
-def _votes_from(is_part: np.ndarray | None, explained_elsewhere: np.ndarray | None, n: int) -> np.ndarray | None:
+def _votes_from(is_part: np.ndarray | None, explained_elsewhere: np.ndarray | None) -> np.ndarray | None:
     """(n,) bool, the points the whole-scene pass may vote from (None: all)."""
     if explained_elsewhere is None:
         return is_part
