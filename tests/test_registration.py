@@ -197,27 +197,110 @@ def test_whole_scene_matching_votes_only_from_the_points_called_a_part(t_joint, 
 
 def test_scene_pairs_match_the_training_features():
     """The scene side (one compiled pass) must quantise exactly like the model table, built from
-    _features, _keys and _alpha, or votes miss their model pairs."""
-    from binpick.registration.model import _align_to_x, _alpha, _features, _keys
-    from binpick.registration.voting import _scene_pairs
+    _features, _keys and _alpha, or votes miss their model pairs; and it must find every partner
+    within the radius, in index order, wherever the grid's cells cut the scene."""
+    from binpick.registration.model import _alpha, _features, _keys
+    from binpick.registration.voting import _scene_pairs, prepare_scene
 
     rng = np.random.default_rng(3)
-    pts = rng.uniform(-0.05, 0.05, (300, 3))
-    nrm = rng.normal(size=(300, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    refs = np.sort(rng.choice(300, 40, replace=False))
+    # A scene several radii wide, points on cell borders included, so that partners lie in the
+    # reference's neighbouring cells as well as its own.
     radius, step, bins = 0.06, 0.004, 30
-    T = _align_to_x(pts, nrm)
-    starts, keys, alpha = _scene_pairs(
-        pts, nrm, np.ascontiguousarray(T[:, :3, :3]), np.ascontiguousarray(T[:, :3, 3]), refs, radius, step, bins
-    )
+    pts = np.concatenate([rng.uniform(-0.2, 0.2, (1200, 3)), np.arange(-3, 4)[:, None] * radius + np.zeros((7, 3))])
+    n = len(pts)
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    refs = np.sort(np.concatenate([rng.choice(1200, 150, replace=False), np.arange(1200, n)]))
+    scene = prepare_scene(pts, nrm, radius)
+    starts, keys, alpha = _scene_pairs(pts, scene, refs, radius, step, bins)
     first = np.concatenate([np.full(starts[a + 1] - starts[a], r) for a, r in enumerate(refs)])
     d = np.linalg.norm(pts[refs][:, None] - pts[None], axis=2)
-    expected_second = [np.flatnonzero((d[a] <= radius) & (np.arange(300) != r)) for a, r in enumerate(refs)]
+    expected_second = [np.flatnonzero((d[a] <= radius) & (np.arange(n) != r)) for a, r in enumerate(refs)]
     second = np.concatenate(expected_second)
     assert len(keys) == len(second) > 1000
+    assert np.array_equal(np.diff(starts), [len(e) for e in expected_second])
     assert np.array_equal(keys, _keys(_features(pts[first], nrm[first], pts[second], nrm[second]), step, bins))
+    T = np.zeros((n, 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = scene.R_align, scene.t_align, 1.0
     assert np.allclose(alpha, _alpha(T[first], pts[second]), atol=1e-9)
+
+
+def test_greedy_clustering_finds_planted_clusters_and_joins_each_pose_where_a_scan_of_every_cluster_does():
+    """Twenty poses spread over a metre, each voted for by jittered copies and by copies turned
+    by the part's symmetry (a half turn with an offset): twenty clusters with the planted votes.
+    Then random poses, many near one another: the grid joins each to the earliest cluster a scan
+    of all of them in creation order finds, so the clusters and their votes are the same."""
+    from binpick.registration.clustering import _greedy_clusters
+
+    rng = np.random.default_rng(5)
+    flip = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.01, 0.0]))
+    symmetries = np.stack([np.eye(4), flip])
+    min_cos, max_dist = np.cos(np.radians(12.0)), 0.006
+
+    def rotation(rng):
+        axis = rng.normal(size=3)
+        return axis_angle_to_R(axis / np.linalg.norm(axis), rng.uniform(0.0, np.pi))
+
+    truth = [make_T(rotation(rng), rng.uniform([-0.5, -0.35, 1.6], [0.5, 0.35, 2.0])) for _ in range(20)]
+    poses, weights, owner = [], [], []
+    for c, T in enumerate(truth):
+        for k in range(8):
+            jitter = make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.radians(2.0)), rng.uniform(-1e-3, 1e-3, 3))
+            candidate = T @ jitter
+            poses.append(candidate @ np.linalg.inv(flip) if k % 2 else candidate)
+            weights.append(float(k + 1))
+            owner.append(c)
+    order = np.argsort(-np.asarray(weights), kind="stable")
+    poses_sorted = np.ascontiguousarray(np.asarray(poses)[order])
+    reps, votes = _greedy_clusters(poses_sorted, np.asarray(weights)[order], symmetries, min_cos, max_dist)
+    assert len(reps) == 20
+    planted = np.bincount(np.asarray(owner), weights=np.asarray(weights))
+    assert sorted(votes) == sorted(planted)
+
+    def scan(poses, weights):
+        reps, votes = [], []
+        for k, T in enumerate(poses):
+            for c, r in enumerate(reps):
+                twins = poses[r] @ symmetries
+                near = np.sum((twins[:, :3, 3] - T[:3, 3]) ** 2, axis=1) < max_dist**2
+                cos = (np.einsum("sij,ij->s", twins[:, :3, :3], T[:3, :3]) - 1.0) / 2.0
+                if np.any(near & (cos > min_cos)):
+                    votes[c] += weights[k]
+                    break
+            else:
+                reps.append(k)
+                votes.append(weights[k])
+        return reps, votes
+
+    crowd = np.stack([make_T(rotation(rng), rng.uniform(-0.02, 0.02, 3)) for _ in range(400)])
+    crowd_weights = rng.uniform(1.0, 5.0, 400)
+    reps, votes = _greedy_clusters(crowd, crowd_weights, symmetries, min_cos, max_dist)
+    expected_reps, expected_votes = scan(crowd, crowd_weights)
+    assert 20 < len(expected_reps) < 400
+    assert list(reps) == expected_reps and np.allclose(votes, expected_votes)
+
+
+def test_largest_patch_counts_the_biggest_linked_patch_of_the_kept_points():
+    """Three grids of points 1 mm apart, 30 mm from one another (100, 64 and 36 points), linked
+    within 1.5 mm: the largest patch is the 100. Keeping all but a line through the middle of
+    the first splits it into 40 and 50, so the 64 is the largest; keeping one point, it is 1."""
+    from scipy.spatial import cKDTree
+
+    from binpick.registration.matching import _largest_patch
+
+    def grid(n, x0):
+        ij = np.stack(np.meshgrid(np.arange(n), np.arange(n)), axis=-1).reshape(-1, 2)
+        return np.c_[x0 + 0.001 * ij, np.zeros(len(ij))]
+
+    pts = np.concatenate([grid(10, 0.0), grid(8, 0.03), grid(6, 0.06)])
+    links = cKDTree(pts).query_pairs(0.0015, output_type="ndarray")
+    kept = np.ones(len(pts), bool)
+    assert _largest_patch(links, kept) == 100
+    kept[:100] = ~np.isclose(pts[:100, 1], 0.004)
+    assert _largest_patch(links, kept) == 64
+    kept[:] = False
+    kept[7] = True
+    assert _largest_patch(links, kept) == 1
 
 
 def test_a_segment_a_found_pose_explains_is_a_fragment_and_one_holding_another_part_is_not(t_joint, ppf):

@@ -7,9 +7,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from numba import njit
 from pykdtree.kdtree import KDTree
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from binpick.geometry.pointcloud import voxel_downsample_indices
@@ -39,7 +38,7 @@ from binpick.registration.verification import (
     visible_support,
 )
 from binpick.registration.visibility import DepthView
-from binpick.registration.voting import aligned_scene, vote
+from binpick.registration.voting import prepare_scene, vote
 
 
 def match_segment(
@@ -186,11 +185,11 @@ def match_scene(
     refs = np.sort(rng.choice(free, size=n_refs, replace=False))
     candidates: list[tuple[np.ndarray, float]] = []
     # In chunks: the accumulator holds (references x model points x angle bins) counts.
-    # Every point's alignment once, not once a chunk (over a gear shaft's 1 m bin at a tee's grid,
-    # hundreds of chunks, it had cost a minute or more a capture).
-    aligned = aligned_scene(pts, nrm)
+    # Every point's alignment and grid cell once, not once a chunk (over a gear shaft's 1 m bin
+    # at a tee's grid, hundreds of chunks, it had cost a minute or more a capture).
+    prepared = prepare_scene(pts, nrm, model.diameter_m)
     for chunk in np.array_split(refs, int(np.ceil(len(refs) / SCENE_REFS_PER_CHUNK))):
-        candidates += vote(model, pts, nrm, chunk, aligned)
+        candidates += vote(model, pts, nrm, chunk, prepared)
     fine = scene_points[voxel_downsample_indices(scene_points, scales.refine_step_m)]
     inlier = scales.inlier_m
     tree = cKDTree(fine)  # ball queries
@@ -204,6 +203,7 @@ def match_scene(
         return explained_points(model, T, fine, tree, inlier, reach)
 
     settled = np.asarray(known, dtype=np.float64).reshape(-1, 4, 4)  # poses a coarse fit may repeat
+    links: np.ndarray | None = None  # voting-grid point pairs within two steps, found once
 
     for T, _ in cluster_poses(candidates, model, params)[: SCENE_CLUSTERS_PER_INSTANCE * max_instances]:
         # ICP and support only see the scene around the pose: the rest cannot match this part.
@@ -229,7 +229,9 @@ def match_scene(
             # patch of it holds min_free points (the pass's entry test, per patch: the edges
             # and slivers that poses leave unexplained hold no part).
             _take(taken, model, T, pts, grid_tree, scales)
-            if _largest_patch(pts[~taken], 2.0 * scales.sample_step_m) < min_free:
+            if links is None:
+                links = grid_tree.query_pairs(2.0 * scales.sample_step_m, output_type="ndarray")
+            if _largest_patch(links, ~taken) < min_free:
                 break
     claimed = np.zeros(len(fine), bool)
     for T in known:
@@ -237,14 +239,34 @@ def match_scene(
     return [estimates[k] for k in suppress_by_support([e.score for e in estimates], support, claimed)][:max_instances]
 
 
-def _largest_patch(points: np.ndarray, link_m: float) -> int:
-    """Points (n, 3) in the largest connected patch, points closer than link_m linked."""
-    if len(points) < 2:
-        return len(points)
-    pairs = cKDTree(points).query_pairs(link_m, output_type="ndarray")
-    graph = coo_matrix((np.ones(len(pairs), bool), (pairs[:, 0], pairs[:, 1])), shape=(len(points), len(points)))
-    _, label = connected_components(graph, directed=False)
-    return int(np.bincount(label).max())
+@njit(cache=True)
+def _largest_patch(links: np.ndarray, kept: np.ndarray) -> int:  # pragma: no cover - compiled
+    """Points in the largest connected patch of those kept ((n,) bool), linked by the pairs
+    (m, 2) of point indices whose both ends are kept (union-find). The pairs of all points are
+    found once and filtered here: finding them afresh among the kept points and building a
+    graph after every pose had cost seven seconds a capture over a gear shaft's bin at a tee's
+    grid."""
+    root = np.arange(len(kept))
+    for e in range(len(links)):
+        a, b = links[e, 0], links[e, 1]
+        if not (kept[a] and kept[b]):
+            continue
+        while root[a] != a:
+            root[a] = root[root[a]]
+            a = root[a]
+        while root[b] != b:
+            root[b] = root[root[b]]
+            b = root[b]
+        if a != b:
+            root[max(a, b)] = min(a, b)
+    size = np.zeros(len(kept), np.int64)
+    for i in range(len(kept)):
+        if kept[i]:
+            r = i
+            while root[r] != r:
+                r = root[r]
+            size[r] += 1
+    return int(size.max()) if len(kept) else 0
 
 
 def suppress_duplicates(

@@ -5,6 +5,7 @@ candidates. Scene points in the camera frame, metres; poses T_cam_from_model."""
 from __future__ import annotations
 
 import threading
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -21,14 +22,50 @@ from binpick.registration.model import _align_to_x
 _KERNELS = threading.Lock()
 
 
-def aligned_scene(pts: np.ndarray, nrm: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What the voting kernel reads of every scene point (n, 3 each): the unit normals and each
-    point's alignment (_align_to_x) as rotations (n, 3, 3) and translations (n, 3)."""
+class PreparedScene(NamedTuple):
+    """What the voting kernel reads of a scene's n points, computed once per capture.
+
+    unit_normals (n, 3); R_align (n, 3, 3), t_align (n, 3): each point's alignment (_align_to_x);
+    the points bucketed in a grid of cubes of side cell_m (metres, at least the pairing radius),
+    so that a reference's partners are looked for in its 27 cells rather than among all n:
+    order (n,) the point indices sorted by cell, cell_keys (m,) the occupied cells' keys
+    ascending, cell_starts (m + 1,) where each cell's run begins in order, origin_m (3,) the
+    grid's corner (camera frame), dims (3,) cells along x, y, z."""
+
+    unit_normals: np.ndarray
+    R_align: np.ndarray
+    t_align: np.ndarray
+    order: np.ndarray
+    cell_keys: np.ndarray
+    cell_starts: np.ndarray
+    origin_m: np.ndarray
+    dims: np.ndarray
+    cell_m: float
+
+
+def prepare_scene(pts: np.ndarray, nrm: np.ndarray, radius_m: float) -> PreparedScene:
+    """PreparedScene of points and normals (n, 3 each, camera frame, metres) for pairing within
+    radius_m (the model's diameter)."""
     T_s = _align_to_x(pts, nrm)
-    return (
+    # A cell a hair wider than the radius: a partner at exactly the radius stays within one cell
+    # of its reference whatever the rounding of the division.
+    cell_m = float(radius_m) * (1.0 + 1e-6)
+    origin = pts.min(axis=0) if len(pts) else np.zeros(3)
+    ijk = np.floor((pts - origin) / cell_m).astype(np.int64)
+    dims = ijk.max(axis=0) + 1 if len(pts) else np.ones(3, np.int64)
+    keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
+    order = np.argsort(keys, kind="stable")
+    cell_keys, cell_first = np.unique(keys[order], return_index=True)
+    return PreparedScene(
         nrm / np.linalg.norm(nrm, axis=1, keepdims=True),
         np.ascontiguousarray(T_s[:, :3, :3]),
         np.ascontiguousarray(T_s[:, :3, 3]),
+        order.astype(np.int64),
+        cell_keys.astype(np.int64),
+        np.append(cell_first, len(pts)).astype(np.int64),
+        np.asarray(origin, np.float64),
+        np.asarray(dims, np.int64),
+        cell_m,
     )
 
 
@@ -37,22 +74,16 @@ def vote(
     pts: np.ndarray,
     nrm: np.ndarray,
     refs: np.ndarray,
-    aligned: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    prepared: PreparedScene | None = None,
 ) -> list[tuple[np.ndarray, float]]:
     """Pose candidates (T_cam_from_model, votes) from the accumulator peaks of each reference.
-    aligned: aligned_scene(pts, nrm), given when the caller votes in chunks of references over
-    the same points (once for all of them); computed here otherwise."""
-    unit_normals, R_s, t_s = aligned_scene(pts, nrm) if aligned is None else aligned
+    prepared: prepare_scene(pts, nrm, model.diameter_m), given when the caller votes in chunks
+    of references over the same points (once for all of them); computed here otherwise."""
+    scene = prepare_scene(pts, nrm, model.diameter_m) if prepared is None else prepared
+    R_s, t_s = scene.R_align, scene.t_align
     with _KERNELS:
         group_start, keys, alpha_s = _scene_pairs(
-            pts,
-            unit_normals,
-            R_s,
-            t_s,
-            refs.astype(np.int64),
-            model.diameter_m,
-            model.distance_step_m,
-            model.angle_bins,
+            pts, scene, refs.astype(np.int64), model.diameter_m, model.distance_step_m, model.angle_bins
         )
         if len(keys) == 0:
             return []
@@ -86,36 +117,124 @@ def vote(
     return list(zip(poses, peak_votes[valid].astype(np.float64), strict=False))
 
 
-@njit(cache=True, nogil=True, parallel=True)
 def _scene_pairs(
-    pts, unit_normals, R_align, t_align, refs, radius, distance_step, n_angles
+    pts: np.ndarray, scene: PreparedScene, refs: np.ndarray, radius: float, distance_step: float, n_angles: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every pair (reference refs[a], other point within radius), grouped by reference and, within
+    a reference, by the partner's index: the group bounds (n_refs + 1,), the quantised feature
+    key of each pair and the angle alpha that turns the aligned partner into the half-plane
+    y > 0, z = 0 (the same quantities as _features, _keys and _alpha)."""
+    if scene.cell_m < radius:
+        raise ValueError(f"the scene was bucketed for pairs within {scene.cell_m} m, not {radius} m")
+    return _pairs_kernel(
+        pts,
+        scene.unit_normals,
+        scene.R_align,
+        scene.t_align,
+        refs,
+        radius,
+        distance_step,
+        n_angles,
+        scene.order,
+        scene.cell_keys,
+        scene.cell_starts,
+        scene.origin_m,
+        scene.dims,
+        scene.cell_m,
+    )
+
+
+@njit(cache=True, nogil=True)
+def _cell_runs(pts, i, order_starts, cell_keys, origin, dims, cell_m):  # pragma: no cover - compiled
+    """The runs (n_runs of the (27, 2) rows: start, stop in the cell-sorted order) of point i's
+    cell and the 26 around it."""
+    c = np.empty(3, np.int64)
+    for axis in range(3):
+        c[axis] = np.int64(np.floor((pts[i, axis] - origin[axis]) / cell_m))
+    runs = np.empty((27, 2), np.int64)
+    n_runs = 0
+    for dx in range(-1, 2):
+        x = c[0] + dx
+        if x < 0 or x >= dims[0]:
+            continue
+        for dy in range(-1, 2):
+            y = c[1] + dy
+            if y < 0 or y >= dims[1]:
+                continue
+            for dz in range(-1, 2):
+                z = c[2] + dz
+                if z < 0 or z >= dims[2]:
+                    continue
+                key = (x * dims[1] + y) * dims[2] + z
+                k = np.searchsorted(cell_keys, key)
+                if k < len(cell_keys) and cell_keys[k] == key:
+                    runs[n_runs, 0], runs[n_runs, 1] = order_starts[k], order_starts[k + 1]
+                    n_runs += 1
+    return runs, n_runs
+
+
+@njit(cache=True, nogil=True)
+def _n_partners(pts, i, r2, order, cell_keys, cell_starts, origin, dims, cell_m):  # pragma: no cover - compiled
+    """How many points lie within sqrt(r2) of point i, i itself left out."""
+    runs, n_runs = _cell_runs(pts, i, cell_starts, cell_keys, origin, dims, cell_m)
+    n = 0
+    for run in range(n_runs):
+        for s in range(runs[run, 0], runs[run, 1]):
+            j = order[s]
+            dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
+            n += j != i and dx * dx + dy * dy + dz * dz <= r2
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _partners(pts, i, r2, n, order, cell_keys, cell_starts, origin, dims, cell_m):  # pragma: no cover - compiled
+    """The n points within sqrt(r2) of point i (i itself left out), ascending."""
+    runs, n_runs = _cell_runs(pts, i, cell_starts, cell_keys, origin, dims, cell_m)
+    out = np.empty(n, np.int64)
+    k = 0
+    for run in range(n_runs):
+        for s in range(runs[run, 0], runs[run, 1]):
+            j = order[s]
+            dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
+            if j != i and dx * dx + dy * dy + dz * dz <= r2:
+                out[k] = j
+                k += 1
+    # Ascending, as a scan of all points gives them: the accumulator's ties go to the first seen.
+    return np.sort(out)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pairs_kernel(
+    pts,
+    unit_normals,
+    R_align,
+    t_align,
+    refs,
+    radius,
+    distance_step,
+    n_angles,
+    order,
+    cell_keys,
+    cell_starts,
+    origin,
+    dims,
+    cell_m,
 ):  # pragma: no cover - compiled
-    """Every pair (reference refs[a], other point within radius), grouped by reference: the group
-    bounds (n_refs + 1,), the quantised feature key of each pair and the angle alpha that turns
-    the aligned partner into the half-plane y > 0, z = 0 (the same quantities as _features,
-    _keys and _alpha, in one pass without temporaries; references spread over the cores)."""
-    n_refs, n = len(refs), len(pts)
+    """_scene_pairs in one compiled pass without temporaries, references spread over the cores."""
+    n_refs = len(refs)
     r2 = radius * radius
     counts = np.zeros(n_refs + 1, np.int64)
     for a in numba.prange(n_refs):
-        i = refs[a]
-        c = 0
-        for j in range(n):
-            dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
-            if j != i and dx * dx + dy * dy + dz * dz <= r2:
-                c += 1
-        counts[a + 1] = c
+        counts[a + 1] = _n_partners(pts, refs[a], r2, order, cell_keys, cell_starts, origin, dims, cell_m)
     starts = np.cumsum(counts)
     keys = np.empty(starts[-1], np.int64)
     alpha = np.empty(starts[-1])
     for a in numba.prange(n_refs):
         i = refs[a]
         k = starts[a]
-        for j in range(n):
+        for j in _partners(pts, i, r2, counts[a + 1], order, cell_keys, cell_starts, origin, dims, cell_m):
             dx, dy, dz = pts[j, 0] - pts[i, 0], pts[j, 1] - pts[i, 1], pts[j, 2] - pts[i, 2]
             d2 = dx * dx + dy * dy + dz * dz
-            if j == i or d2 > r2:
-                continue
             dist = np.sqrt(d2)
             inv = 1.0 / max(dist, 1e-12)
             ux, uy, uz = dx * inv, dy * inv, dz * inv
