@@ -109,11 +109,13 @@ def vote(
     Rx = np.zeros((len(a), 4, 4))
     Rx[:, 0, 0] = Rx[:, 3, 3] = 1.0
     Rx[:, 1, 1], Rx[:, 1, 2], Rx[:, 2, 1], Rx[:, 2, 2] = np.cos(a), -np.sin(a), np.sin(a), np.cos(a)
-    T_m = _align_to_x(model.points_m, model.normals)
+    # Only the model points that won a peak: the whole model's alignment, made again for every
+    # chunk of references, had cost a second a capture over a large bin.
+    T_m = _align_to_x(model.points_m[m_r], model.normals[m_r])
     rows = refs[ref_rows]
     T_s = np.zeros((len(rows), 4, 4))
     T_s[:, :3, :3], T_s[:, :3, 3], T_s[:, 3, 3] = R_s[rows], t_s[rows], 1.0
-    poses = invert_T(T_s) @ Rx @ T_m[m_r]
+    poses = invert_T(T_s) @ Rx @ T_m
     return list(zip(poses, peak_votes[valid].astype(np.float64), strict=False))
 
 

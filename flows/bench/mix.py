@@ -9,7 +9,8 @@ register stage counts them), wrong_part_poses (a pose of this part that is not r
 centre lies within half the other part's diameter of an instance of another part) and the
 conflicts it lost; the same without the conflicts resolved as `baseline_*` (each part's poses
 as its own registration gave them); over the mix: capture_s_median (the mixed path per capture) against
-single_parts_s_median (the one-part path run for each part on the same capture, summed).
+single_parts_s_median (the one-part path run for each part on the same capture, summed), both
+paths warmed on the first capture before the timing.
 Renderer only.
 """
 
