@@ -458,6 +458,26 @@ def test_cover_reaches_every_point_with_few_passes():
         assert d.max() <= 0.01 + 1e-9
 
 
+def test_each_next_block_is_seeded_at_the_uncovered_point_farthest_outside_the_blocks_so_far():
+    """Random points in a box (float32, as captures are): every seed after the first is, among
+    the points neither in a block nor within a point spacing of one, the one farthest outside
+    every block's ball, measured here afresh from the blocks returned."""
+    rng = np.random.default_rng(8)
+    pts = rng.uniform(0.0, 0.3, (6000, 3)).astype(np.float32)
+    blocks = cover(pts, 400, np.random.default_rng(2))
+    assert len(blocks) > 5
+    spacing = float(np.median(cKDTree(pts).query(pts[::6], k=2)[0][:, 1]))
+    outside = np.full(len(pts), np.inf)
+    covered = np.zeros(len(pts), bool)
+    for (seed, idx), (next_seed, _) in zip(blocks, blocks[1:]):
+        covered[idx] = True
+        radius = np.linalg.norm(pts[idx[-1]].astype(float) - pts[seed])
+        outside = np.minimum(outside, np.linalg.norm(pts.astype(float) - pts[seed], axis=1) - radius)
+        covered |= outside <= spacing
+        assert not covered[next_seed]
+        assert outside[next_seed] >= outside[~covered].max() - 1e-6
+
+
 def test_older_checkpoints_keep_their_verification_thresholds(tmp_path):
     """Checkpoints trained before the verify stage carry the thresholds chosen at training: the
     scene path uses them when the part has no verification.json, verification.json wins when it

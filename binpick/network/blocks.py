@@ -7,6 +7,7 @@ of the voxel grid, whatever the size of the scene.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
 
@@ -50,14 +51,33 @@ def cover(points: np.ndarray, n_points: int, rng: np.random.Generator) -> list[t
         covered[idx] = True
         blocks.append((seed, idx))
         radius = float(np.linalg.norm(points[idx[-1]] - points[seed]))  # nearest first: the last is the farthest
-        np.minimum(outside, np.linalg.norm(points - points[seed], axis=1) - radius, out=outside)
         # A point less than a point spacing outside a ball is on its rim, next to points in it:
         # it takes their labels (label_blocks) instead of a pass of its own (one that covered 1-7
         # new points in a third of the bins of 8 and 20 T-joints).
-        covered |= outside <= spacing
-        if covered.all():
-            return blocks
         # A seed drawn at random among the uncovered points often fell at the rim of a block,
         # and its pass (a whole network pass) covered a few hundred points, or four: 5-6 passes
         # over an 8-part T-joint bin of 11,000 points, 4-5 with this choice.
-        seed = int(np.argmax(np.where(covered, -np.inf, outside)))
+        seed = _grow(points, seed, np.array([radius], points.dtype), spacing, outside, covered)
+        if seed < 0:
+            return blocks
+
+
+@njit(cache=True)
+def _grow(points, seed, radius, spacing, outside, covered):  # pragma: no cover - compiled
+    """One block's ball (points (n, 3) around points[seed], radius (1,) in the points' dtype)
+    added: each point's distance outside the nearest ball (outside (n,), updated), the points
+    within spacing of a ball marked covered; returns the uncovered point farthest outside every
+    ball (the first of equals), or -1 when all are covered. One pass without temporaries: the
+    same arithmetic in numpy had cost 3 s a part over a 1 m bin of 300,000 points."""
+    best, best_i = -np.inf, -1
+    r = radius[0]
+    for i in range(len(points)):
+        dx, dy, dz = points[i, 0] - points[seed, 0], points[i, 1] - points[seed, 1], points[i, 2] - points[seed, 2]
+        d = np.sqrt(dx * dx + dy * dy + dz * dz) - r
+        if d < outside[i]:
+            outside[i] = d
+        if outside[i] <= spacing:
+            covered[i] = True
+        if not covered[i] and outside[i] > best:
+            best, best_i = outside[i], i
+    return best_i
