@@ -469,7 +469,7 @@ def test_each_next_block_is_seeded_at_the_uncovered_point_farthest_outside_the_b
     spacing = float(np.median(cKDTree(pts).query(pts[::6], k=2)[0][:, 1]))
     outside = np.full(len(pts), np.inf)
     covered = np.zeros(len(pts), bool)
-    for (seed, idx), (next_seed, _) in zip(blocks, blocks[1:]):
+    for (seed, idx), (next_seed, _) in zip(blocks[:-1], blocks[1:], strict=True):
         covered[idx] = True
         radius = np.linalg.norm(pts[idx[-1]].astype(float) - pts[seed])
         outside = np.minimum(outside, np.linalg.norm(pts.astype(float) - pts[seed], axis=1) - radius)

@@ -8,9 +8,11 @@ import logging
 
 import numpy as np
 from numba import njit, prange
+from pykdtree.kdtree import KDTree
 
 from binpick.cell.bin_box import BinBox, support_frame
 from binpick.errors import BinpickError, NothingAboveTheFloor
+from binpick.geometry.depth_noise import image_coordinates, local_noise_m
 from binpick.geometry.pointcloud import first_in_each_voxel, fit_plane_ransac, sample_normals, statistical_outliers
 from binpick.geometry.transforms import invert_T
 from binpick.io.cloud import CleanCloud
@@ -24,6 +26,7 @@ MIN_PLANE_FRACTION = 0.05  # a support plane holds at least this share of the po
 # ... and has at most this share behind it, seen from the camera: a slab through a heap of
 # objects has as many points behind it as in front.
 MAX_BEHIND_FRACTION = 0.25
+BEHIND_NOISE_SIGMAS = 3.0  # ... counted beyond the larger of the plane threshold and this much depth noise
 WALL_MAX_COS_TO_FLOOR = 0.15  # walls stand within ~9 degrees of perpendicular to the floor
 # Points whose normal is within ~45 degrees of the floor's are not searched for walls; the search
 # draws from a sample of this many points (the normals of all of them cost 0.1 s a capture).
@@ -211,7 +214,20 @@ def clean_capture(
     )
     if plane[3] < 0:  # orient the normal toward the camera at the origin
         plane = -plane
-    behind = np.mean(pts @ plane[:3] + plane[3] < -params.plane_threshold_m)
+    height = pts @ plane[:3] + plane[3]
+    behind = np.mean(height < -params.plane_threshold_m)
+    keep_above_m = params.keep_above_plane_m
+    if behind > MAX_BEHIND_FRACTION and inliers.any():
+        # A floor seen through more depth noise than the plane threshold (a camera 2 m above a
+        # large bin: a band 2 cm thick) has a quarter of its own points "behind" the plane
+        # RANSAC draws through it. Behind is then counted beyond the noise the capture shows on
+        # the plane (3 sigmas): a slab through a heap still has its lower half there, centimetres
+        # behind.
+        # Such a floor is cut as thick as its noise too, or a fifth of it stays as specks over
+        # which a small part's whole-scene pass finds dozens of parts.
+        noise_m = local_noise_m(pts, KDTree(image_coordinates(pts)), pts[inliers])
+        behind = np.mean(height < -max(params.plane_threshold_m, BEHIND_NOISE_SIGMAS * noise_m))
+        keep_above_m = max(keep_above_m, BEHIND_NOISE_SIGMAS * noise_m)
     # |d| is the camera's distance to the plane: a plane through (or near) the camera is a fan of
     # rays (a few image rows), never a surface something rests on.
     found = inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION and plane[3] >= params.min_range_m
@@ -225,7 +241,7 @@ def clean_capture(
         plane, found = given, True
     if found:
         floor = plane
-        above = pts @ plane[:3] + plane[3] > params.keep_above_plane_m
+        above = pts @ plane[:3] + plane[3] > keep_above_m
         removed_floor = int((~above).sum())
         pts, idx = pts[above], idx[above]
         log.info(
