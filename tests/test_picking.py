@@ -935,3 +935,16 @@ def test_a_tool_into_the_stretch_of_a_wall_the_part_hid_is_refused(box_part, pic
     assert len(plan(None).picks) == 1  # the measured wall is 25 mm from the tool
     refused = plan(wall)
     assert not refused.picks and BIN in refused.unpicked[0][1]
+
+
+def test_refusal_causes_are_listed_most_first_and_equals_by_name():
+    """The reason a part got no pick lists its causes most frequent first; two as frequent come by
+    name, whatever order the grasps met them in (picks.json is the same in every run)."""
+    from collections import Counter
+
+    from binpick.picking.plan import _most_first
+
+    met = Counter(["the part lifts into part 5", "captured points", "captured points", "the part lifts into part 5"])
+    met.update(["a tool collision"])
+    assert _most_first(met) == [("captured points", 2), ("the part lifts into part 5", 2), ("a tool collision", 1)]
+    assert _most_first(Counter(reversed(list(met.elements())))) == _most_first(met)

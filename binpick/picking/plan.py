@@ -431,7 +431,7 @@ def plan_picks(
                     break
                 dragged |= {LIFTS_INTO + _name(source_name(b)) for b in blockers}
             if retreat is None:
-                causes.update(dragged)
+                causes.update(sorted(dragged))  # a set's order changes from run to run
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, ", ".join(sorted(dragged))))
                 continue
             motion = None
@@ -475,10 +475,10 @@ def plan_picks(
                 (i, f"no reachable grasp: all {n_out} grasps approach outside the {widest_deg:g} degree cone")
             )
         elif set(causes) & ARM_REASONS:
-            refused = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
+            refused = ", ".join(f"{_name(k)} ({v})" for k, v in _most_first(causes))
             unpicked.append((i, f"no grasp in reach the arm can execute: {refused}{where_failed}"))
         else:
-            hits = ", ".join(f"{_name(k)} ({v})" for k, v in causes.most_common())
+            hits = ", ".join(f"{_name(k)} ({v})" for k, v in _most_first(causes))
             unpicked.append(
                 (
                     i,
@@ -514,6 +514,11 @@ def _in_turn(candidates: np.ndarray, in_cone: np.ndarray, tight: list[int]) -> I
         tight.clear()
         yield from ((int(g), False) for g in tier)
         yield from ((g, True) for g in list(tight))
+
+
+def _most_first(causes: Counter[str]) -> list[tuple[str, int]]:
+    """The causes, most frequent first, equals by name: the same answer in every run."""
+    return sorted(causes.items(), key=lambda kv: (-kv[1], kv[0]))
 
 
 def _name(cause: str) -> str:

@@ -228,6 +228,14 @@ def clean_capture(
         noise_m = local_noise_m(pts, KDTree(image_coordinates(pts)), pts[inliers])
         behind = np.mean(height < -max(params.plane_threshold_m, BEHIND_NOISE_SIGMAS * noise_m))
         keep_above_m = max(keep_above_m, BEHIND_NOISE_SIGMAS * noise_m)
+        log.info(
+            "the plane's points scatter by %.1f mm (depth noise): behind it counted beyond %.1f mm, %.1f%% of the "
+            "points; cut %.1f mm above it",
+            1000 * noise_m,
+            1000 * max(params.plane_threshold_m, BEHIND_NOISE_SIGMAS * noise_m),
+            100 * behind,
+            1000 * keep_above_m,
+        )
     # |d| is the camera's distance to the plane: a plane through (or near) the camera is a fan of
     # rays (a few image rows), never a surface something rests on.
     found = inliers.mean() >= MIN_PLANE_FRACTION and behind <= MAX_BEHIND_FRACTION and plane[3] >= params.min_range_m
