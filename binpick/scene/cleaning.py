@@ -230,7 +230,8 @@ def clean_capture(
         behind_m = max(params.plane_threshold_m, BEHIND_NOISE_SIGMAS * noise_m)
         behind = np.mean(height < -behind_m)
         log.info(
-            "the plane's points scatter by %.1f mm (depth noise): behind it counted beyond %.1f mm, %.1f%% of the points",
+            "the plane's points scatter by %.1f mm (depth noise): behind it counted beyond %.1f mm, %.1f%% of the "
+            "points",
             1000 * noise_m,
             1000 * behind_m,
             100 * behind,
