@@ -278,6 +278,16 @@ def test_greedy_clustering_finds_planted_clusters_and_joins_each_pose_where_a_sc
     expected_reps, expected_votes = scan(crowd, crowd_weights)
     assert 20 < len(expected_reps) < 400
     assert list(reps) == expected_reps and np.allclose(votes, expected_votes)
+    # Poses spread over 10 m, each with a near copy: far more 6 mm cubes than the grid may hold,
+    # so the cubes grow, and the clusters are still those of the scan.
+    spread = np.stack([make_T(rotation(rng), rng.uniform(-5.0, 5.0, 3)) for _ in range(150)])
+    near = spread @ make_T(axis_angle_to_R(np.array([0.0, 1.0, 0.0]), np.radians(3.0)), np.full(3, 0.002))
+    wide = np.ascontiguousarray(np.concatenate([spread, near])[rng.permutation(300)])
+    wide_weights = rng.uniform(1.0, 5.0, 300)
+    reps, votes = _greedy_clusters(wide, wide_weights, symmetries, min_cos, max_dist)
+    expected_reps, expected_votes = scan(wide, wide_weights)
+    assert len(expected_reps) < 300
+    assert list(reps) == expected_reps and np.allclose(votes, expected_votes)
 
 
 def test_largest_patch_counts_the_biggest_linked_patch_of_the_kept_points():

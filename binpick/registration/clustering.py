@@ -67,6 +67,10 @@ def _twins(model: PPFModel) -> np.ndarray:
     return np.stack(kept)
 
 
+# The greedy clustering's grid of cubes holds at most this many (32 MB of int64 heads).
+MAX_GRID_CELLS = 1 << 22
+
+
 @numba.njit(cache=True)
 def _greedy_clusters(poses, weights, symmetries, min_cos, max_dist):  # pragma: no cover - compiled
     """Indices of the cluster representatives (in order of creation) and each cluster's votes.
@@ -91,16 +95,18 @@ def _greedy_clusters(poses, weights, symmetries, min_cos, max_dist):  # pragma: 
     reach = 0.0
     for s in range(m):
         reach = max(reach, np.sqrt(symmetries[s, 0, 3] ** 2 + symmetries[s, 1, 3] ** 2 + symmetries[s, 2, 3] ** 2))
-    # Cubes no smaller than max_dist, and at most 256 along an axis (memory, whatever the spread).
-    span = 0.0
-    for a in range(3):
-        span = max(span, poses[:, a, 3].max() - poses[:, a, 3].min() + 2.0 * reach)
-    cell = max(max_dist, span / 256.0)
+    # Cubes no smaller than max_dist, and at most MAX_GRID_CELLS of them (memory, whatever the
+    # spread: 256 along each axis would have been 134 MB).
+    cell = max_dist
     lo = np.empty(3)
     dims = np.empty(3, np.int64)
-    for a in range(3):
-        lo[a] = poses[:, a, 3].min() - reach - cell
-        dims[a] = np.int64((poses[:, a, 3].max() + reach + cell - lo[a]) / cell) + 2
+    while True:
+        for a in range(3):
+            lo[a] = poses[:, a, 3].min() - reach - cell
+            dims[a] = np.int64((poses[:, a, 3].max() + reach + cell - lo[a]) / cell) + 2
+        if dims[0] * dims[1] * dims[2] <= MAX_GRID_CELLS:
+            break
+        cell *= 1.5
     head = np.full(dims[0] * dims[1] * dims[2], -1, np.int64)  # a cube's last twin filed
     below = np.empty(n * m, np.int64)  # the twin filed in the same cube before each
     for k in range(n):
