@@ -580,11 +580,18 @@ class RegisterParams(_Strict):
 
 class SuctionParams(_Strict):
     """A suction gripper: the cup (a cylinder of cup_radius_m, cup_length_m long, its lip at the
-    tool centre point) on a tool (a cylinder behind it). A grasp point needs a patch of the part
+    tool centre point; or an oval cup, its lip cup_half_length_m along the tool's x and
+    cup_radius_m across) on a tool (a cylinder behind it). A grasp point needs a patch of the part
     that the cup's lip covers, flat within max_deviation_m, its normals within max_normal_deg of
     the cup's axis (a bellows cup seals on that much curvature)."""
 
-    cup_radius_m: float = Field(gt=0)
+    cup_radius_m: float = Field(gt=0, description="the lip's radius (an oval cup's: half its width)")
+    cup_half_length_m: float | None = Field(
+        None,
+        gt=0,
+        description="an oval cup: half its lip's length, along the tool's x (null: a round cup); it lies along "
+        "the part's least curved direction (a shaft's axis) and turns about its axis only by half a turn",
+    )
     cup_length_m: float = Field(gt=0)
     tool_radius_m: float = Field(gt=0)
     tool_length_m: float = Field(gt=0)
@@ -593,6 +600,21 @@ class SuctionParams(_Strict):
     holding_force_n: float = Field(
         gt=0, description="the most the sealed cup holds against the part's weight and the lift's acceleration"
     )
+
+    @model_validator(mode="after")
+    def _oval(self) -> SuctionParams:
+        if self.cup_half_length_m is not None and self.cup_half_length_m < self.cup_radius_m:
+            raise ValueError("cup_half_length_m (along the oval lip) must be at least cup_radius_m (across it)")
+        return self
+
+    @property
+    def oval(self) -> bool:
+        return self.cup_half_length_m is not None
+
+    @property
+    def lip_half_axes_m(self) -> tuple[float, float]:
+        """The lip's half axes along the tool's x and y, metres (equal for a round cup)."""
+        return (self.cup_half_length_m or self.cup_radius_m, self.cup_radius_m)
 
 
 class JawParams(_Strict):

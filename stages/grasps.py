@@ -46,7 +46,10 @@ def run(
 ) -> dict[str, float]:
     part = load_part_model(part_model_path)
     t0 = time.perf_counter()
-    sets = load_grasps(grasp_file) if grasp_file is not None else generate_grasps(part, params.pick)
+    if grasp_file is not None:
+        sets = load_grasps(grasp_file, params.pick.suction.oval)
+    else:
+        sets = generate_grasps(part, params.pick)
     symmetries = symmetry_transforms(part.symmetry, REVOLUTION_GRASP_STEPS)
     sets = {kind: expand_by_symmetry(s, symmetries) for kind, s in sets.items()}
     grasps_s = time.perf_counter() - t0
@@ -55,7 +58,13 @@ def run(
         log.warning("%s: no %s grasps (pick.gripper): its parts will have no picks", part.name, params.pick.gripper)
     metrics.update(_resting_coverage(params, part, sets, generated=grasp_file is None))
     with atomic_paths(out, rrd_path, metrics_path) as (tmp_out, tmp_rrd, tmp_metrics):
-        save_grasps(tmp_out, part.name, sets, str(grasp_file) if grasp_file is not None else "generated")
+        save_grasps(
+            tmp_out,
+            part.name,
+            sets,
+            str(grasp_file) if grasp_file is not None else "generated",
+            params.pick.suction.oval,
+        )
         if tmp_rrd is not None:
             write_grasp_recording(tmp_rrd, part, sets, params.pick)
         if tmp_metrics is not None:
@@ -89,7 +98,7 @@ def _resting_coverage(params: Params, part: PartModel, sets: dict[str, GraspSet]
                 kind,
                 cone,
             )
-        if bare and kind == "suction" and generated:
+        if bare and kind == "suction" and generated and not params.pick.suction.oval:
             s = params.pick.suction
             r = smaller_cup_covering(part, params.pick, T_rest, p_rest, WARN_PROBABILITY)
             tried = smaller_cup_radii(s.cup_radius_m)

@@ -21,7 +21,8 @@ from binpick.io.grasps import GraspSet, load_grasps, save_grasps, tool_frame
 from binpick.io.picks import load_picks, save_picks
 from binpick.params import SymmetryParams, load_params
 from binpick.part.model import make_part_model
-from binpick.picking.grasps import expand_by_symmetry, jaw_grasps, suction_grasps
+from binpick.picking.arm import turns_for
+from binpick.picking.grasps import expand_by_symmetry, jaw_grasps, lip_axis, suction_grasps
 from binpick.picking.gripper import (
     Box,
     Cylinder,
@@ -36,6 +37,7 @@ from binpick.picking.lift import LEAVE_WALL_DEG
 from binpick.picking.measured import contact_seen
 from binpick.picking.obstacles import BIN, CAPTURED
 from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, plan_picks
+from binpick.picking.seal import cup_seal
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -167,6 +169,71 @@ def test_a_solid_of_revolution_is_grasped_along_its_smooth_normal(pick_settings)
     for T in side:
         radial = T[:3, 3] * [1.0, 1.0, 0.0]
         assert np.degrees(np.arccos(np.clip(-T[:3, 2] @ (radial / np.linalg.norm(radial)), -1, 1))) < 1.0
+
+
+def oval_cup(pick_settings, half_length_m: float, radius_m: float):
+    """The pick settings with a bellows cup sealing within 4 mm and 40 degrees: oval (lip
+    2 half_length_m long, 2 radius_m wide), or round (half_length_m None)."""
+    suction = pick_settings.suction.model_copy(
+        update={
+            "cup_radius_m": radius_m,
+            "cup_half_length_m": half_length_m,
+            "max_deviation_m": 0.004,
+            "max_normal_deg": 40.0,
+            "tool_radius_m": 0.02,
+        }
+    )
+    return pick_settings.model_copy(update={"suction": suction})
+
+
+def test_the_least_curved_direction_of_a_cylinder_is_its_axis():
+    """Normals of a cylinder patch around a random axis (and of a flat strip along it): the lip's
+    long axis comes out along the cylinder's axis, across the patch's normal."""
+    rng = np.random.default_rng(3)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    n = np.cross(axis, rng.normal(size=3))
+    n /= np.linalg.norm(n)
+    side = np.cross(axis, n)
+    angles = rng.uniform(-0.6, 0.6, 300)
+    normals = np.outer(np.cos(angles), n) + np.outer(np.sin(angles), side)
+    found = lip_axis(normals, n)
+    assert abs(found @ axis) == pytest.approx(1.0, abs=1e-9)
+    assert abs(found @ n) < 1e-9
+
+
+def test_an_oval_cup_lies_along_a_shaft_where_a_round_cup_of_its_hold_finds_no_seal(pick_settings):
+    """A rod of 20 mm radius: a 60 x 20 mm oval cup seals along its side (the lip 2.7 mm from flat
+    across it), each grasp's long axis along the rod, and the same lip turned a quarter turn
+    across the rod does not seal; a round cup of the oval's area (17.3 mm radius, 10 mm from flat
+    across the rod) finds no grasp on the side."""
+    rod = rod_part(radius_m=0.02, length_m=0.15, sections=48)
+    oval = oval_cup(pick_settings, 0.03, 0.01)
+    grasps = suction_grasps(rod, oval)
+    side = [T for T in grasps.T_model_from_tool if abs(T[2, 2]) < 0.1]
+    assert len(side) >= 5
+    rays = trimesh.ray.ray_triangle.RayMeshIntersector(trimesh.Trimesh(rod.mesh_vertices_m, rod.mesh_faces))
+    for T in side:
+        assert abs(T[2, 0]) > np.cos(np.radians(1.0))  # the tool's x along the rod's z
+        assert cup_seal(rays, T, oval.suction) is True
+        across = T @ make_T(axis_angle_to_R(np.array([0.0, 0.0, 1.0]), np.pi / 2), np.zeros(3))
+        assert cup_seal(rays, across, oval.suction) is False
+    round_cup = oval_cup(pick_settings, None, float(np.sqrt(0.03 * 0.01)))
+    assert not any(abs(T[2, 2]) < 0.1 for T in suction_grasps(rod, round_cup).T_model_from_tool)
+
+
+def test_an_oval_cups_grasps_keep_their_long_axis_in_the_file_and_turn_only_half_a_turn(tmp_path, pick_settings):
+    rod = rod_part(radius_m=0.02, length_m=0.15, sections=48)
+    grasps = suction_grasps(rod, oval_cup(pick_settings, 0.03, 0.01))
+    path = tmp_path / "grasps.json"
+    save_grasps(path, "rod", {"suction": grasps}, "generated", oval_cup=True)
+    back = load_grasps(path, oval_cup=True)["suction"]
+    assert np.allclose(back.T_model_from_tool, grasps.T_model_from_tool, atol=1e-8)
+    save_grasps(path, "rod", {"suction": grasps}, "generated")  # a round cup's file: no long axis
+    with pytest.raises(InputError, match="needs the grasp's long_axis"):
+        load_grasps(path, oval_cup=True)
+    assert turns_for("suction", 30.0, oval_cup=True) == pytest.approx([0.0, np.pi])
+    assert len(turns_for("suction", 30.0)) == 12
 
 
 def test_jaw_grasps_close_across_the_box(box_part, pick_settings):

@@ -26,7 +26,8 @@ class GraspSet:
 
     ids               : k names (unique)
     T_model_from_tool : (k, 4, 4) the tool frame at the grasp (binpick/picking/gripper.py): origin the
-                        tool centre point, z the approach, x the jaws' closing axis; model frame, metres
+                        tool centre point, z the approach, x the jaws' closing axis (an oval suction
+                        cup's long axis); model frame, metres
     width_m           : (k,) jaw opening at the contacts (0 for suction)
     """
 
@@ -58,10 +59,11 @@ def tool_frame(origin: np.ndarray, approach: np.ndarray, closing: np.ndarray | N
     return T
 
 
-def _entry(kind: str, grasp_id: str, T: np.ndarray, width: float) -> dict:
+def _entry(kind: str, grasp_id: str, T: np.ndarray, width: float, long_axis: bool) -> dict:
     r = lambda v: [round(float(x), 9) for x in v]  # noqa: E731
     if kind == "suction":
-        return {"id": grasp_id, "point_m": r(T[:3, 3]), "approach": r(T[:3, 2])}
+        entry = {"id": grasp_id, "point_m": r(T[:3, 3]), "approach": r(T[:3, 2])}
+        return {**entry, "long_axis": r(T[:3, 0])} if long_axis else entry
     return {
         "id": grasp_id,
         "centre_m": r(T[:3, 3]),
@@ -71,8 +73,9 @@ def _entry(kind: str, grasp_id: str, T: np.ndarray, width: float) -> dict:
     }
 
 
-def save_grasps(path: str | Path, part: str, sets: dict[str, GraspSet], source: str) -> None:
-    """source: where the grasps came from ('generated' or the grasp file's path)."""
+def save_grasps(path: str | Path, part: str, sets: dict[str, GraspSet], source: str, oval_cup: bool = False) -> None:
+    """source: where the grasps came from ('generated' or the grasp file's path); oval_cup: the
+    suction grasps name their cup's long axis (the tool's x)."""
     doc = {
         "format": FORMAT,
         "version": VERSION,
@@ -81,7 +84,9 @@ def save_grasps(path: str | Path, part: str, sets: dict[str, GraspSet], source: 
         "frame": "model",
         "source": source,
         **{
-            kind: [_entry(kind, i, T, w) for i, T, w in zip(s.ids, s.T_model_from_tool, s.width_m, strict=True)]
+            kind: [
+                _entry(kind, i, T, w, oval_cup) for i, T, w in zip(s.ids, s.T_model_from_tool, s.width_m, strict=True)
+            ]
             for kind, s in sets.items()
         },
     }
@@ -100,8 +105,9 @@ def _vector(path: Path, where: str, value: object, unit: bool) -> np.ndarray:
     return v
 
 
-def load_grasps(path: str | Path) -> dict[str, GraspSet]:
-    """Every grasp set in a grasp file (kinds absent from the file are empty)."""
+def load_grasps(path: str | Path, oval_cup: bool = False) -> dict[str, GraspSet]:
+    """Every grasp set in a grasp file (kinds absent from the file are empty); oval_cup: every
+    suction grasp must name its cup's long axis (`long_axis`, across the approach)."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "grasp file not found")
@@ -130,10 +136,17 @@ def load_grasps(path: str | Path) -> dict[str, GraspSet]:
             try:
                 grasp_id = str(e.get("id", f"{kind[0]}{k}"))
                 if kind == "suction":
-                    T = tool_frame(
-                        _vector(path, f"{where}.point_m", e["point_m"], False),
-                        _vector(path, f"{where}.approach", e["approach"], True),
-                    )
+                    approach = _vector(path, f"{where}.approach", e["approach"], True)
+                    long_axis = None
+                    if "long_axis" in e:
+                        long_axis = _vector(path, f"{where}.long_axis", e["long_axis"], True)
+                        if abs(float(approach @ long_axis)) > 0.02:
+                            raise InputError(path, f"{where}: long_axis must be perpendicular to approach")
+                    elif oval_cup:
+                        raise InputError(
+                            path, f"{where}: an oval cup (pick.suction.cup_half_length_m) needs the grasp's long_axis"
+                        )
+                    T = tool_frame(_vector(path, f"{where}.point_m", e["point_m"], False), approach, long_axis)
                     width = 0.0
                 else:
                     approach = _vector(path, f"{where}.approach", e["approach"], True)

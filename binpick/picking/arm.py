@@ -132,12 +132,14 @@ class ArmPlanner:
         tool_clearance_m: float = 0.0,
         check_path: bool = True,
         payload: Payload | None = None,
+        oval_cup: bool = False,
     ) -> None:
         """tool_points_tcp: (n, 3) the gripper's surface, tool frame, checked on the moves to the
         pre-grasp and from the lift on (tool_clearance_m: pick.clearance_m; along the approach the
         gripper check has it); check_path False: the grasp's own turn only, its path not checked
         (today's hand-over of a gripper-only pick to the arm, the cell benchmark's baseline);
-        payload: the part's mass and the gripper's hold (None: unknown, the carry at full speed)."""
+        payload: the part's mass and the gripper's hold (None: unknown, the carry at full speed);
+        oval_cup: the suction cup's lip is oval (it turns about its axis by half a turn only)."""
         self.arm, self.cell = arm, cell
         self.T_base_from_cam = np.asarray(T_base_from_cam, dtype=float)
         self.T_cam_from_base = invert_T(self.T_base_from_cam)
@@ -154,6 +156,7 @@ class ArmPlanner:
         self.tool_points_flange = tool @ T[:3, :3].T + T[:3, 3]
         self.tool_clearance_m = tool_clearance_m
         self.payload = payload
+        self.oval_cup = oval_cup
 
     def configuration(self, T_base_from_tcp: np.ndarray, q_ref: np.ndarray) -> tuple[np.ndarray, str | None]:
         """The arm's configuration (6,) with the tool at T_base_from_tcp nearest q_ref, or NaN and why
@@ -202,7 +205,7 @@ class ArmPlanner:
         # The turns ranked by the move to their grasp configuration; the rest of a turn's motion is
         # worked out only when it comes up (most picks take the first).
         reachable: list[tuple[float, float, np.ndarray]] = []
-        for angle in turns_for(kind, self.cell.turn_step_deg) if self.check_path else np.zeros(1):
+        for angle in turns_for(kind, self.cell.turn_step_deg, self.oval_cup) if self.check_path else np.zeros(1):
             q_grasp, why = self.configuration(self.T_base_from_cam @ turned(T_cam_from_tool, float(angle)), q_from)
             if why:
                 reasons[why] += 1
@@ -424,9 +427,9 @@ def _back(T: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return out
 
 
-def turns_for(kind: str, step_deg: float) -> np.ndarray:
-    """The turns about the tool axis a grasp of this kind may take: a suction cup's any (in
-    steps), the jaws' half a turn (the jaws are symmetric)."""
-    if kind == "suction":
+def turns_for(kind: str, step_deg: float, oval_cup: bool = False) -> np.ndarray:
+    """The turns about the tool axis a grasp of this kind may take: a round suction cup's any (in
+    steps), the jaws' and an oval cup's half a turn (both are symmetric)."""
+    if kind == "suction" and not oval_cup:
         return np.radians(np.arange(0.0, 360.0, step_deg))
     return np.array([0.0, np.pi])

@@ -99,8 +99,10 @@ def _spread(order: np.ndarray, positions: np.ndarray, spacing_m: float, limit: i
 
 
 def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
-    """Suction grasps on patches flat enough for the cup, best first (params.max_grasps at most)."""
+    """Suction grasps on patches flat enough for the cup, best first (params.max_grasps at most);
+    an oval cup's long axis (the tool's x) along the patch's least curved direction."""
     s = params.suction
+    half_length, half_width = s.lip_half_axes_m
     pts = np.asarray(part.points_m, dtype=np.float64)
     nrm = np.asarray(part.normals, dtype=np.float64)
     patch_pts, patch_nrm = patch_surface(part, s.cup_radius_m)
@@ -121,15 +123,22 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         else np.zeros((0, 4, 4))
     )
 
-    def patch(c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-        """The patch under a cup at c (3,) with outward axis n (3,): its points relative to c and
-        their normals, or None when it is too small, faces away or is not flat enough."""
-        near = np.asarray(tree.query_ball_point(c, s.cup_radius_m))
+    def patch(c: np.ndarray, n: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The patch under a cup at c (3,) with outward axis n (3,): its points relative to c, their
+        normals and the lip's long axis (3,; across n), or None when it is too small, faces away
+        or is not flat enough."""
+        near = np.asarray(tree.query_ball_point(c, half_length))
         # The patch under the cup is the surface facing it: a thin wall's far side is not.
         near = near[patch_nrm[near] @ n > 0.0] if len(near) else near
         if len(near) < 3 * LIP_SECTORS:
             return None
         q, qn = patch_pts[near] - c, patch_nrm[near]
+        x = lip_axis(qn, n) if s.oval else _across(n)
+        if s.oval:
+            inside = ((q @ x) / half_length) ** 2 + ((q @ np.cross(n, x)) / half_width) ** 2 <= 1.0
+            if inside.sum() < 3 * LIP_SECTORS:
+                return None
+            q, qn = q[inside], qn[inside]
         # The surface under the cup faces where its centre does: the patch's mean normal (the
         # samples are spread evenly by area) within AXIS_MAX_DEG of the point's. On a coarsely
         # tessellated curve (the gear shaft's facets turn by 14 degrees) this keeps contacts near
@@ -140,9 +149,10 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
             return None
         if np.max(np.abs(q @ n)) > s.max_deviation_m or np.min(qn @ n) < cos_max:
             return None
-        return q, qn
+        return q, qn, x
 
     good: list[int] = []
+    long_axes: dict[int, np.ndarray] = {}
     for i in _candidates(pts, N_CANDIDATES):
         c, n = pts[i], smooth[i]
         found = patch(c, n)
@@ -152,23 +162,20 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         # wherever around the axis it lands (not on a gear tooth that only the CAD's turn has there).
         if any(patch(S[:3, :3] @ c + S[:3, 3], S[:3, :3] @ n) is None for S in turns):
             continue
-        q, qn = found
-        # The lip all around: points in every sector of the outer ring of the disc.
-        across = q - np.outer(q @ n, n)
-        r = np.linalg.norm(across, axis=1)
-        ring = r > LIP_RING * s.cup_radius_m
+        q, qn, x = found
+        # The lip all around: points in every sector of the outer ring of the lip (an oval's
+        # ring and sectors measured in the lip's own scale along and across it).
+        y = np.cross(n, x)
+        u, v = (q @ x) / half_length, (q @ y) / half_width
+        ring = np.hypot(u, v) > LIP_RING
         if ring.sum() < LIP_SECTORS:
             continue
-        u = across[ring] / r[ring, None]
-        e1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
-        sector = ((np.arctan2(u @ e2, u @ e1) + np.pi) / (2 * np.pi) * LIP_SECTORS).astype(int) % LIP_SECTORS
+        sector = ((np.arctan2(v[ring], u[ring]) + np.pi) / (2 * np.pi) * LIP_SECTORS).astype(int) % LIP_SECTORS
         if len(np.unique(sector)) < LIP_SECTORS:
             continue
         # Cup and tool coming along the inward normal meet no other part of the part: points
         # behind the contact plane (toward the gripper) within SELF_MARGIN_M of the swept volume.
-        T = tool_frame(c, -n)
+        T = tool_frame(c, -n, x if s.oval else None)
         local = (pts - c) @ T[:3, :3]
         behind = local[:, 2] < -s.max_deviation_m
         if behind.any() and np.min(signed_distance(local[behind], body)) < SELF_MARGIN_M:
@@ -176,13 +183,33 @@ def suction_grasps(part: PartModel, params: PickParams) -> GraspSet:
         if not _seals(rays, T, s):
             continue
         good.append(int(i))
+        long_axes[int(i)] = x
     if not good:
         return GraspSet.empty("suction")
     good_arr = np.array(good)
     order = good_arr[np.argsort(np.linalg.norm(pts[good_arr] - com, axis=1), kind="stable")]
     kept = _spread(order, pts, s.cup_radius_m, params.max_grasps)
-    Ts = np.array([tool_frame(pts[i], -smooth[i]) for i in kept])
+    Ts = np.array([tool_frame(pts[i], -smooth[i], long_axes[i] if s.oval else None) for i in kept])
     return GraspSet("suction", [f"s{k}" for k in range(len(kept))], Ts, np.zeros(len(kept)))
+
+
+def _across(n: np.ndarray) -> np.ndarray:
+    """A unit direction (3,) across the unit axis n (3,), as tool_frame picks a round cup's x."""
+    e = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+    return e / np.linalg.norm(e)
+
+
+def lip_axis(normals: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """The direction (3,; unit, across the unit axis n (3,)) along which the surface with these
+    unit normals (m, 3) curves least: the tangent direction the normals vary least along (a
+    cylinder's axis, whatever its radius). An oval cup laid along it seals where one laid across
+    would not."""
+    e1 = _across(n)
+    e2 = np.cross(n, e1)
+    t = normals @ np.column_stack([e1, e2])  # (m, 2): the normals' tilt in the tangent plane
+    _, vectors = np.linalg.eigh(t.T @ t)
+    along = vectors[0, 0] * e1 + vectors[1, 0] * e2  # the smallest eigenvalue's vector
+    return along / np.linalg.norm(along)
 
 
 def _seals(rays, T_model_from_tool: np.ndarray, suction: SuctionParams) -> bool:

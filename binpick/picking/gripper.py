@@ -6,7 +6,8 @@ The tool frame (every grasp and pick pose is a T_..._from_tool):
   part. Jaws: midway between the two finger pads' centres, where the part's contacts lie.
 - z: the approach direction, from the gripper toward the part (a suction cup's axis, pointing
   into the surface).
-- x: the jaws' closing axis (for a suction cup any axis across z); y = z cross x.
+- x: the jaws' closing axis; an oval suction cup's long axis (for a round cup any axis across z);
+  y = z cross x.
 Everything the gripper is made of lies at z <= its fingertips, behind the TCP or around it.
 Lengths in metres.
 """
@@ -49,11 +50,14 @@ Primitive = Box | Cylinder
 
 
 def suction_primitives(s: SuctionParams) -> list[Primitive]:
-    """The cup (lip at z = 0) and the tool behind it."""
-    return [
-        Cylinder(s.cup_radius_m, -s.cup_length_m, 0.0),
-        Cylinder(s.tool_radius_m, -s.cup_length_m - s.tool_length_m, -s.cup_length_m),
-    ]
+    """The cup (lip at z = 0; an oval cup as the box around it) and the tool behind it."""
+    a, b = s.lip_half_axes_m
+    cup: Primitive = (
+        Box(np.array([-a, -b, -s.cup_length_m]), np.array([a, b, 0.0]))
+        if s.oval
+        else Cylinder(s.cup_radius_m, -s.cup_length_m, 0.0)
+    )
+    return [cup, Cylinder(s.tool_radius_m, -s.cup_length_m - s.tool_length_m, -s.cup_length_m)]
 
 
 def jaw_opening_m(j: JawParams, width_m: float) -> float:

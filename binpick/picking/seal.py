@@ -10,7 +10,8 @@ import numpy as np
 from binpick.geometry.transforms import invert_T, transform_points
 from binpick.params import SuctionParams
 
-# Rays around the cup's lip that test its seal on the true mesh.
+# Rays around the cup's lip that test its seal on the true mesh (an oval lip: this many per
+# multiple of its width in its length, so they lie as close along its long sides).
 LIP_RAYS = 16
 # The planned contact lies within this of the part's true surface along the approach, or the
 # cup meets air (or presses in).
@@ -21,23 +22,24 @@ RAY_BACK_M = 0.02
 
 def cup_seal(rays, T_model_from_tool: np.ndarray, suction: SuctionParams) -> bool | None:
     """Whether the cup's lip seals on a part's true mesh at this tool pose (4, 4; the tool frame in
-    the part's model frame; z the approach): None when the cup's centre does not meet the part
-    within CONTACT_TOLERANCE_M (not this part), False when it meets it but the lip hangs over an
-    edge or the lip's surface is not flat within max_deviation_m and facing within max_normal_deg,
-    True when it seals. rays: a trimesh ray intersector of the part's mesh."""
-    angles = 2.0 * np.pi * np.arange(LIP_RAYS) / LIP_RAYS
-    r = suction.cup_radius_m
-    lip = np.column_stack([r * np.cos(angles), r * np.sin(angles), np.zeros(LIP_RAYS)])
+    the part's model frame; z the approach; an oval lip's length along x): None when the cup's
+    centre does not meet the part within CONTACT_TOLERANCE_M (not this part), False when it meets
+    it but the lip hangs over an edge or the lip's surface is not flat within max_deviation_m and
+    facing within max_normal_deg, True when it seals. rays: a trimesh ray intersector of the part's mesh."""
+    a, b = suction.lip_half_axes_m
+    n_rays = LIP_RAYS * int(np.ceil(a / b - 1e-9))
+    angles = 2.0 * np.pi * np.arange(n_rays) / n_rays
+    lip = np.column_stack([a * np.cos(angles), b * np.sin(angles), np.zeros(n_rays)])
     origins = transform_points(T_model_from_tool, np.vstack([[0.0, 0.0, 0.0], lip]) - np.array([0.0, 0.0, RAY_BACK_M]))
     direction = np.broadcast_to(T_model_from_tool[:3, 2], origins.shape)
     hits, hit_rays, _ = rays.intersects_location(origins, direction, multiple_hits=False)
     if len(hit_rays) == 0 or 0 not in hit_rays:
         return None
-    depth = np.full(LIP_RAYS + 1, np.nan)
+    depth = np.full(n_rays + 1, np.nan)
     depth[hit_rays] = (hits - origins[hit_rays]) @ T_model_from_tool[:3, 2] - RAY_BACK_M
     if abs(depth[0]) > CONTACT_TOLERANCE_M:
         return None
-    if len(hit_rays) < LIP_RAYS + 1:
+    if len(hit_rays) < n_rays + 1:
         return False  # the lip hangs over an edge
     lip_hits = transform_points(invert_T(T_model_from_tool), hits[np.argsort(hit_rays)][1:])
     centre = lip_hits.mean(axis=0)

@@ -62,6 +62,7 @@ def pick(
             surface_points(gripper_primitives(params, grasps.kind, params.jaw.opening_max_m), TOOL_SAMPLE_SPACING_M),
             params.clearance_m,
             payload=Payload(part_mass_kg(part, density_kg_m3), holding_force_n(params, grasps.kind)),
+            oval_cup=grasps.kind == "suction" and params.suction.oval,
         )
         q_from = np.asarray(cell.home_q_rad if q_from is None else q_from, dtype=float)
     captured = seen.points_m()

@@ -69,7 +69,8 @@ class ServiceProject:
             save_part_model(layout.part_model(name), m.part)
             save_ppf_model(layout.ppf_model(name), m.ppf)
             assert m.grasps is not None
-            save_grasps(layout.grasps(name), name, {m.grasps.kind: m.grasps}, "generated")
+            oval = m.pick_params is not None and m.pick_params.suction.oval
+            save_grasps(layout.grasps(name), name, {m.grasps.kind: m.grasps}, "generated", oval)
             if name in checkpoints and checkpoints[name].is_file():
                 layout.network_folder(name).mkdir(parents=True, exist_ok=True)
                 shutil.copyfile(checkpoints[name], layout.checkpoint(name))
