@@ -36,7 +36,7 @@ from binpick.picking.gripper import (
 from binpick.picking.lift import LEAVE_WALL_DEG
 from binpick.picking.measured import contact_seen
 from binpick.picking.obstacles import BIN, CAPTURED
-from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, plan_picks
+from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, image_groups, images_in_turn, plan_picks
 from binpick.picking.seal import cup_seal
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
@@ -234,6 +234,20 @@ def test_an_oval_cups_grasps_keep_their_long_axis_in_the_file_and_turn_only_half
         load_grasps(path, oval_cup=True)
     assert turns_for("suction", 30.0, oval_cup=True) == pytest.approx([0.0, np.pi])
     assert len(turns_for("suction", 30.0)) == 12
+
+
+def test_with_more_candidates_than_tried_each_grasps_images_take_turns():
+    """Three grasps with four images each (ids as expand_by_symmetry names them): within a cap
+    of 5 the least tilted image of every grasp comes first, in the grasps' order, then the
+    second least tilted of the first two; below the cap the list is left as it is."""
+    ids = ["a", "b", "c"] + [f"{g}@{k}" for g in "abc" for k in (1, 2, 3)]
+    grasp_of = image_groups(ids)
+    assert grasp_of.tolist() == [0, 1, 2, 0, 0, 0, 1, 1, 1, 2, 2, 2]
+    tilt = np.array([0.5, 0.9, 0.1, 0.2, 0.7, 0.3, 0.8, 0.05, 0.6, 0.4, 0.0, 0.9])
+    candidates = np.arange(len(ids))
+    chosen = images_in_turn(candidates, grasp_of, tilt, 5)
+    assert [ids[k] for k in chosen] == ["a@1", "b@2", "c@2", "a@3", "b@3"]
+    assert images_in_turn(candidates, grasp_of, tilt, 12).tolist() == candidates.tolist()
 
 
 def test_jaw_grasps_close_across_the_box(box_part, pick_settings):

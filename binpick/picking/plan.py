@@ -21,7 +21,8 @@ and its contact is where the camera measured a surface: under a suction cup the 
 lie on the contact plane (within the seal tolerance, widened by the noise the capture shows
 about the pose) and the plane they span faces the cup,
 between a jaw's fingers (tip to palm) there are captured points. A part's pick is its best-ranked grasp that is
-kept (grasps are tried best first, up to max_candidates_per_part). Parts with a pick are ordered
+kept (grasps are tried best first, up to max_candidates_per_part; when more lie in the cone,
+each grasp's symmetry images take turns: images_in_turn). Parts with a pick are ordered
 by the keys in `order`: `height` (of the part's centre above the support plane, in steps of
 height_tolerance_m, highest first), `score` (the pose's, highest first), `clearance` (of the
 swept gripper, largest first).
@@ -63,6 +64,7 @@ from binpick.picking.measured import (
     captured_near,
     contact_seen,
     point_spacing_m,
+    seen_offset_m,
 )
 from binpick.picking.obstacles import (
     moved_tool_hits,
@@ -287,6 +289,7 @@ def plan_picks(
     centres = np.array([T[:3, :3] @ centre_m + T[:3, 3] for T in T_cam_from_model]).reshape(-1, 3)
     heights = centres @ up + (plane[3] if plane is not None else 0.0)
 
+    grasp_of = image_groups(grasps.ids)
     picks: list[Pick] = []
     unpicked: list[tuple[int, str]] = []
     rejected: list[Rejected] = []
@@ -316,10 +319,14 @@ def plan_picks(
         if len(captured):
             near = captured_near(tree, len(captured), centres[i], reach)
             if len(near):
-                nearest, off_surface = own_of.distances(transform_points(invert_T(T), captured[near]))
-                noise_m = local_noise_m(captured, captured_tree, captured[near[np.isfinite(off_surface)]])
+                nearest, offset = own_of.distances(transform_points(invert_T(T), captured[near]))
+                band = np.isfinite(offset)
+                noise_m = local_noise_m(captured, captured_tree, captured[near[band]])
                 limit = max(params.own_points_m, OWN_NOISE_SIGMAS * noise_m)
-                own[near[(off_surface <= limit) & (nearest <= limit + own_of.spacing_m)]] = True
+                # About where the points sit (the seen depth's nearest-of-a-cell lies toward the camera).
+                centre = seen_offset_m(offset[band], limit)
+                close = nearest <= limit + abs(centre) + own_of.spacing_m
+                own[near[(np.abs(offset - centre) <= limit) & close]] = True
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
         near_lift = None  # what may lie in the part's way out, gathered once a grasp gets that far
         cos_approach = tools[:, :3, 2] @ -up if len(tools) else np.zeros(0)
@@ -331,8 +338,8 @@ def plan_picks(
         n_out = int((~(in_cone | fallback)).sum())
         found: Pick | None = None
         tiers = [
-            np.flatnonzero(in_cone)[: params.max_candidates_per_part],
-            np.flatnonzero(fallback)[: params.max_candidates_per_part],
+            images_in_turn(np.flatnonzero(in_cone), grasp_of, -cos_approach, params.max_candidates_per_part),
+            images_in_turn(np.flatnonzero(fallback), grasp_of, -cos_approach, params.max_candidates_per_part),
         ]
         candidates = np.concatenate(tiers).astype(np.int64)
         failed_here = 0
@@ -505,6 +512,29 @@ def plan_picks(
     if not past.picks:
         return PickPlan(picks, unpicked, rejected, up, n_tried)
     return dataclasses.replace(past, n_candidates=n_tried + past.n_candidates)
+
+
+def image_groups(ids: list[str]) -> np.ndarray:
+    """(k,) for each grasp id, the rank of the grasp it is a symmetry image of (ids '<id>@<k>',
+    grasps.expand_by_symmetry; an original is its own): the originals' order."""
+    first: dict[str, int] = {}
+    return np.array([first.setdefault(i.split("@")[0], len(first)) for i in ids], dtype=np.int64)
+
+
+def images_in_turn(candidates: np.ndarray, grasp_of: np.ndarray, tilt: np.ndarray, cap: int) -> np.ndarray:
+    """At most cap of the candidate grasps (indices, best first), all of them when they fit; else
+    each grasp's symmetry images (grasp_of: image_groups) take turns: the image least tilted
+    (tilt, per grasp) of every grasp in their order, then the second of each, and so on. A solid
+    of revolution has 24 images of each grasp, about five of them within the approach cone: the
+    first cap in list order were a few grasps' images about its centre, and a neighbour lying
+    across those few left the part no pick however many grasps it had elsewhere."""
+    if len(candidates) <= cap:
+        return candidates
+    grouped = candidates[np.lexsort((tilt[candidates], grasp_of[candidates]))]
+    group = grasp_of[grouped]
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    turn = np.arange(len(grouped)) - np.repeat(starts, np.diff(np.r_[starts, len(grouped)]))
+    return grouped[np.lexsort((group, turn))][:cap]
 
 
 def _in_turn(candidates: np.ndarray, in_cone: np.ndarray, tight: list[int]) -> Iterator[tuple[int, bool]]:

@@ -115,11 +115,16 @@ class CellLayout:
 
 
 def cell_layout(p: Params) -> CellLayout:
-    """The arm beside the bin's long side (base x toward the bin), the camera straight above the
-    floor's centre, a drop zone beside the bin's short side, level with its middle."""
+    """The arm beside the bin's long side (base x toward the bin) on a pedestal level with the
+    bin's rim, the camera straight above the floor's centre, a drop zone beside the bin's short
+    side, level with its middle."""
     b = p.generate.bin
     R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # base x along the bin's y
-    T_bin_from_base = make_T(R, np.array([0.0, -(b.inner_y_m / 2.0 + b.wall_thickness_m + BASE_GAP_M), 0.0]))
+    # Level with the rim, as cells mount an arm over a deep bin: on the floor beside the gear
+    # shaft's 0.2 m walls the UR10's upper arm met the near wall in every plan into the bin.
+    T_bin_from_base = make_T(
+        R, np.array([0.0, -(b.inner_y_m / 2.0 + b.wall_thickness_m + BASE_GAP_M), b.wall_height_m])
+    )
     T_base_from_bin = invert_T(T_bin_from_base)
     T_bin_from_camera = T_bin_from_cam(p.camera.distance_m)
     # Level with the bin's middle, as a cell is laid out for a short swing: in a 0.3 x 0.2 m bin
@@ -142,7 +147,10 @@ def cell_layout(p: Params) -> CellLayout:
     if len(solutions) == 0:
         raise ValueError(f"{arm.name}: the bin's centre ({T_base_from_bin[0, 3]:.2f} m away) is out of reach")
     home = solutions[np.argmin(np.abs(np.angle(np.exp(1j * (solutions - ELBOW_UP)))).sum(axis=1))]
-    cell = p.cell.model_copy(update={"place": place, "home_q_rad": [float(x) for x in home]})
+    # The table under the pedestal and the bin is the bin's ground (its floor's top).
+    cell = p.cell.model_copy(
+        update={"place": place, "home_q_rad": [float(x) for x in home], "table_z_m": -b.wall_height_m}
+    )
     return CellLayout(T_bin_from_base, T_base_from_bin @ T_bin_from_camera, T_bin_from_camera, cell)
 
 
