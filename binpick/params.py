@@ -1075,13 +1075,28 @@ def _one_line(err: ValidationError) -> str:
     return f"{where}: {message}{more}" if where else f"{message}{more}"
 
 
+class _UniqueKeys(yaml.SafeLoader):
+    """YAML's safe loader refusing a key twice in one mapping: PyYAML keeps the last silently, and
+    a part entry with `pick:` written twice took the second without a word."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                line = key_node.start_mark.line + 1
+                raise yaml.constructor.ConstructorError(None, None, f"the key {key!r} twice (line {line})")
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_raw(path: str | Path) -> dict[str, Any]:
     """Read params.yaml as plain data."""
     path = Path(path)
     if not path.is_file():
         raise InputError(path, "params file not found")
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(path.read_text(), Loader=_UniqueKeys)  # a safe loader that refuses repeated keys
     except yaml.YAMLError as exc:
         raise InputError(path, f"not valid YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(raw, dict):

@@ -127,3 +127,19 @@ def test_unknown_part_and_missing_file(tmp_path):
         load_params(_write(tmp_path, _minimal()), "zzz")
     with pytest.raises(InputError, match="not found"):
         load_params(tmp_path / "nope.yaml")
+
+
+def test_a_key_written_twice_fails_naming_it_and_its_line(tmp_path):
+    """A part entry with `pick:` twice: YAML's safe loader would keep the second silently."""
+    text = Path("params.yaml").read_text()
+    entry = "    symmetry: {kind: n_fold, axis: [0.0, 1.0, 0.0], order: 2}\n"
+    assert entry in text
+    twice = text.replace(entry, entry + "    pick: {gripper: jaw}\n    pick: {gripper: suction}\n", 1)
+    path = tmp_path / "params.yaml"
+    path.write_text(twice)
+    line = twice.splitlines().index("    pick: {gripper: suction}") + 1
+    with pytest.raises(InputError, match=rf"the key 'pick' twice \(line {line}\)") as err:
+        load_params(path)
+    assert "\n" not in str(err.value)
+    path.write_text(twice.replace("    pick: {gripper: jaw}\n", "", 1))
+    assert load_params(path, "t_joint").pick.gripper == "suction"
