@@ -763,6 +763,11 @@ class PickParams(_Strict):
             return self.suction.cup_length_m + self.suction.tool_length_m
         return self.jaw.palm_from_tcp_m + self.jaw.palm_depth_m + self.jaw.tool_length_m
 
+    @property
+    def oval_cup(self) -> bool:
+        """Whether the gripper in use is an oval suction cup (its grasps name their long axis)."""
+        return self.gripper == "suction" and self.suction.oval
+
 
 def rigid_matrix(T: list[list[float]], name: str) -> list[list[float]]:
     """T, checked to be a 4 x 4 rigid transform (ValueError naming `name` otherwise)."""

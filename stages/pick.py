@@ -42,7 +42,7 @@ def run(
     _, poses = load_poses(poses_path)
     part = load_part_model(part_model_path)
     kind = params.pick.gripper
-    grasps = load_grasps(grasps_path, kind == "suction" and params.pick.suction.oval)[kind]
+    grasps = load_grasps(grasps_path, params.pick.oval_cup)[kind]
     t0 = time.perf_counter()
     plan = pick(
         cloud,

@@ -65,14 +65,13 @@ class PartModels:
             log.info("no network for the part: registration over the whole scene")
             register_params = register_params.model_copy(update={"mode": "whole_scene"})
         part = load_part_model(part_model)
-        oval_cup = params.pick.gripper == "suction" and params.pick.suction.oval
         return cls(
             part=part,
             ppf=load_ppf_model(ppf_model),
             segmenter=segmenter,
             import_params=params.import_capture,
             register_params=with_verification(register_params, chosen_verification(verification, segmenter)),
-            grasps=load_grasps(grasps, oval_cup)[params.pick.gripper] if grasps is not None else None,
+            grasps=load_grasps(grasps, params.pick.oval_cup)[params.pick.gripper] if grasps is not None else None,
             pick_params=params.pick,
             cell_params=params.cell,
             density_kg_m3=density_kg_m3(params, part.name),
