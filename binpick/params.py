@@ -543,6 +543,11 @@ class RegisterParams(_Strict):
     cluster_rotation_deg: float = Field(gt=0)
     cluster_translation_rel: float = Field(gt=0)
     icp_iterations: int = Field(ge=0)
+    # A last ICP of each verified pose pairing every measured point with the model point on its
+    # camera ray (registration/verification.py refine_along_rays): nearest-point ICP pulls a curved
+    # part toward the camera under depth noise (sigma^2 / 2r: 1.4-1.8 mm on gear shafts 2 m from a
+    # Kinect-class sensor), which puts a suction cup's contact in front of the true surface.
+    refine_along_rays: bool = True
     refine_step_rel: float = Field(gt=0, description="grid of the points ICP and scoring use, share of diameter")
     score_inlier_rel: float = Field(gt=0, description="scene point within this of the model counts")
     min_score: float = Field(ge=0, le=1)

@@ -34,9 +34,10 @@ def point_to_plane_icp(
     max_iterations: int,
     tolerance: float,
     free_turn: tuple[np.ndarray, np.ndarray] | None = None,
+    ray_pairing_rad: float | None = None,
 ) -> np.ndarray:
     """(4, 4) T_target_from_source refined from the given start so that the source points lie on
-    the planes of their nearest target points.
+    the planes of their nearest target points (or of the target points on their rays).
 
     source_points : (n, 3) source frame, metres.
     target_points, target_normals : (m, 3) target frame, metres and unit normals.
@@ -47,6 +48,13 @@ def point_to_plane_icp(
                 that includes it spins the source by noise (3-20 degrees a step on a gear shaft,
                 pairs changing every time, so that ICP never stopped before max_iterations); the
                 steps leave that turn out.
+    ray_pairing_rad : pair each source point with the target point nearest its ray from the
+                source frame's origin (a depth sensor's centre), within this angle, instead of
+                the nearest target point. A depth sensor's noise lies along its rays; on a curved
+                surface the nearest point to a measurement displaced along a grazing ray lies
+                beside the true one, outward of a convex surface, so that the nearest-point fit
+                comes toward the sensor by about sigma^2 / (2 r) (sigma the depth noise, r the
+                radius of curvature). The point on the ray has no such bias.
     """
     source = np.ascontiguousarray(source_points, dtype=np.float64)
     target = np.ascontiguousarray(target_points, dtype=np.float64)
@@ -64,7 +72,10 @@ def point_to_plane_icp(
     def paired(moved: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, float, float]:
         """The step's normal equations at these source positions, the paired share and the pairs'
         rms distance."""
-        d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+        if ray_pairing_rad is None:
+            d, j = tree.query(moved, distance_upper_bound=max_distance_m)
+        else:
+            d, j = _ray_pairs(moved, target, T[:3, 3], ray_pairing_rad, max_distance_m)
         JtJ, Jtr, n_pairs, sum_d2 = _normal_equations(moved, target, normals, d, j.astype(np.int64))
         return JtJ, Jtr, n_pairs, n_pairs / len(source), float(np.sqrt(sum_d2 / n_pairs)) if n_pairs else 0.0
 
@@ -96,6 +107,24 @@ def point_to_plane_icp(
         ):
             break
     return T
+
+
+def _ray_pairs(
+    moved: np.ndarray, target: np.ndarray, origin: np.ndarray, max_angle_rad: float, max_distance_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """For each source point (n, 3), the target point (m, 3) whose direction from origin (3,) is
+    nearest its own, within max_angle_rad: the distances (n,; inf where unpaired or farther apart
+    than max_distance_m) and the target indices (n,). Target frame, metres."""
+    to_target = target - origin
+    to_target /= np.linalg.norm(to_target, axis=1, keepdims=True)
+    to_moved = moved - origin
+    to_moved /= np.linalg.norm(to_moved, axis=1, keepdims=True)
+    # On the unit sphere a chord of 2 sin(a / 2) spans the angle a.
+    chord, j = KDTree(to_target).query(to_moved, distance_upper_bound=2.0 * np.sin(max_angle_rad / 2.0))
+    j = np.minimum(j, len(target) - 1).astype(np.int64)
+    d = np.linalg.norm(moved - target[j], axis=1)
+    d[~np.isfinite(chord) | (d > max_distance_m)] = np.inf
+    return d, j
 
 
 @lru_cache(maxsize=32)

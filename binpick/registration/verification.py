@@ -203,6 +203,35 @@ def refine_icp(
     return invert_T(T_model_from_cam)
 
 
+def refine_along_rays(
+    model: PPFModel, T_cam_from_model: np.ndarray, scene_points: np.ndarray, max_distance_m: float, iterations: int
+) -> np.ndarray:
+    """Point-to-plane ICP of the scene points (n, 3, camera frame, metres; the camera at the
+    origin) onto the model surface facing the camera, each point paired with the model point on
+    its camera ray (geometry/icp.py, ray_pairing_rad): the pose without the pull toward the camera
+    that nearest-point pairing gives a curved part under depth noise (refine_icp; 1.4-1.8 mm on
+    gear shafts 2 m from a Kinect-class sensor, our renderer). A ray pairs within two of the dense
+    sample's spacings at the points' median range."""
+    facing = _facing(model, T_cam_from_model)
+    if iterations == 0 or len(scene_points) < 6 or facing.sum() < 6:
+        return T_cam_from_model
+    target = model.dense_points_m[facing]
+    spacing_m = float(np.median(cKDTree(target).query(target[:: max(1, len(target) // 500)], k=2)[0][:, 1]))
+    range_m = float(np.median(np.linalg.norm(scene_points, axis=1)))
+    T_model_from_cam = point_to_plane_icp(
+        scene_points,
+        target,
+        model.dense_normals[facing],
+        invert_T(T_cam_from_model),
+        max_distance_m,
+        iterations,
+        ICP_RELATIVE_CHANGE,
+        model.revolution_axis,
+        ray_pairing_rad=2.0 * spacing_m / range_m,
+    )
+    return invert_T(T_model_from_cam)
+
+
 def explained_points(
     model: PPFModel, T: np.ndarray, points: np.ndarray, tree: cKDTree, inlier_m: float, reach_m: float
 ) -> np.ndarray:

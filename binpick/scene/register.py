@@ -32,6 +32,7 @@ from binpick.registration.near_symmetry import resolve
 from binpick.registration.verification import (
     in_the_floor,
     part_share,
+    refine_along_rays,
     score_pose,
     seen_through,
     support_cut,
@@ -199,7 +200,8 @@ def register(
     # deep into the floor the cleaning found: nothing measured can contradict it there (the
     # floor hides it), but no part lies inside the floor.
     dropped = {"seen_through": 0, "unsupported": 0, "not_part": 0, "in_the_floor": 0}
-    inlier_m = Scales.of(ppf, params).inlier_m
+    scales = Scales.of(ppf, params)
+    inlier_m = scales.inlier_m
     model_centre = ppf.dense_points_m.mean(axis=0)
 
     def noise_about(T_cam_from_model: np.ndarray) -> float:
@@ -240,7 +242,12 @@ def register(
             ):
                 dropped["not_part"] += 1
                 continue
-            kept.append(replace(pose, seen_through=share, visible_support=support))
+            T = pose.T_cam_from_model
+            if params.refine_along_rays:
+                centre = T[:3, :3] @ model_centre + T[:3, 3]
+                near = points[np.linalg.norm(points - centre, axis=1) <= scales.reach_m]
+                T = refine_along_rays(ppf, T, near, scales.fine_icp_m, params.icp_iterations)
+            kept.append(replace(pose, T_cam_from_model=T, seen_through=share, visible_support=support))
         return kept
 
     n_candidates = len(poses)
