@@ -605,6 +605,13 @@ class SuctionParams(_Strict):
     holding_force_n: float = Field(
         gt=0, description="the most the sealed cup holds against the part's weight and the lift's acceleration"
     )
+    stroke_m: float = Field(
+        0.0,
+        ge=0,
+        description="a bellows cup's travel along its axis (its data sheet; 0: a flat cup): the tool centre point "
+        "is then the lip half pressed, so that the lip seals on a surface up to half the travel nearer or farther "
+        "than the pick planned",
+    )
 
     @model_validator(mode="after")
     def _oval(self) -> SuctionParams:

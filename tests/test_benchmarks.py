@@ -139,12 +139,13 @@ def test_mixed_picking_bench_clears_a_small_bin_and_names_each_pick_s_part(share
 
 def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     """The benchmark's own judge: a grasp placed on a true part passes, one 5 mm above it or
-    whose tool passes through a neighbour fails."""
+    whose tool passes through a neighbour fails (or 5 mm into it), unless a bellows cup's travel
+    covers the 5 mm."""
 
     from binpick.geometry.transforms import make_T
     from binpick.io.grasps import tool_frame
     from binpick.picking.plan import Pick
-    from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch
+    from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch, touch_m
 
     T_obj = make_T(np.eye(3), np.array([0.0, 0.0, 0.5]))
     # The camera looks along +z, so the part's top is its model -z side: a contact on the run's
@@ -167,6 +168,15 @@ def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):
     assert _path_hits(
         pick(T_grasp), "suction", PARAMS, 0, np.stack([T_obj, neighbour]), t_joint.points_m, np.zeros((0, 3))
     )
+    # A bellows cup of 12 mm travel, its lip half pressed at the contact, reaches the surface 5 mm
+    # beyond it, and gives when the surface lies 5 mm nearer (the tool 5 mm into its target).
+    bellows = changed(PARAMS, pick=changed(PARAMS.pick, suction=changed(PARAMS.pick.suction, stroke_m=0.012)))
+    assert touch_m(bellows.pick, "suction") == pytest.approx(0.008)
+    assert _true_touch(pick(lifted), "suction", T_obj[None], TrueSurface(t_joint, 0.005, 0.008)) == 0
+    pressed = T_grasp.copy()
+    pressed[2, 3] += 0.005
+    assert _path_hits(pick(pressed), "suction", PARAMS, 0, T_obj[None], t_joint.points_m, np.zeros((0, 3)))
+    assert not _path_hits(pick(pressed), "suction", bellows, 0, T_obj[None], t_joint.points_m, np.zeros((0, 3)))
 
 
 def test_the_judge_reads_the_surface_under_the_cup_not_one_facet():

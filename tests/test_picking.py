@@ -37,7 +37,7 @@ from binpick.picking.lift import LEAVE_WALL_DEG
 from binpick.picking.measured import contact_seen
 from binpick.picking.obstacles import BIN, CAPTURED
 from binpick.picking.plan import FAILED_HERE, GRIP_FAILED, NOT_PLANNED, image_groups, images_in_turn, plan_picks
-from binpick.picking.seal import cup_seal
+from binpick.picking.seal import contact_tolerance_m, cup_seal
 
 # A box part 40 x 30 x 20 mm, model frame at its centre.
 EXTENTS = np.array([0.04, 0.03, 0.02])
@@ -220,6 +220,27 @@ def test_an_oval_cup_lies_along_a_shaft_where_a_round_cup_of_its_hold_finds_no_s
         assert cup_seal(rays, across, oval.suction) is False
     round_cup = oval_cup(pick_settings, None, float(np.sqrt(0.03 * 0.01)))
     assert not any(abs(T[2, 2]) < 0.1 for T in suction_grasps(rod, round_cup).T_model_from_tool)
+
+
+def test_a_bellows_cup_seals_on_a_surface_half_its_travel_off_the_planned_contact_and_no_farther(pick_settings):
+    """A cup whose plan puts the lip 3 mm short of the rod's side (the pose 3 mm toward the
+    camera) or 3 mm into it: a flat cup meets air or presses in (no part there, within 2 mm);
+    a bellows cup of 8 mm travel seals both ways; 7 mm off is beyond it too."""
+    rod = rod_part(radius_m=0.02, length_m=0.15, sections=48)
+    flat = oval_cup(pick_settings, 0.03, 0.01)
+    bellows = flat.model_copy(update={"suction": flat.suction.model_copy(update={"stroke_m": 0.008})})
+    T = next(T for T in suction_grasps(rod, flat).T_model_from_tool if abs(T[2, 2]) < 0.1)
+    rays = trimesh.ray.ray_triangle.RayMeshIntersector(trimesh.Trimesh(rod.mesh_vertices_m, rod.mesh_faces))
+
+    def off(T: np.ndarray, along_m: float) -> np.ndarray:
+        """The tool moved along its approach: > 0 into the part."""
+        return make_T(T[:3, :3], T[:3, 3] + along_m * T[:3, 2])
+
+    for along_m in (-0.003, 0.003):
+        assert cup_seal(rays, off(T, along_m), flat.suction) is None
+        assert cup_seal(rays, off(T, along_m), bellows.suction) is True
+    assert cup_seal(rays, off(T, -0.007), bellows.suction) is None
+    assert contact_tolerance_m(bellows.suction) == pytest.approx(0.006)
 
 
 def test_an_oval_cups_grasps_keep_their_long_axis_in_the_file_and_turn_only_half_a_turn(tmp_path, pick_settings):

@@ -302,7 +302,9 @@ class SimulatedCell:
                     break
 
     def _part_at(self, T_bin_from_tcp: np.ndarray) -> int | None:
-        """The part whose true surface lies nearest the tool centre point, within 5 CONTACT_TOLERANCE_M."""
+        """The part whose true surface lies nearest the tool centre point, within 5 CONTACT_TOLERANCE_M
+        (and half a bellows cup's travel)."""
+        reach_m = 5 * CONTACT_TOLERANCE_M + (self.pick.suction.stroke_m / 2.0 if self.kind == "suction" else 0.0)
         best: tuple[float, int] | None = None
         for i, body in enumerate(self.parts):
             if body is None:
@@ -311,7 +313,7 @@ class SimulatedCell:
                 invert_T(self._body_pose(body) @ invert_T(self.T_model_from_body)), T_bin_from_tcp[:3, 3][None]
             )
             _, distance, _ = trimesh.proximity.closest_point(self.rays.mesh, local)
-            if distance[0] <= 5 * CONTACT_TOLERANCE_M and (best is None or distance[0] < best[0]):
+            if distance[0] <= reach_m and (best is None or distance[0] < best[0]):
                 best = (float(distance[0]), i)
         return None if best is None else best[1]
 

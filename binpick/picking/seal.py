@@ -20,10 +20,17 @@ CONTACT_TOLERANCE_M = 0.002
 RAY_BACK_M = 0.02
 
 
+def contact_tolerance_m(suction: SuctionParams) -> float:
+    """How far along the approach the part's true surface may lie from the planned contact,
+    nearer or farther, for the cup's lip to meet it: CONTACT_TOLERANCE_M, plus half a bellows
+    cup's travel (the tool centre point is its lip half pressed)."""
+    return CONTACT_TOLERANCE_M + suction.stroke_m / 2.0
+
+
 def cup_seal(rays, T_model_from_tool: np.ndarray, suction: SuctionParams) -> bool | None:
     """Whether the cup's lip seals on a part's true mesh at this tool pose (4, 4; the tool frame in
     the part's model frame; z the approach; an oval lip's length along x): None when the cup's
-    centre does not meet the part within CONTACT_TOLERANCE_M (not this part), False when it meets
+    centre does not meet the part within contact_tolerance_m (not this part), False when it meets
     it but the lip hangs over an edge or the lip's surface is not flat within max_deviation_m and
     facing within max_normal_deg, True when it seals. rays: a trimesh ray intersector of the part's mesh."""
     a, b = suction.lip_half_axes_m
@@ -37,7 +44,7 @@ def cup_seal(rays, T_model_from_tool: np.ndarray, suction: SuctionParams) -> boo
         return None
     depth = np.full(n_rays + 1, np.nan)
     depth[hit_rays] = (hits - origins[hit_rays]) @ T_model_from_tool[:3, 2] - RAY_BACK_M
-    if abs(depth[0]) > CONTACT_TOLERANCE_M:
+    if abs(depth[0]) > contact_tolerance_m(suction):
         return None
     if len(hit_rays) < n_rays + 1:
         return False  # the lip hangs over an edge

@@ -52,6 +52,7 @@ from flows.bench.picking import (
     bin_surface_points,
     draw_bin,
     picking_settings,
+    touch_m,
 )
 
 log = logging.getLogger(__name__)
@@ -88,7 +89,7 @@ def bench_picking_mix(
     models = {
         q.name: bench_models(q, with_gripper(mix_settings(settings, q, p)), checkpoints.get(q.name)) for q in parts
     }
-    truths = {q.name: TrueSurface(q, p.pick.suction.cup_radius_m) for q in parts}
+    truths = {q.name: TrueSurface(q, p.pick.suction.cup_radius_m, touch_m(p.pick, kind)) for q in parts}
     tallies = {q.name: Tally() for q in parts}
     no_pick = 0
     cycles: list[float] = []

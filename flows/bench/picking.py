@@ -5,11 +5,14 @@ Per bin: 10-20 parts dropped and settled (pybullet). Then, until the bin is empt
 row failed: render what the camera sees (the project's camera, full resolution, sensor noise),
 write it as a Zivid SDK 1.x file, read it back and run import, segmentation (when the part has a
 trained network), registration and picks in process; take the first pick and check it:
-- it touches a real part: suction: the cup's contact within TOUCH_M of a true part's surface,
-  its approach within TOUCH_DEG of that surface's inward normal under the cup (TrueSurface);
+- it touches a real part: suction: the cup's contact within TOUCH_M of a true part's surface
+  (plus half the travel of a bellows cup, pick.suction.stroke_m: its lip, half pressed at the
+  contact, meets a surface that much nearer or farther), its approach within TOUCH_DEG of that
+  surface's inward normal under the cup (TrueSurface);
   jaws: both contacts within TOUCH_M of the same true part's surface;
 - its path is free: the gripper swept along the approach reaches no deeper than PENETRATION_M
-  into the true meshes of the other parts or the bin (nor deeper than TOUCH_M into its target).
+  into the true meshes of the other parts or the bin (nor deeper into its target than the contact
+  may lie off it).
 A good pick removes that part and the rest settle again; a failed one is counted and the bin is
 captured again (new sensor noise). Keys per part: pick_success_rate (good picks / attempts),
 clearance_rate (parts removed / parts settled in the bins), wrong_part_picks (picks that touch no
@@ -45,7 +48,7 @@ from binpick.io.capture import ImportOptions, load_capture
 from binpick.io.part_model import PartModel
 from binpick.io.zdf import save_zdf_v1
 from binpick.layout import Layout
-from binpick.params import BinParams, Params
+from binpick.params import BinParams, Params, PickParams
 from binpick.part.model import density_kg_m3
 from binpick.picking.grasps import REVOLUTION_GRASP_STEPS, expand_by_symmetry, generate_grasps, patch_surface
 from binpick.picking.gripper import gripper_primitives, signed_distance, swept, translated_poses
@@ -115,6 +118,12 @@ def picking_settings(settings: Params, part: PartModel) -> Params:
     return p.model_copy(update={"generate": generate, "camera": p.camera.model_copy(update={"downscale": 1})})
 
 
+def touch_m(pick: PickParams, kind: str) -> float:
+    """How far from a true surface the judge takes a gripper's contact to touch it: TOUCH_M, plus
+    half a bellows suction cup's travel."""
+    return TOUCH_M + (pick.suction.stroke_m / 2.0 if kind == "suction" else 0.0)
+
+
 def bench_models(part: PartModel, p: Params, checkpoint: Path | None) -> PartModels:
     """The part's models built in memory for a benchmark: its PPF model, its network when the
     checkpoint exists (else registration over the whole scene) and its grasps for p.pick.gripper."""
@@ -153,12 +162,13 @@ class TrueSurface:
     leaves the part's turn about its axis open would meet anywhere across. The sample is the one
     the suction grasps read their patches from (grasping.patch_surface). Built once per part."""
 
-    def __init__(self, part: PartModel, cup_radius_m: float) -> None:
+    def __init__(self, part: PartModel, cup_radius_m: float, touch_m: float = TOUCH_M) -> None:
         self.mesh = trimesh.Trimesh(part.mesh_vertices_m, part.mesh_faces, process=False)
         self.query = trimesh.proximity.ProximityQuery(self.mesh)
         self.points_m, self.normals = patch_surface(part, cup_radius_m)
         self.tree = cKDTree(self.points_m)
         self.cup_radius_m = cup_radius_m
+        self.touch_m = touch_m
 
     def approach_off_deg(
         self, closest_m: np.ndarray, face: int, T_cam_from_object: np.ndarray, T_cam_from_tool: np.ndarray
@@ -186,7 +196,7 @@ def _true_touch(pick, kind: str, T_cam_from_objects: np.ndarray, truth: TrueSurf
     for k, T_obj in enumerate(T_cam_from_objects):
         local = transform_points(invert_T(T_obj), contacts)
         closest, dist, tri = truth.query.on_surface(local)
-        if np.any(dist > TOUCH_M):
+        if np.any(dist > truth.touch_m):
             continue
         if kind == "suction" and truth.approach_off_deg(closest[0], int(tri[0]), T_obj, T) > TOUCH_DEG:
             continue
@@ -241,7 +251,7 @@ def _path_hits(
                 continue
             points = object_points_m if isinstance(object_points_m, np.ndarray) else object_points_m[k]
             depth = signed_distance(transform_points(to_tool @ T_obj, points), shape).min()
-            if depth < (-TOUCH_M if k == target else -PENETRATION_M):
+            if depth < (-touch_m(params.pick, kind) if k == target else -PENETRATION_M):
                 return True
     return False
 
@@ -402,7 +412,7 @@ def bench_picking(
         grasps = models.grasps
         tally = Tally()
         cycles: list[float] = []
-        truth = TrueSurface(part, p.pick.suction.cup_radius_m)
+        truth = TrueSurface(part, p.pick.suction.cup_radius_m, touch_m(p.pick, kind))
         with tempfile.TemporaryDirectory(prefix="binpick-picking-") as tmp:
             for b in range(n_bins):
                 bin_seed = derive_seed(seed, "bench-picking", part.name, b)
@@ -429,6 +439,7 @@ def bench_picking(
             "n_grasps": float(len(grasps)),
             "segmentation": 1.0 if models.segmenter is not None else 0.0,
             "diameter_mm": 1000.0 * part.diameter_m,
+            "contact_touch_m": truth.touch_m,
         }
         total.add(tally)
         all_cycles += cycles

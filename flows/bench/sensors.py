@@ -57,7 +57,7 @@ from binpick.seeding import SceneSeeds, derive_int, derive_seed
 from binpick.view import ViewParams
 from flows.bench import machine
 from flows.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
-from flows.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models
+from flows.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models, touch_m
 
 log = logging.getLogger(__name__)
 
@@ -416,7 +416,7 @@ def bench_sensors(
     for part in bench_parts(names, n_points=settings.ingest.n_surface_points):
         name = part.name
         p = scaled_settings(settings, part, TILT_DEG_MAX)
-        truth = TrueSurface(part, p.pick.suction.cup_radius_m)
+        truth = TrueSurface(part, p.pick.suction.cup_radius_m, touch_m(p.pick, p.pick.gripper))
         built = bench_models(part, p, None)
         tests = {
             TODAY: _render(part, p, [], True, "test-today", n_test, seed),
