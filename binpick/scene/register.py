@@ -211,6 +211,12 @@ def register(
         _, near = cloud_tree.query(centre[None], k=min(NOISE_PROBE_POINTS, len(points)))
         return local_noise_m(points, image_tree, points[np.ravel(near)])
 
+    def _along_rays(T: np.ndarray) -> np.ndarray:
+        """The pose refined along the camera rays on the captured points within reach of it."""
+        centre = T[:3, :3] @ model_centre + T[:3, 3]
+        near = points[np.linalg.norm(points - centre, axis=1) <= scales.reach_m]
+        return refine_along_rays(ppf, T, near, scales.fine_icp_m, params.icp_iterations)
+
     fine: _FineScene | None = None  # the near symmetries' grid of the cloud, built once
 
     def verified(candidates: list[PartPose]) -> list[PartPose]:
@@ -242,12 +248,7 @@ def register(
             ):
                 dropped["not_part"] += 1
                 continue
-            T = pose.T_cam_from_model
-            if params.refine_along_rays:
-                centre = T[:3, :3] @ model_centre + T[:3, 3]
-                near = points[np.linalg.norm(points - centre, axis=1) <= scales.reach_m]
-                T = refine_along_rays(ppf, T, near, scales.fine_icp_m, params.icp_iterations)
-            kept.append(replace(pose, T_cam_from_model=T, seen_through=share, visible_support=support))
+            kept.append(replace(pose, seen_through=share, visible_support=support))
         return kept
 
     n_candidates = len(poses)
@@ -274,6 +275,10 @@ def register(
         log.info("whole-scene matching added %d poses", len(more))
         n_candidates += len(more)
         kept_poses += verified(more)
+    if params.refine_along_rays:
+        # Last, once every pass is done: the passes' choices (which points a pose explains, what
+        # the whole-scene pass looks for) stay as they were; only the poses come off the bias.
+        kept_poses = [replace(pose, T_cam_from_model=_along_rays(pose.T_cam_from_model)) for pose in kept_poses]
     n_seen_through, n_unsupported = dropped["seen_through"], dropped["unsupported"]
     n_not_part, n_in_the_floor = dropped["not_part"], dropped["in_the_floor"]
     if len(kept_poses) < n_candidates:
