@@ -57,7 +57,7 @@ from binpick.seeding import SceneSeeds, derive_int, derive_seed
 from binpick.view import ViewParams
 from flows.bench import machine
 from flows.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
-from flows.bench.picking import TrueSurface, _path_hits, _true_touch, bench_models, touch_m
+from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch, bench_models, touch_m
 
 log = logging.getLogger(__name__)
 
@@ -213,7 +213,17 @@ def _test(
             first = plan.picks[0]
             target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
             bins = np.concatenate([_surface(m) for m in bin_meshes(drawn)])
-            if target is not None and not _path_hits(
+            if target is None:
+                distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, scene.T_cam_from_model, truth)
+                log.info(
+                    "%s test scene %d: the first pick touches no part as a grasp should (%.1f mm from the nearest "
+                    "true surface, %.0f degrees off its normal)",
+                    part.name,
+                    k,
+                    1000 * distance_m,
+                    angle_deg,
+                )
+            elif _path_hits(
                 first,
                 p.pick.gripper,
                 p,
@@ -222,6 +232,8 @@ def _test(
                 part.points_m,
                 transform_points(scene.T_cam_from_bin, bins),
             ):
+                log.info("%s test scene %d: the first pick's path hits another part or the bin", part.name, k)
+            else:
                 good += 1
     summary = seg.summary()
     return {
