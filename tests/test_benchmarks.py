@@ -8,7 +8,7 @@ from binpick.geometry.transforms import make_T
 from flows.bench.generation import bench_generate, max_penetration_mm, rejection_baseline
 from flows.bench.ppf import bench_ppf
 
-from settings import PARAMS, changed
+from settings import PARAMS, ROOT, changed
 
 
 def test_penetration_measure_knows_overlap_from_none(t_joint):
@@ -101,8 +101,13 @@ def test_the_sensor_bench_judges_no_pick_only_where_a_part_was_there_to_pick():
 def test_picking_bench_clears_a_small_bin_and_reports_its_keys():
     from flows.bench.picking import bench_picking
 
-    result = bench_picking(PARAMS, ["t_joint"], n_bins=1, parts_per_bin=(3, 3), checkpoints={})
+    # The part's own entry (here a bellows cup of 4 mm travel) is what the bench picks with.
+    own = changed(PARAMS, pick=changed(PARAMS.pick, suction=changed(PARAMS.pick.suction, stroke_m=0.004)))
+    result = bench_picking(
+        PARAMS, ["t_joint"], n_bins=1, parts_per_bin=(3, 3), checkpoints={}, part_settings={"t_joint": own}
+    )
     part = result["parts"]["t_joint"]
+    assert part["contact_touch_m"] == pytest.approx(0.004)
     for key in (
         "pick_success_rate",
         "clearance_rate",
@@ -135,6 +140,20 @@ def test_mixed_picking_bench_clears_a_small_bin_and_names_each_pick_s_part(share
     for key in ("pick_success_rate", "clearance_rate", "wrong_part_picks", "collisions", "cycle_s_median"):
         assert key in result
     assert result["clearance_rate"] >= 2 / 3 and result["wrong_part_picks"] == 0
+
+
+def test_the_benchmarks_take_a_listed_parts_own_entry(tmp_path):
+    """A part's entry in params.yaml (its own gripper) reaches the benchmarks that run it."""
+    from flows.cli.bench import part_settings
+
+    text = (ROOT / "params.yaml").read_text()
+    entry = "    symmetry: {kind: n_fold, axis: [0.0, 1.0, 0.0], order: 2}\n"
+    assert entry in text
+    path = tmp_path / "params.yaml"
+    path.write_text(text.replace(entry, entry + "    pick: {suction: {cup_radius_m: 0.008, stroke_m: 0.006}}\n", 1))
+    resolved = part_settings(path, ["t_joint", "not_listed"])
+    assert list(resolved) == ["t_joint"]
+    assert resolved["t_joint"].pick.suction.cup_radius_m == 0.008 and resolved["t_joint"].pick.suction.stroke_m == 0.006
 
 
 def test_a_pick_off_the_part_or_through_a_neighbour_is_caught(t_joint):

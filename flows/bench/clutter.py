@@ -183,10 +183,12 @@ def bench_clutter(
     checkpoints: dict[str, Path],
     seed: int = 0,
     tilt_deg_max: float = TILT_DEG_MAX,
+    part_settings: dict[str, Params] | None = None,
 ) -> dict[str, object]:
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
     without one are registered over the whole scene, no network); tilt_deg_max: the camera's
-    largest tilt from the bin's up axis, degrees."""
+    largest tilt from the bin's up axis, degrees; part_settings: the params resolved for a part
+    the project lists (its entry's overrides), used for that part."""
     from flows.bench.parts import bench_parts
 
     wanted = list(names or DEFAULT_PARTS)
@@ -200,7 +202,7 @@ def bench_clutter(
     all_base: list[dict[str, float]] = []
     by_band: dict[str, list[dict[str, float]]] = {}
     for part in parts:
-        p = scaled_settings(settings, part, tilt_deg_max)
+        p = scaled_settings((part_settings or {}).get(part.name, settings), part, tilt_deg_max)
         ppf = train_ppf(
             part.points_m, part.normals, part.diameter_m, symmetry_transforms(part.symmetry), p.registration
         )

@@ -382,10 +382,13 @@ def bench_picking(
     gripper: str | None = None,
     seed: int = 0,
     tilt_deg_max: float = TILT_DEG_MAX,
+    part_settings: dict[str, Params] | None = None,
 ) -> dict[str, object]:
     """settings: the project's params; checkpoints: part -> trained FPCC checkpoint (parts
     without one are registered over the whole scene); gripper: overrides pick.gripper;
-    tilt_deg_max: the largest tilt of a bin's camera from the bin's up axis, degrees."""
+    tilt_deg_max: the largest tilt of a bin's camera from the bin's up axis, degrees;
+    part_settings: the params resolved for a part the project lists (its entry's overrides: its
+    gripper), used for that part."""
     from flows.bench.parts import bench_parts
 
     parts = bench_parts(names, n_points=settings.ingest.n_surface_points)
@@ -405,7 +408,8 @@ def bench_picking(
     all_cycles: list[float] = []
     by_band: dict[str, list[tuple[Tally, list[float]]]] = {}  # band -> (tally, cycles) of each bin
     for part in parts:
-        p = picking_settings(settings, part)
+        p = picking_settings((part_settings or {}).get(part.name, settings), part)
+        kind = gripper or p.pick.gripper
         p = p.model_copy(update={"pick": p.pick.model_copy(update={"gripper": kind})})
         models = bench_models(part, p, checkpoints.get(part.name))
         assert models.grasps is not None

@@ -395,20 +395,25 @@ def bench_sensors(
     seed: int = 0,
     trust_margin: float | None = None,
     bin_box: str = "none",
+    part_settings: dict[str, Params] | None = None,
 ) -> dict[str, object]:
     """settings: the project's params (its train section sizes the networks, its bin and camera
     are scaled to each part as bench clutter scales them); n_train, n_val: synthetic scenes per
     network; n_test: cluttered test bins per test sensor; n_captures: captures of
     finetune_sensor the cell labels itself; trust_margin: instead of learn.trust_margin; bin_box:
-    the box every capture is cropped to (BIN_BOXES)."""
+    the box every capture is cropped to (BIN_BOXES); part_settings: the params resolved for a part
+    the project lists (its entry's overrides: its gripper), used for that part."""
     from flows.bench.parts import bench_parts
 
     if bin_box not in BIN_BOXES:
         raise ValueError(f"--bin-box {bin_box!r} is not one of {', '.join(BIN_BOXES)}")
-    if trust_margin is not None:
-        settings = settings.model_copy(
-            update={"learn": settings.learn.model_copy(update={"trust_margin": trust_margin})}
-        )
+
+    def with_margin(p: Params) -> Params:
+        if trust_margin is None:
+            return p
+        return p.model_copy(update={"learn": p.learn.model_copy(update={"trust_margin": trust_margin})})
+
+    settings = with_margin(settings)
 
     out: dict[str, object] = {
         "machine": machine(),
@@ -427,7 +432,7 @@ def bench_sensors(
         raise ValueError(f"--finetune-sensor {finetune_sensor!r} is not a sensor model (have: {', '.join(presets)})")
     for part in bench_parts(names, n_points=settings.ingest.n_surface_points):
         name = part.name
-        p = scaled_settings(settings, part, TILT_DEG_MAX)
+        p = scaled_settings(with_margin((part_settings or {}).get(name, settings)), part, TILT_DEG_MAX)
         truth = TrueSurface(part, p.pick.suction.cup_radius_m, touch_m(p.pick, p.pick.gripper))
         built = bench_models(part, p, None)
         tests = {

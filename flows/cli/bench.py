@@ -3,11 +3,15 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import typer
 
 from binpick.env import project_root
 from flows.cli.common import PARAMS, bench_app, checkpoints, fail, trained_part_paths, write_json
+
+if TYPE_CHECKING:
+    from binpick.params import Params
 
 # Options several benchmarks share, declared once.
 OUT = typer.Option(..., help="JSON file to write")
@@ -15,6 +19,15 @@ BENCH_PARTS_OPTION = typer.Option(None, help="parts (default: t_joint, the gear 
 SHARED_PARTS_OPTION = typer.Option(None, help="parts to use (default: the built-in part and every shared part)")
 MIN_PARTS = typer.Option(10, min=1, help="parts per bin, at least")
 MAX_PARTS = typer.Option(20, min=1, help="parts per bin, at most")
+
+
+def part_settings(params: Path, names: list[str]) -> dict[str, Params]:
+    """The params resolved for each of these parts the project lists (its entry's overrides: a
+    part's own gripper, bin or camera), which the benchmarks use for that part."""
+    from binpick.params import load_params, load_raw
+
+    listed = load_raw(params).get("parts") or {}
+    return {n: load_params(params, n) for n in names if n in listed}
 
 
 @bench_app.command("import")
@@ -73,7 +86,14 @@ def bench_clutter_cmd(
         return
     names = part or list(DEFAULT_PARTS)
     try:
-        result = bench_clutter(load_params(params), names, scenes, checkpoints(root, names), tilt_deg_max=tilt_deg_max)
+        result = bench_clutter(
+            load_params(params),
+            names,
+            scenes,
+            checkpoints(root, names),
+            tilt_deg_max=tilt_deg_max,
+            part_settings=part_settings(params, names),
+        )
     except ValueError as exc:
         fail(str(exc))
     write_json(out, result)
@@ -92,14 +112,13 @@ def bench_cell_cmd(
     arm's joint plan; picks per hour, collisions, drops, double picks; against today's
     gripper-only picks handed to the arm (baseline_*). The first bin of each part is recorded
     beside FILE as <FILE without .json>-<part>.rrd (rerun)."""
-    from binpick.params import load_params, load_raw
+    from binpick.params import load_params
     from flows.bench.cell import DEFAULT_PARTS, bench_cell
 
     if min_parts > max_parts:
         fail(f"--min-parts {min_parts} is above --max-parts {max_parts}")
     root = project_root()
     names = part or list(DEFAULT_PARTS)
-    listed = load_raw(params).get("parts") or {}
     try:
         result = bench_cell(
             load_params(params),
@@ -108,7 +127,7 @@ def bench_cell_cmd(
             (min_parts, max_parts),
             checkpoints(root, names),
             record_prefix=out.with_suffix(""),
-            part_settings={n: load_params(params, n) for n in names if n in listed},
+            part_settings=part_settings(params, names),
         )
     except ValueError as exc:
         fail(str(exc))
@@ -172,6 +191,7 @@ def bench_picking_cmd(
             checkpoints(root, names),
             gripper,
             tilt_deg_max=tilt_deg_max,
+            part_settings=part_settings(params, names),
         )
     except ValueError as exc:
         fail(str(exc))
@@ -216,6 +236,7 @@ def bench_sensors_cmd(
             leave_one_out,
             trust_margin=trust_margin,
             bin_box=bin_box,
+            part_settings=part_settings(params, part or ["t_joint"]),
         )
     except ValueError as exc:
         fail(str(exc))
