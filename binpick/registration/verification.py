@@ -216,7 +216,7 @@ def refine_along_rays(
     if iterations == 0 or len(scene_points) < 6 or facing.sum() < 6:
         return T_cam_from_model
     target = model.dense_points_m[facing]
-    spacing_m = float(np.median(cKDTree(target).query(target[:: max(1, len(target) // 500)], k=2)[0][:, 1]))
+    spacing_m = float(np.median(KDTree(target).query(target[:: max(1, len(target) // 500)], k=2)[0][:, 1]))
     range_m = float(np.median(np.linalg.norm(scene_points, axis=1)))
     T_model_from_cam = point_to_plane_icp(
         scene_points,
