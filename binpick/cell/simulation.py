@@ -30,7 +30,7 @@ from binpick.params import CellParams, PickParams
 from binpick.part.model import part_mass_kg
 from binpick.picking.arm import ArmMotion
 from binpick.picking.gripper import holding_force_n
-from binpick.picking.seal import CONTACT_TOLERANCE_M, cup_seal
+from binpick.picking.seal import CONTACT_TOLERANCE_M, contact_tolerance_m, cup_seal
 from binpick.robot.arm import LINK_SAMPLE_SPACING_M, ArmModel
 from binpick.robot.trajectory import JointLimits, chain_motion, motion
 
@@ -304,7 +304,9 @@ class SimulatedCell:
     def _part_at(self, T_bin_from_tcp: np.ndarray) -> int | None:
         """The part whose true surface lies nearest the tool centre point, within 5 CONTACT_TOLERANCE_M
         (and half a bellows cup's travel)."""
-        reach_m = 5 * CONTACT_TOLERANCE_M + (self.pick.suction.stroke_m / 2.0 if self.kind == "suction" else 0.0)
+        reach_m = 4 * CONTACT_TOLERANCE_M + (
+            contact_tolerance_m(self.pick.suction) if self.kind == "suction" else CONTACT_TOLERANCE_M
+        )
         best: tuple[float, int] | None = None
         for i, body in enumerate(self.parts):
             if body is None:

@@ -239,6 +239,7 @@ def _path_hits(
     if np.linalg.norm(np.cross(out, pick.T_cam_from_grasp[:3, 2])) > 1e-6:
         # The target moves with the tool there: only the others and the bin are in its way.
         placed += [(tool, T, False) for T in translated_poses(pick.T_cam_from_grasp, out, TOOL_STEP_M)]
+    target_depth_m = touch_m(params.pick, kind)
     for shape, T_cam_from_tool, with_target in placed:
         to_tool = invert_T(T_cam_from_tool)
         if (
@@ -251,7 +252,7 @@ def _path_hits(
                 continue
             points = object_points_m if isinstance(object_points_m, np.ndarray) else object_points_m[k]
             depth = signed_distance(transform_points(to_tool @ T_obj, points), shape).min()
-            if depth < (-touch_m(params.pick, kind) if k == target else -PENETRATION_M):
+            if depth < (-target_depth_m if k == target else -PENETRATION_M):
                 return True
     return False
 

@@ -224,10 +224,11 @@ def bench_sensors_cmd(
     from binpick.params import load_params
     from flows.bench.sensors import bench_sensors
 
+    names = part or ["t_joint"]
     try:
         result = bench_sensors(
             load_params(params),
-            part or ["t_joint"],
+            names,
             train_scenes,
             val_scenes,
             test_scenes,
@@ -236,7 +237,7 @@ def bench_sensors_cmd(
             leave_one_out,
             trust_margin=trust_margin,
             bin_box=bin_box,
-            part_settings=part_settings(params, part or ["t_joint"]),
+            part_settings=part_settings(params, names),
         )
     except ValueError as exc:
         fail(str(exc))
