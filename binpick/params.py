@@ -386,6 +386,12 @@ class ClutterParams(_Strict):
     # in the shared section serves every part of the mix.
     parts: list[str] = []
     parts_share: float = Field(0.3, ge=0, le=1, description="share of a scene's dropped objects that are other parts")
+    # A cell that gives its bin box (binpick fit-bin --apply) has its captures cropped to it: the
+    # network sees a cloud with little but the parts left, unlike an uncropped view, and its
+    # foreground head called far fewer part points a part's there (docs/benchmarks.md).
+    box_share: float = Field(
+        0.0, ge=0, le=1, description="share of scenes whose training view is cropped to the bin's inner box"
+    )
 
     @field_validator("parts")
     @classmethod
@@ -411,6 +417,7 @@ class ClutterParams(_Strict):
                 "camera_distance_scale": (1.0, 1.0),
                 "noise_scale": (1.0, 1.0),
                 "parts": [],
+                "box_share": 0.0,
             }
         )
 

@@ -8,6 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
+from binpick.cell.bin_box import BinBox
 from binpick.generation.bin import FLOOR_THICKNESS_M, T_bin_from_cam, bin_meshes
 from binpick.generation.camera import apply_sensor_noise, camera_of, render, render_background, visible_fractions
 from binpick.generation.overlap import drop_overlapping, penetration_depths_m
@@ -37,12 +38,14 @@ def render_scene(
     T_bin_from_camera: np.ndarray | None = None,
     distractors: list[trimesh.Trimesh] | None = None,
     sensor: SensorModelParams | None = None,
+    view_in_box: bool = False,
 ) -> SyntheticScene:
     """Render placed objects (poses (k, 4, 4) in the bin frame) with the bin, add sensor noise,
     measure visibility and build the network's view. T_bin_from_camera: the camera's pose
     (default: camera.distance_m straight above the bin floor centre); distractors: meshes in the
     bin frame, rendered with the bin (label -1); sensor: a sensor model (its camera and effects,
-    generation/sensor.py) instead of the camera section's camera and generate.noise."""
+    generation/sensor.py) instead of the camera section's camera and generate.noise; view_in_box:
+    the view cleaned as a capture cropped to the bin's inner box is (a cell's given box)."""
     T_cam_bin = invert_T(T_bin_from_cam(camera.distance_m) if T_bin_from_camera is None else T_bin_from_camera)
     # Poses on a 1e-12 grid: sin, cos and matrix products may differ in the last bit between CPUs
     # (numpy and BLAS dispatch by instruction set); what is rendered should not.
@@ -62,7 +65,10 @@ def render_scene(
             clean, objects + clutter, intr, sensor, generate.sensor.materials[generate.sensor.surface], rng
         )
     if view.cleaning is not None:
-        vp, vn, vl = captured_view(noisy.xyz_m, noisy.labels, view.cleaning)
+        cleaning = view.cleaning
+        if view_in_box:
+            cleaning = cleaning.model_copy(update=BinBox.of_generated(generate.bin, T_cam_bin).as_import_settings())
+        vp, vn, vl = captured_view(noisy.xyz_m, noisy.labels, cleaning)
     else:
         vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
     return SyntheticScene(
@@ -112,7 +118,11 @@ def generate_scene(
         T_bin_from_model = place_objects(part.points_m, n_objects, generate.bin, placement, rng).T_bin_from_model
         if placement.mode == "physics":
             T_bin_from_model = settle_in_bin(part, T_bin_from_model, generate, rng)
-    return render_scene(part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors, sensor)
+    # Drawn from a stream of its own: the scenes' other draws stay as they were.
+    in_box = bool(stream_generator(seed, VIEW_BOX_STREAM).random() < generate.clutter.box_share)
+    return render_scene(
+        part, T_bin_from_model, generate, camera, view, rng, T_bin_camera, distractors, sensor, view_in_box=in_box
+    )
 
 
 def _mixed_pile(
@@ -151,6 +161,7 @@ def _mixed_pile(
 CLUTTER_STREAM = 7_777
 SENSOR_STREAM = 7_778
 MIX_STREAM = 7_779
+VIEW_BOX_STREAM = 7_780
 
 
 def stream_generator(seed: int | np.random.SeedSequence, stream: int) -> np.random.Generator:
