@@ -48,12 +48,17 @@ class BinBox:
         )
 
     @classmethod
-    def of_generated(cls, bin: BinParams, T_cam_from_bin: np.ndarray) -> BinBox:
+    def of_generated(cls, bin: BinParams, T_cam_from_bin: np.ndarray, headroom_m: float = 0.0) -> BinBox:
         """The box of a generated bin (generation/bin.py: its floor's centre at the bin frame's
-        origin, z up) seen from a camera at T_cam_from_bin (4, 4)."""
+        origin, z up) seen from a camera at T_cam_from_bin (4, 4). headroom_m > 0: the box reaches
+        that far above the rim (parts heaped over it are still the bin's), its walls as high as
+        the rim."""
         half = np.array([bin.inner_x_m / 2.0, bin.inner_y_m / 2.0])
         return cls(
-            np.asarray(T_cam_from_bin, dtype=np.float64), np.append(-half, 0.0), np.append(half, bin.wall_height_m)
+            np.asarray(T_cam_from_bin, dtype=np.float64),
+            np.append(-half, 0.0),
+            np.append(half, bin.wall_height_m + headroom_m),
+            np.full(4, bin.wall_height_m) if headroom_m > 0 else None,
         )
 
     def as_import_settings(self) -> dict[str, object]:

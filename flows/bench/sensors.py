@@ -261,10 +261,8 @@ def _cell_box(mode: str, scene: SyntheticScene, drawn, p: Params, part: PartMode
     if mode == "fitted":
         return fit_bin_box_of(scene.xyz_m.reshape(-1, 3), p.import_capture, part.diameter_m, seed)
     if mode == "given":
-        inner = BinBox.of_generated(drawn, scene.T_cam_from_bin)
         # Parts heaped over the rim are still the bin's: the crop reaches a part's size above it.
-        top = np.array([*inner.inner_max_m[:2], drawn.wall_height_m + part.diameter_m])
-        return BinBox(inner.T_cam_from_bin, inner.inner_min_m, top, np.full(4, drawn.wall_height_m))
+        return BinBox.of_generated(drawn, scene.T_cam_from_bin, headroom_m=part.diameter_m)
     return None
 
 
