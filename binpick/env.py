@@ -22,6 +22,9 @@ _DEFAULTS = {
     # A flow run without PREFECT_API_URL starts a server in a subprocess, migrating a fresh
     # database first; Prefect's 20 s limit was too short on a busy 2-core CI machine.
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180",
+    # A flow run's calls to a local server that shares two busy cores with training: Prefect's
+    # 60 s per request (retried 5 times) ran out in CI and crashed a finished scheduled run.
+    "PREFECT_API_REQUEST_TIMEOUT": "300",
     "GIT_PYTHON_REFRESH": "quiet",
     "TQDM_MININTERVAL": "2",
     # The PPF voting loop runs on every core through OpenMP or numba's own pool; the TBB found on

@@ -1,5 +1,6 @@
 """Prefect tasks that run DVC, so that DVC's cache skips every stage that is up to date."""
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -39,9 +40,19 @@ def prefect_run_env() -> dict[str, str]:
     return {k: str(v) for k, v in values.items() if v}
 
 
+# Stages (training, scene generation) take every core for minutes. On a cell's PC the pick service
+# and the Prefect server that schedules retraining share those cores; at normal priority a served
+# watcher's API calls timed out while its own training ran (the server answered nothing for
+# minutes on 2 cores). Niceness only matters when something else wants the CPU.
+STAGE_NICENESS = 10
+
+
 def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> str:
-    """`dvc repro <target>` in `root`; returns DVC's output, raises StageFailed with the error."""
-    proc = subprocess.run(
+    """`dvc repro <target>` in `root` at lower CPU priority (STAGE_NICENESS, inherited by the stage
+    and its workers); returns DVC's output, raises StageFailed with the error."""
+    import psutil
+
+    proc = subprocess.Popen(
         [sys.executable, "-m", "dvc", "repro", target],
         cwd=root,
         env={**dvc_env(), **(extra_env or {})},
@@ -49,9 +60,15 @@ def repro(target: str, root: Path, extra_env: dict[str, str] | None = None) -> s
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
     )
+    # Set from here rather than in a preexec_fn, which is unsafe in Prefect's threaded task runs.
+    # DVC starts the stage's own process later, so it inherits the priority.
+    with contextlib.suppress(psutil.Error):
+        stage = psutil.Process(proc.pid)
+        stage.nice(max(stage.nice(), STAGE_NICENESS))  # never raised above the caller's
+    stdout, stderr = proc.communicate()
     if proc.returncode != 0:
-        raise StageFailed(target, failure_reason(root, proc.stdout, proc.stderr))
-    return proc.stdout
+        raise StageFailed(target, failure_reason(root, stdout, stderr))
+    return stdout
 
 
 _EXCEPTION_LINE = __import__("re").compile(r"^[A-Za-z_][\w.]*(Error|Exception|Interrupt|Exit)\b.*")

@@ -343,3 +343,20 @@ def test_learn_commands_name_what_is_missing():
     _assert_one_line_error(proc, "no_such_part", "no labelled captures")
     proc = _run("-m", "flows.cli", "learn", "review", "--part", "t_joint", "--reject", "x")
     _assert_one_line_error(proc, "--reject goes with --approve")
+
+
+def test_a_flows_stage_runs_at_lower_cpu_priority_than_its_caller(tmp_path):
+    """A stage a flow runs yields the CPU to the pick service and the Prefect server: it runs at
+    STAGE_NICENESS above the caller's own niceness (never below it)."""
+    import os
+
+    import yaml
+
+    from flows.dvc_tasks import STAGE_NICENESS, dvc_env, repro
+
+    subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
+    subprocess.run([sys.executable, "-m", "dvc", "init", "-q"], cwd=tmp_path, check=True, env=dvc_env())
+    stage = {"cmd": "python -c \"import os; open('nice.txt', 'w').write(str(os.nice(0)))\"", "outs": ["nice.txt"]}
+    (tmp_path / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"probe": stage}}))
+    repro("probe", tmp_path)
+    assert int((tmp_path / "nice.txt").read_text()) == max(os.nice(0), STAGE_NICENESS)
