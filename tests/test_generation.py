@@ -330,28 +330,37 @@ def test_the_training_view_is_the_frame_as_the_import_step_cleans_it(t_joint):
 def test_a_share_of_training_views_is_cropped_to_the_bin_as_a_given_box_crops_a_capture(t_joint):
     """clutter.box_share: seen at a tilt, the uncropped view keeps the walls' tops and the like
     beside the bin's inner box; the view of a scene drawn to be cropped holds no point outside that
-    box (footprint and wall height, as fit-bin --apply crops a capture) and every part point of
-    the uncropped view. The rendered frame itself is the same either way."""
+    box (its footprint, and a part's size over the rim, as fit-bin --apply crops a capture) and
+    every part point of the uncropped view, those heaped over the rim too. The rendered frame
+    itself is the same either way."""
     off = PARAMS.generate.clutter.off()
     camera = changed(PARAMS.camera, downscale=4)
     view = ViewParams.of_import(PARAMS.import_capture)
 
     def scene_with(box_share):
         clutter = changed(off, n_distractors_max=8, outside_share=1.0, camera_tilt_deg_max=40.0, box_share=box_share)
-        return generate_scene(t_joint, PARAMS.generate.model_copy(update={"clutter": clutter}), camera, view, 3, 6)
+        # A bin whose rim is lower than the heap of 12 parts (up to 104 mm): some lie over it.
+        generate = PARAMS.generate.model_copy(
+            update={"clutter": clutter, "bin": changed(PARAMS.generate.bin, wall_height_m=0.04)}
+        )
+        return generate_scene(t_joint, generate, camera, view, 3, 12)
 
     cropped, whole = scene_with(1.0), scene_with(0.0)
     assert np.array_equal(cropped.xyz_m, whole.xyz_m, equal_nan=True)
     b = PARAMS.generate.bin
     tolerance = 0.003
 
+    def height(scene):
+        return transform_points(invert_T(scene.T_cam_from_bin), scene.view_points_m)[:, 2]
+
     def outside_the_box(scene):
         p = transform_points(invert_T(scene.T_cam_from_bin), scene.view_points_m)
         return np.any(np.abs(p[:, :2]) > np.array([b.inner_x_m, b.inner_y_m]) / 2 + tolerance, axis=1) | (
-            p[:, 2] > b.wall_height_m + tolerance
+            p[:, 2] > 0.04 + t_joint.diameter_m + tolerance
         )
 
     assert outside_the_box(whole).sum() > 50 and np.all(whole.view_labels[outside_the_box(whole)] == -1)
+    assert np.sum((cropped.view_labels >= 0) & (height(cropped) > 0.04 + tolerance)) > 50  # over the rim
     assert not outside_the_box(cropped).any()
     assert np.array_equal(
         np.sort(cropped.view_labels[cropped.view_labels >= 0]), np.sort(whole.view_labels[whole.view_labels >= 0])

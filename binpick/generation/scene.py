@@ -67,7 +67,10 @@ def render_scene(
     if view.cleaning is not None:
         cleaning = view.cleaning
         if view_in_box:
-            cleaning = cleaning.model_copy(update=BinBox.of_generated(generate.bin, T_cam_bin).as_import_settings())
+            # As high as the box a cell gives (fit-bin's reaches over the heap): parts heaped over
+            # the rim stay in the view, the walls are cut at the rim.
+            box = BinBox.of_generated(generate.bin, T_cam_bin, headroom_m=part.diameter_m)
+            cleaning = cleaning.model_copy(update=box.as_import_settings())
         vp, vn, vl = captured_view(noisy.xyz_m, noisy.labels, cleaning)
     else:
         vp, vn, vl = labelled_view(noisy.xyz_m, noisy.labels, view)
