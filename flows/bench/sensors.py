@@ -183,9 +183,10 @@ def _test(
     truth: TrueSurface,
     seed: int,
     bin_box: str = "none",
+    pair: str = "",
 ) -> dict[str, float]:
     """The keys of one train/test pair over its test scenes; bin_box: the box each capture is
-    cropped to (BIN_BOXES)."""
+    cropped to (BIN_BOXES); pair: its name in the log (`train@test`)."""
     models = _with_network(base, p, checkpoint)
     assert models.segmenter is not None
     ppf = models.ppf
@@ -208,11 +209,22 @@ def _test(
             )
             poses, plan = result.registration.poses, result.picks
         except BinpickError as exc:
-            log.warning("%s test scene %d: %s", part.name, k, exc)
+            log.warning("%s %s test scene %d: %s", part.name, pair, k, exc)
             poses, plan = [], None
         rows.append(_score(poses, scene, ppf, part, drawn.inner_x_m, drawn.inner_y_m))
         seg = seg.add(segment_and_count(models.segmenter, scene, p.segment, p.evaluate.iou_threshold, seed, k)[1])
-        judged += int(judges_the_pick(plan is not None and bool(plan.picks), rows[-1]["n_pickable"]))
+        sent = plan is not None and bool(plan.picks)
+        judged += int(judges_the_pick(sent, rows[-1]["n_pickable"]))
+        if not sent and rows[-1]["n_pickable"] > 0:
+            log.info(
+                "%s %s test scene %d: no pick sent, %d parts at least half in view (%d posed; refused: %s)",
+                part.name,
+                pair,
+                k,
+                rows[-1]["n_pickable"],
+                len(poses),
+                "; ".join(sorted({reason for _, reason in plan.unpicked})) if plan is not None else "no plan",
+            )
         if plan is not None and plan.picks:
             first = plan.picks[0]
             target = _true_touch(first, p.pick.gripper, scene.T_cam_from_model, truth)
@@ -220,9 +232,10 @@ def _test(
             if target is None:
                 distance_m, angle_deg = _nearest_surface(first.T_cam_from_grasp, scene.T_cam_from_model, truth)
                 log.info(
-                    "%s test scene %d: the first pick touches no part as a grasp should (%.1f mm from the nearest "
+                    "%s %s test scene %d: the first pick touches no part as a grasp should (%.1f mm from the nearest "
                     "true surface, %.0f degrees off its normal)",
                     part.name,
+                    pair,
                     k,
                     1000 * distance_m,
                     angle_deg,
@@ -236,7 +249,7 @@ def _test(
                 part.points_m,
                 transform_points(scene.T_cam_from_bin, bins),
             ):
-                log.info("%s test scene %d: the first pick's path hits another part or the bin", part.name, k)
+                log.info("%s %s test scene %d: the first pick's path hits another part or the bin", part.name, pair, k)
             else:
                 good += 1
     summary = seg.summary()
@@ -448,7 +461,9 @@ def bench_sensors(
             randomised, _, _ = _train(part, p, presets, n_train, n_val, seed, work, RANDOMISED)
             for train_name, checkpoint in ((TODAY, today), (RANDOMISED, randomised)):
                 for test_name, scenes in tests.items():
-                    pairs[f"{train_name}@{test_name}"] = _test(part, p, built, checkpoint, scenes, truth, seed, bin_box)
+                    pairs[f"{train_name}@{test_name}"] = _test(
+                        part, p, built, checkpoint, scenes, truth, seed, bin_box, f"{train_name}@{test_name}"
+                    )
                     log.info(
                         "%s %s@%s: %s",
                         name,
@@ -461,7 +476,9 @@ def bench_sensors(
                     without, _, _ = _train(
                         part, p, [x for x in presets if x != q], n_train, n_val, seed, work, f"without_{q}"
                     )
-                    pairs[f"without_{q}@{q}"] = _test(part, p, built, without, tests[q], truth, seed, bin_box)
+                    pairs[f"without_{q}@{q}"] = _test(
+                        part, p, built, without, tests[q], truth, seed, bin_box, f"without_{q}@{q}"
+                    )
                     log.info(
                         "%s without_%s@%s: %s",
                         name,
@@ -475,8 +492,12 @@ def bench_sensors(
                 "base": TODAY,
                 "sensor": finetune_sensor,
                 **labelling,
-                "after@" + finetune_sensor: _test(part, p, built, tuned, tests[finetune_sensor], truth, seed, bin_box),
-                "after@" + TODAY: _test(part, p, built, tuned, tests[TODAY], truth, seed, bin_box),
+                "after@" + finetune_sensor: _test(
+                    part, p, built, tuned, tests[finetune_sensor], truth, seed, bin_box, f"finetuned@{finetune_sensor}"
+                ),
+                "after@" + TODAY: _test(
+                    part, p, built, tuned, tests[TODAY], truth, seed, bin_box, f"finetuned@{TODAY}"
+                ),
             }
         before, after, reference = (
             pairs[f"{TODAY}@{finetune_sensor}"],
