@@ -22,7 +22,10 @@ Fine-tuning (`finetune`): the `today` network segments captures of sensor B (ben
 rendered with that preset), its poses verified with margin label them (binpick.learning), it is
 fine-tuned on its synthetic scenes plus those captures (binpick learn's recipe) and tested again on
 the B test bins and today's; `gap_closed_<key>` is the share of the gap between today@B and
-randomised@B (a network that saw B) that fine-tuning closed.
+randomised@B (a network that saw B) that fine-tuning closed; `served` (1 or 0) whether the cell's
+gate (flows.learn.no_worse, learn.max_drop) would serve it: its segmentation no worse on the B
+test bins and on today's, judged here on their true labels (the cell judges held-back captures
+by their own labels).
 
 All figures are on our renderer with our sensor models: the effects those models leave out
 (docs/guide/captures.md, "Training for your sensor") are not measured here.
@@ -58,6 +61,7 @@ from binpick.view import ViewParams
 from flows.bench import machine
 from flows.bench.clutter import CLUTTER, TILT_DEG_MAX, _score, _summary, drawn_bin, scaled_settings
 from flows.bench.picking import TrueSurface, _nearest_surface, _path_hits, _true_touch, bench_models, touch_m
+from flows.learn import no_worse
 
 log = logging.getLogger(__name__)
 
@@ -307,6 +311,16 @@ def fit_bin_box_of(
     return box
 
 
+def _gate_scores(real: dict[str, float], synthetic: dict[str, float]) -> dict[str, float]:
+    """A pair's segmentation figures under the names the serving gate (flows.learn.no_worse) reads."""
+    return {
+        "real_precision": real["seg_precision"],
+        "real_recall": real["seg_recall"],
+        "synthetic_precision": synthetic["seg_precision"],
+        "synthetic_recall": synthetic["seg_recall"],
+    }
+
+
 def judges_the_pick(sent: bool, n_pickable: float) -> bool:
     """Whether a capture counts for pick_success_rate: a pick was sent (judged right or wrong), or
     none was where the capture shows a part at least half visible (a failure). A bin whose parts
@@ -511,6 +525,11 @@ def bench_sensors(
             synthetic_after = finetune["after@" + TODAY]
             assert isinstance(synthetic_after, dict)
             finetune[f"synthetic_change_{key}"] = synthetic_after[key] - pairs[f"{TODAY}@{TODAY}"][key]
+        synthetic_before, synthetic_after = pairs[f"{TODAY}@{TODAY}"], finetune["after@" + TODAY]
+        assert isinstance(synthetic_after, dict)
+        finetune["served"] = float(
+            no_worse(_gate_scores(before, synthetic_before), _gate_scores(after, synthetic_after), p.learn.max_drop)
+        )
         loo = {q: pairs[f"without_{q}@{q}"] for q in presets if f"without_{q}@{q}" in pairs}
         out["parts"][name] = {  # type: ignore[index]
             "pairs": pairs,
