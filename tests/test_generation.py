@@ -336,31 +336,30 @@ def test_a_share_of_training_views_is_cropped_to_the_bin_as_a_given_box_crops_a_
     off = PARAMS.generate.clutter.off()
     camera = changed(PARAMS.camera, downscale=4)
     view = ViewParams.of_import(PARAMS.import_capture)
+    # A bin whose rim is lower than the heap of 12 parts (up to 104 mm): some lie over it.
+    b = changed(PARAMS.generate.bin, wall_height_m=0.04)
 
     def scene_with(box_share):
         clutter = changed(off, n_distractors_max=8, outside_share=1.0, camera_tilt_deg_max=40.0, box_share=box_share)
-        # A bin whose rim is lower than the heap of 12 parts (up to 104 mm): some lie over it.
-        generate = PARAMS.generate.model_copy(
-            update={"clutter": clutter, "bin": changed(PARAMS.generate.bin, wall_height_m=0.04)}
-        )
+        generate = PARAMS.generate.model_copy(update={"clutter": clutter, "bin": b})
         return generate_scene(t_joint, generate, camera, view, 3, 12)
 
     cropped, whole = scene_with(1.0), scene_with(0.0)
     assert np.array_equal(cropped.xyz_m, whole.xyz_m, equal_nan=True)
-    b = PARAMS.generate.bin
     tolerance = 0.003
 
-    def height(scene):
-        return transform_points(invert_T(scene.T_cam_from_bin), scene.view_points_m)[:, 2]
+    def in_bin_frame(scene):
+        return transform_points(invert_T(scene.T_cam_from_bin), scene.view_points_m)
 
     def outside_the_box(scene):
-        p = transform_points(invert_T(scene.T_cam_from_bin), scene.view_points_m)
+        p = in_bin_frame(scene)
         return np.any(np.abs(p[:, :2]) > np.array([b.inner_x_m, b.inner_y_m]) / 2 + tolerance, axis=1) | (
-            p[:, 2] > 0.04 + t_joint.diameter_m + tolerance
+            p[:, 2] > b.wall_height_m + t_joint.diameter_m + tolerance
         )
 
     assert outside_the_box(whole).sum() > 50 and np.all(whole.view_labels[outside_the_box(whole)] == -1)
-    assert np.sum((cropped.view_labels >= 0) & (height(cropped) > 0.04 + tolerance)) > 50  # over the rim
+    over_the_rim = in_bin_frame(cropped)[:, 2] > b.wall_height_m + tolerance
+    assert np.sum((cropped.view_labels >= 0) & over_the_rim) > 50
     assert not outside_the_box(cropped).any()
     assert np.array_equal(
         np.sort(cropped.view_labels[cropped.view_labels >= 0]), np.sort(whole.view_labels[whole.view_labels >= 0])

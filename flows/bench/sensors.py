@@ -518,15 +518,12 @@ def bench_sensors(
             finetune["after@" + finetune_sensor],
             pairs[f"{RANDOMISED}@{finetune_sensor}"],
         )
-        assert isinstance(after, dict)
+        synthetic_before, synthetic_after = pairs[f"{TODAY}@{TODAY}"], finetune["after@" + TODAY]
+        assert isinstance(after, dict) and isinstance(synthetic_after, dict)
         for key in ("pose_precision", "pose_recall", "pick_success_rate", "seg_precision", "seg_recall"):
             gap = reference[key] - before[key]
             finetune[f"gap_closed_{key}"] = (after[key] - before[key]) / gap if gap > 0 else None
-            synthetic_after = finetune["after@" + TODAY]
-            assert isinstance(synthetic_after, dict)
-            finetune[f"synthetic_change_{key}"] = synthetic_after[key] - pairs[f"{TODAY}@{TODAY}"][key]
-        synthetic_before, synthetic_after = pairs[f"{TODAY}@{TODAY}"], finetune["after@" + TODAY]
-        assert isinstance(synthetic_after, dict)
+            finetune[f"synthetic_change_{key}"] = synthetic_after[key] - synthetic_before[key]
         finetune["served"] = float(
             no_worse(_gate_scores(before, synthetic_before), _gate_scores(after, synthetic_after), p.learn.max_drop)
         )
