@@ -3,7 +3,7 @@
 import numpy as np
 import trimesh
 
-from binpick.cell.bin_box import BinBox
+from binpick.cell.bin_box import WALL_SIDES, BinBox
 from binpick.cell.bin_fit import fit_bin_box, implausible, min_area_rectangle, sides_out_of_view
 from binpick.generation.bin import T_bin_from_cam, bin_meshes
 from binpick.generation.camera import camera_of, render
@@ -321,3 +321,12 @@ def test_a_wall_of_a_given_box_stands_at_one_of_its_sides():
     assert not box.is_wall(plane([1.0, 0.0, 0.0], [0.0, 0.38, 0.0]))  # at the +y side, across it
     tilted = [np.cos(np.radians(20.0)), np.sin(np.radians(20.0)), 0.0]
     assert not box.is_wall(plane(tilted, [0.48, 0.0, 0.0]))  # 20 degrees off the side
+    # Each side by name (WALL_SIDES), whichever way the normal faces.
+    at_sides = [([1, 0, 0], [-0.47, 0.1, 0]), ([-1, 0, 0], [0.48, 0, 0]), ([0, -1, 0], [0, -0.38, 0])]
+    at_sides.append(([0, 1, 0], [0, 0.39, 0]))
+    for side, (normal, point) in enumerate(at_sides):
+        assert box.wall_side(plane(normal, point)) == side, WALL_SIDES[side]
+    # A box heaped over its rim on a table-like side: no wall where it has none.
+    low = BinBox(box.T_cam_from_bin, box.inner_min_m, box.inner_max_m, np.array([0.05, 0.0, 0.05, 0.05]))
+    assert low.is_wall(plane([1.0, 0.0, 0.0], [-0.48, 0.0, 0.0])) and low.wall_top_m(0) == 0.05
+    assert not low.is_wall(plane([1.0, 0.0, 0.0], [0.48, 0.0, 0.0])) and low.wall_top_m(1) == 0.01

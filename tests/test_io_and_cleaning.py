@@ -341,6 +341,53 @@ def test_one_pass_screen_keeps_the_view_grid_of_the_points_in_range_and_region()
     assert np.array_equal(kept[first_in_each_voxel(flat, int(np.prod(span)))], expected)
 
 
+def test_a_given_box_removes_a_wall_only_where_it_has_one_and_only_up_to_its_rim():
+    """A box as `binpick fit-bin` gives a heap over a low rim: a 5 cm wall at -x, none at the
+    other sides. A bar resting on the -x rim, its face in the wall's plane above the rim, keeps
+    that face; a bar standing along the +y side, its face where a wall would be, is no wall; the
+    -x wall itself is removed (an oblique camera sees both faces)."""
+    import trimesh
+
+    from binpick.cell.bin_box import BinBox
+    from binpick.generation.camera import camera_of, render
+    from binpick.geometry.transforms import invert_T, make_T, transform_points
+
+    def block(lo, hi):
+        mesh = trimesh.creation.box(extents=np.subtract(hi, lo))
+        mesh.apply_translation((np.add(lo, hi)) / 2)
+        return mesh
+
+    floor = block([-0.25, -0.2, -0.01], [0.25, 0.2, 0.0])
+    wall = block([-0.165, -0.1, 0.0], [-0.155, 0.1, 0.05])
+    on_rim = block([-0.205, -0.09, 0.05], [-0.155, 0.09, 0.10])
+    along_side = block([-0.14, 0.095, 0.0], [0.14, 0.135, 0.08])
+    # A camera 0.7 m from the floor's centre, off toward +x and -y, looking at it.
+    eye = np.array([0.2, -0.2, 0.65])
+    z = -eye / np.linalg.norm(eye)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    T_cam_bin = invert_T(make_T(np.column_stack([x, np.cross(z, x), z]), eye))
+    scene = [floor, wall, on_rim, along_side]
+    meshes = [(transform_points(T_cam_bin, np.asarray(m.vertices)), np.asarray(m.faces)) for m in scene]
+    frame = render(meshes, [-1, 0, 1, 2], camera_of(PARAMS.camera.model_copy(update={"downscale": 4})))
+    H, W = frame.labels.shape
+    box = BinBox(T_cam_bin, np.array([-0.16, -0.125, 0.004]), np.array([0.16, 0.125, 0.15]), np.array([0.05, 0, 0, 0]))
+    given = changed(PARAMS.import_capture, crop_to_walls=True, **box.as_import_settings())
+    cloud = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), given, 0)
+    # The same crop with no wall removed: what each bar has to keep. The rim's bar is judged on
+    # its face from 1 cm over the rim (the wall's plane is removed to a plane threshold above it).
+    unwalled = clean_capture(frame.xyz_m.reshape(-1, 3), None, (H, W), changed(given, remove_walls=False), 0)
+    labels = frame.labels.reshape(-1)
+    xyz_bin = transform_points(invert_T(T_cam_bin), np.nan_to_num(frame.xyz_m.reshape(-1, 3)))
+    face = (labels == 1) & (np.abs(xyz_bin[:, 0] + 0.155) < 0.002) & (xyz_bin[:, 2] > 0.06)
+    kept, reference = np.zeros(len(labels), bool), np.zeros(len(labels), bool)
+    kept[cloud.pixel_index], reference[unwalled.pixel_index] = True, True
+    assert (reference & (labels == 0)).sum() > 200, "the camera sees the wall"
+    assert (kept & (labels == 0)).sum() < 0.2 * (reference & (labels == 0)).sum(), "the wall is removed"
+    for part, name in ((face, "the face over the rim"), (labels == 2, "the bar along the side with no wall")):
+        assert (reference & part).sum() > 200 and (kept & part).sum() > 0.95 * (reference & part).sum(), name
+
+
 def test_a_given_bin_box_sets_the_floor_and_the_walls():
     """A bin whose floor is covered by a layer of six flat parts lying side by side, cropped to its
     box just above its floor (as `binpick fit-bin` gives it): the parts' tops, the largest plane

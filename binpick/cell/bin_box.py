@@ -72,9 +72,10 @@ class BinBox:
             else [round(float(x), 4) for x in self.wall_heights_m],
         }
 
-    def is_wall(self, plane: np.ndarray) -> bool:
-        """Whether a plane (4,) a, b, c, d (unit normal, camera frame) is one of the box's side
-        walls: parallel to a side and near it (WALL_OUTER_SHARE)."""
+    def wall_side(self, plane: np.ndarray) -> int | None:
+        """Which of the box's sides (an index into WALL_SIDES) a plane (4,) a, b, c, d (unit normal,
+        camera frame) stands at: parallel to that side and near it (WALL_OUTER_SHARE); None when
+        it stands at none."""
         T = np.asarray(self.T_cam_from_bin, dtype=np.float64)
         lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
         centre, half = (lo + hi) / 2, (hi - lo) / 2
@@ -84,22 +85,38 @@ class BinBox:
             along = float(n @ T[:3, axis])
             if abs(along) < np.cos(np.radians(BIN_PLANE_AGREEMENT_DEG)):
                 continue
-            # The plane's distance from the box's centre along that axis.
-            offset = abs(float(n @ centre_cam + plane[3]) / along)
-            if offset >= (1.0 - WALL_OUTER_SHARE) * half[axis]:
-                return True
-        return False
+            # Where the plane crosses the axis through the box's centre, from the centre.
+            offset = -float(n @ centre_cam + plane[3]) / along
+            if abs(offset) >= (1.0 - WALL_OUTER_SHARE) * half[axis]:
+                return 2 * axis + int(offset > 0)
+        return None
+
+    def wall_top_m(self, side: int) -> float:
+        """The height of a side's wall (an index into WALL_SIDES) in the bin frame: the box's top
+        where its wall heights are not given; at most the floor's (inner_min_m z) where it has none."""
+        lo, hi = float(self.inner_min_m[2]), float(self.inner_max_m[2])
+        return hi if self.wall_heights_m is None else float(np.clip(self.wall_heights_m[side], lo, hi))
+
+    def is_wall(self, plane: np.ndarray) -> bool:
+        """Whether a plane (4,) a, b, c, d (unit normal, camera frame) is one of the box's side
+        walls: parallel to a side that has a wall and near it (WALL_OUTER_SHARE)."""
+        side = self.wall_side(plane)
+        return side is not None and self.wall_top_m(side) > float(self.inner_min_m[2])
+
+    def height_m(self, points_cam: np.ndarray) -> np.ndarray:
+        """(n,) the height of points (n, 3; camera frame) in the bin frame (its z)."""
+        T = np.asarray(self.T_cam_from_bin, dtype=np.float64)
+        return (np.asarray(points_cam, float) - T[:3, 3]) @ T[:3, 2]
 
     def side_planes(self) -> np.ndarray:
         """(w, 4) the planes of its side walls (those it has), camera frame: a, b, c, d with
         a x + b y + c z + d = 0, the unit normal facing into the bin."""
         T = np.asarray(self.T_cam_from_bin, dtype=np.float64)
         lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
-        heights = np.full(4, hi[2]) if self.wall_heights_m is None else np.asarray(self.wall_heights_m, float)
         planes = []
         sides = ((0, lo[0], 1.0), (0, hi[0], -1.0), (1, lo[1], 1.0), (1, hi[1], -1.0))  # WALL_SIDES' order
         for k, (axis, value, inward) in enumerate(sides):
-            if heights[k] <= lo[2]:
+            if self.wall_top_m(k) <= lo[2]:
                 continue  # no wall on this side
             n = inward * T[:3, axis]
             point = T[:3, :3] @ (np.eye(3)[axis] * value) + T[:3, 3]
@@ -114,7 +131,7 @@ class BinBox:
         """Points (n, 3) on the inner faces of the walls (as high as they are) and the floor, about
         spacing_m apart, and their faces' unit normals (n, 3), facing into the bin; camera frame."""
         lo, hi = np.asarray(self.inner_min_m, float), np.asarray(self.inner_max_m, float)
-        tops = np.full(4, hi[2]) if self.wall_heights_m is None else np.minimum(self.wall_heights_m, hi[2])
+        tops = [self.wall_top_m(k) for k in range(4)]
 
         def steps(a: float, b: float) -> np.ndarray:
             return np.linspace(a, b, max(2, int(np.ceil((b - a) / spacing_m)) + 1))

@@ -292,17 +292,24 @@ def clean_capture(
             )
             # The plane's points among all that are left: the wall's edges, whose normals lean,
             # belong to it too.
-            inliers = np.abs(pts @ plane[:3] + plane[3]) <= params.plane_threshold_m
-            if inliers.sum() < params.wall_min_fraction * n_valid:
+            in_plane = np.abs(pts @ plane[:3] + plane[3]) <= params.plane_threshold_m
+            if in_plane.sum() < params.wall_min_fraction * n_valid:
                 break
+            inliers = in_plane
+            if box is not None and (side := box.wall_side(plane)) is not None:
+                # A given box's wall reaches only as high as the box says (fit-bin measures it):
+                # in its plane above the rim lie the sides of parts heaped over it, and at a side
+                # with no wall (a heap on a table) a row of cups' sides is all there is.
+                inliers = in_plane & (box.height_m(pts) <= box.wall_top_m(side) + params.plane_threshold_m)
             if (
-                abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
-                or not _at_the_edge(pts[~inliers], floor, plane, params.plane_threshold_m, _top_m(pts[inliers], floor))
+                inliers.sum() < params.wall_min_fraction * n_valid
+                or abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
+                or not _at_the_edge(pts[~in_plane], floor, plane, params.plane_threshold_m, _top_m(pts[inliers], floor))
                 or not _square_to(plane, walls)
                 or (box is not None and not box.is_wall(plane))
                 or not _long_and_low(pts[inliers], floor, plane, WALL_RUN_GAP_VOXELS * view.voxel_size_m)
             ):
-                search &= ~inliers
+                search &= ~in_plane
                 continue
             walls.append(plane)
             removed_walls += int(inliers.sum())
