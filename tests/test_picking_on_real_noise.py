@@ -184,3 +184,65 @@ def test_the_seen_depths_nearest_of_a_cell_is_the_parts_own_surface_and_a_bar_ab
     barred[beside] = transform_points(T, local[beside] + [0.0, 0.0, 0.010])
     refused = plan(box_part, pick_settings, T, barred)
     assert not refused.picks and "captured points" in refused.unpicked[0][1]
+
+
+@pytest.fixture(scope="module")
+def stepped_part():
+    """A disc 50 mm across and 12 mm thick with a boss 12 mm across standing 8 mm on its centre
+    (a cup's lid has such steps: a plateau, a recess, a rim); model z up, its base at z = 0."""
+    import trimesh
+
+    from binpick.params import SymmetryParams
+    from binpick.part.model import make_part_model
+
+    profile = [[0.0, 0.0], [0.025, 0.0], [0.025, 0.012], [0.006, 0.012], [0.006, 0.020], [0.0, 0.020]]
+    mesh = trimesh.creation.revolve(np.array(profile), sections=64)
+    return make_part_model("stepped", mesh, SymmetryParams(), 20000, np.random.default_rng(0), "m")
+
+
+def measured_stepped(T_cam_from_model: np.ndarray, spacing_m: float, rng: np.random.Generator) -> np.ndarray:
+    """The stepped part's top (the boss and the ring round it) on a grid of spacing_m, 0.5 mm of
+    noise along the camera's rays."""
+    a, b = np.meshgrid(np.arange(-0.024, 0.024, spacing_m), np.arange(-0.024, 0.024, spacing_m))
+    r = np.hypot(a, b).ravel()
+    top = np.column_stack([a.ravel(), b.ravel(), np.where(r < 0.006, 0.020, 0.012)])[r < 0.025]
+    pts = transform_points(T_cam_from_model, top)
+    return pts + pts / np.linalg.norm(pts, axis=1, keepdims=True) * rng.normal(0.0, 0.0005, (len(pts), 1))
+
+
+@pytest.mark.parametrize("wrong", [None, "lower", "turned"])
+def test_a_sparse_capture_judges_a_small_cups_contact_against_the_parts_own_steps(stepped_part, pick_settings, wrong):
+    """Points 6 mm apart (a VGA frame's cloud): an 8 mm cup on the boss covers one to three of
+    them, so the contact is judged over a 15 mm disc, which takes in the ring 8 mm below the boss.
+    Against the contact's plane most of the disc lies off it; against the posed part's surface it
+    is the part, measured. The same points under a pose floating 8 mm above them, or turned 45
+    degrees about the contact, are still refused."""
+    settings = pick_settings.model_copy(
+        update={"suction": pick_settings.suction.model_copy(update={"cup_radius_m": 0.004})}
+    )
+    T = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.pi), np.array([0.0, 0.0, 0.6]))
+    captured = measured_stepped(T, 0.006, np.random.default_rng(4))
+    if wrong == "lower":
+        T = T @ make_T(np.eye(3), np.array([0.0, 0.0, 0.008]))
+    elif wrong == "turned":
+        contact = T @ make_T(np.eye(3), np.array([0.0, 0.0, 0.020]))
+        turn = make_T(axis_angle_to_R(np.array([1.0, 0.0, 0.0]), np.radians(45.0)), np.zeros(3))
+        T = contact @ turn @ np.linalg.inv(contact) @ T
+    on_boss = GraspSet(
+        "suction", ["boss"], tool_frame(np.array([0.0, 0.0, 0.020]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1)
+    )
+    result = plan_picks(
+        T[None],
+        np.array([0.9]),
+        on_boss,
+        stepped_part.points_m,
+        stepped_part.normals,
+        stepped_part.centre_m,
+        captured,
+        FLOOR,
+        settings,
+    )
+    if wrong is None:
+        assert result.picks, result.unpicked
+    else:
+        assert not result.picks and UNSEEN in result.unpicked[0][1], result.unpicked

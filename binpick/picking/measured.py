@@ -4,6 +4,8 @@ contact lies on measured surface. Camera frame, metres."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
@@ -107,6 +109,33 @@ def seen_offset_m(offsets_m: np.ndarray, limit_m: float) -> float:
     return float(np.median(inside)) if len(inside) >= MIN_OFFSET_POINTS else 0.0
 
 
+@dataclass(frozen=True)
+class PosedSurface:
+    """The target part's surface at its pose (T_cam_from_model (4, 4)), for judging a contact
+    over a disc wider than the cup; offset_m: where the capture's points sit off it
+    (seen_offset_m)."""
+
+    own: OwnPoints
+    T_cam_from_model: np.ndarray
+    offset_m: float = 0.0
+
+    def offsets(self, points_cam: np.ndarray) -> np.ndarray:
+        """(k,) the signed distance (metres, outward positive) of points (k, 3; camera frame) to
+        the posed surface's tangent plane, less offset_m; inf off the surface (OwnPoints)."""
+        R, t = self.T_cam_from_model[:3, :3], self.T_cam_from_model[:3, 3]
+        return self.own.distances((np.asarray(points_cam, float) - t) @ R)[1] - self.offset_m
+
+    def points_near(self, at_cam: np.ndarray, radius_m: float) -> np.ndarray:
+        """(k, 3) camera frame: the part's surface sample within radius_m of at_cam (3,) that
+        faces the camera (the side a contact there is measured from)."""
+        R, t = self.T_cam_from_model[:3, :3], self.T_cam_from_model[:3, 3]
+        at_model = R.T @ (np.asarray(at_cam, float) - t)
+        near = np.linalg.norm(self.own.points_m - at_model, axis=1) <= radius_m
+        points = self.own.points_m[near] @ R.T + t
+        facing = np.einsum("ij,ij->i", self.own.normals[near] @ R.T, points) < 0.0
+        return points[facing]
+
+
 def captured_near(tree: cKDTree, n_captured: int, at: np.ndarray, radius_m: float) -> np.ndarray:
     """Indices of the captured points within radius_m of `at`: the obstacle tree's first n_captured rows."""
     # Sorted: the order (which the tree's layout sets) must not change sums over these points.
@@ -123,11 +152,13 @@ def contact_seen(
     params: PickParams,
     noise_m: float = 0.0,
     spacing_m: float = 0.0,
+    surface: PosedSurface | None = None,
 ) -> bool:
     """Whether the captured points show the surface the grasp's contact needs (see the module's
     docstring); noise_m: the capture's noise about the pose (local_noise_m), which widens the
     seal tolerance and the tilt a measured patch may show; spacing_m: the capture's point
-    spacing, which widens a suction contact's disc on a sparse capture (SEEN_SPACINGS)."""
+    spacing, which widens a suction contact's disc on a sparse capture (SEEN_SPACINGS);
+    surface: the posed part's, which a disc so widened is judged against (None: its plane)."""
     if tree is None or len(captured) == 0:
         return False
     c = T_cam_from_tool[:3, 3]
@@ -146,6 +177,8 @@ def contact_seen(
     local = (captured[near] - c) @ T_cam_from_tool[:3, :3]
     if kind == "suction":
         seal_m = params.suction.max_deviation_m + max(SEEN_NOISE_M, SEEN_NOISE_SIGMAS * noise_m)
+        if surface is not None and reach > params.suction.cup_radius_m:
+            return _seen_on_surface(captured[near], c, reach, seal_m, noise_m, surface)
         if np.mean(np.abs(local[:, 2]) <= seal_m) < SEEN_SHARE:
             return False
         # The normal of the measured patch: the direction of least spread of its points within
@@ -169,3 +202,27 @@ def contact_seen(
         & (local[:, 2] < j.pad_m / 2)
     )
     return int(between.sum()) >= SEEN_MIN_POINTS
+
+
+def _seen_on_surface(
+    disc: np.ndarray, c: np.ndarray, reach_m: float, seal_m: float, noise_m: float, surface: PosedSurface
+) -> bool:
+    """A suction contact at c (3,) judged over a disc wider than its cup (the captured points
+    disc (k, 3) within reach_m; camera frame): over that disc the part's own shape lies off the
+    contact's plane (a cup's lid: a 6-9 mm recess round a 12 mm plateau, inside the 15 mm disc of
+    a VGA frame's cloud), so SEEN_SHARE of the points must lie within seal_m of the posed
+    surface instead, and the plane fitted to them must face as the posed surface's own over the
+    disc does (a pose turned about an edge leaves the points' plane tilted from its surface's).
+    The cup's own patch was checked flat when the grasp was made (the grasps stage)."""
+    on = np.abs(surface.offsets(disc)) <= seal_m
+    if on.mean() < SEEN_SHARE or on.sum() < SEEN_MIN_POINTS:
+        return False
+    model = surface.points_near(c, reach_m)
+    if len(model) < SEEN_MIN_POINTS:
+        return False
+    measured_normal, model_normal = (
+        np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][2] for p in (disc[on], model)
+    )
+    n = int(on.sum())
+    tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (reach_m * np.sqrt(n))))
+    return bool(abs(measured_normal @ model_normal) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))

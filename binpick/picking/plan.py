@@ -61,6 +61,7 @@ from binpick.picking.measured import (
     NOISE_BAND_FACTOR,
     OWN_NOISE_SIGMAS,
     OwnPoints,
+    PosedSurface,
     captured_near,
     contact_seen,
     point_spacing_m,
@@ -315,7 +316,7 @@ def plan_picks(
         # The target's own captured points: near its posed model surface (obstacle rows
         # 0..len(captured) are the captured points).
         own = np.zeros(len(obstacles), bool)
-        noise_m, limit = 0.0, params.own_points_m
+        noise_m, limit, centre = 0.0, params.own_points_m, 0.0
         if len(captured):
             near = captured_near(tree, len(captured), centres[i], reach)
             if len(near):
@@ -327,6 +328,7 @@ def plan_picks(
                 centre = seen_offset_m(offset[band], limit)
                 close = nearest <= limit + abs(centre) + own_of.spacing_m
                 own[near[(np.abs(offset - centre) <= limit) & close]] = True
+        surface = PosedSurface(own_of, T, centre)
         tools = T @ grasps.T_model_from_tool if len(grasps) else np.zeros((0, 4, 4))
         near_lift = None  # what may lie in the part's way out, gathered once a grasp gets that far
         # What stops the part along each way out, by direction: the same for every grasp that
@@ -360,7 +362,7 @@ def plan_picks(
             n_tried += int(not deferred)
             T_tool = tools[g]
             if not contact_seen(
-                T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m
+                T_tool, grasps.kind, float(grasps.width_m[g]), captured, tree, params, noise_m, spacing_m, surface
             ):
                 causes[UNSEEN] += 1
                 rejected.append(Rejected(i, grasps.ids[g], T_tool, UNSEEN))
