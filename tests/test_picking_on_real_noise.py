@@ -231,17 +231,7 @@ def test_a_sparse_capture_judges_a_small_cups_contact_against_the_parts_own_step
     on_boss = GraspSet(
         "suction", ["boss"], tool_frame(np.array([0.0, 0.0, 0.020]), np.array([0.0, 0.0, -1.0]))[None], np.zeros(1)
     )
-    result = plan_picks(
-        T[None],
-        np.array([0.9]),
-        on_boss,
-        stepped_part.points_m,
-        stepped_part.normals,
-        stepped_part.centre_m,
-        captured,
-        FLOOR,
-        settings,
-    )
+    result = plan(stepped_part, settings, T, captured, grasps=on_boss)
     if wrong is None:
         assert result.picks, result.unpicked
     else:

@@ -97,11 +97,15 @@ class BinBox:
         lo, hi = float(self.inner_min_m[2]), float(self.inner_max_m[2])
         return hi if self.wall_heights_m is None else float(np.clip(self.wall_heights_m[side], lo, hi))
 
+    def has_wall(self, side: int) -> bool:
+        """Whether the box has a wall at a side (an index into WALL_SIDES): one above its floor."""
+        return self.wall_top_m(side) > float(self.inner_min_m[2])
+
     def is_wall(self, plane: np.ndarray) -> bool:
         """Whether a plane (4,) a, b, c, d (unit normal, camera frame) is one of the box's side
         walls: parallel to a side that has a wall and near it (WALL_OUTER_SHARE)."""
         side = self.wall_side(plane)
-        return side is not None and self.wall_top_m(side) > float(self.inner_min_m[2])
+        return side is not None and self.has_wall(side)
 
     def height_m(self, points_cam: np.ndarray) -> np.ndarray:
         """(n,) the height of points (n, 3; camera frame) in the bin frame (its z)."""
@@ -116,8 +120,8 @@ class BinBox:
         planes = []
         sides = ((0, lo[0], 1.0), (0, hi[0], -1.0), (1, lo[1], 1.0), (1, hi[1], -1.0))  # WALL_SIDES' order
         for k, (axis, value, inward) in enumerate(sides):
-            if self.wall_top_m(k) <= lo[2]:
-                continue  # no wall on this side
+            if not self.has_wall(k):
+                continue
             n = inward * T[:3, axis]
             point = T[:3, :3] @ (np.eye(3)[axis] * value) + T[:3, 3]
             planes.append(np.append(n, -n @ point))

@@ -181,10 +181,8 @@ def contact_seen(
             return _seen_on_surface(captured[near], c, reach, seal_m, noise_m, surface)
         if np.mean(np.abs(local[:, 2]) <= seal_m) < SEEN_SHARE:
             return False
-        # The normal of the measured patch: the direction of least spread of its points within
-        # the seal tolerance. Noise tilts it: a plane fitted to n points over a disc of radius r
-        # has a slope std of 2 sigma / (r sqrt(n)), so on a noisy capture the patch is taken
-        # wider than the cup, and SEEN_NOISE_SIGMAS of the slope std is allowed on top.
+        # The measured patch, its points within the seal tolerance, must face the cup. Noise
+        # tilts it (_faces_within_tilt), so on a noisy capture the patch is taken wider than the cup.
         patch_m = max(reach, TILT_PATCH_SIGMAS * noise_m)
         if patch_m > reach:
             near = captured_near(tree, len(captured), c, patch_m)
@@ -192,9 +190,7 @@ def contact_seen(
         local = local[np.abs(local[:, 2]) <= seal_m]
         if len(local) < SEEN_MIN_POINTS:
             return False
-        normal = np.linalg.svd(local - local.mean(axis=0), full_matrices=False)[2][2]
-        tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(local)))))
-        return bool(abs(normal[2]) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
+        return _faces_within_tilt(local, np.array([0.0, 0.0, 1.0]), noise_m, patch_m)
     between = (
         (np.abs(local[:, 0]) < width_m / 2)
         & (np.abs(local[:, 1]) < half_y)
@@ -220,9 +216,17 @@ def _seen_on_surface(
     model = surface.points_near(c, reach_m)
     if len(model) < SEEN_MIN_POINTS:
         return False
-    measured_normal, model_normal = (
-        np.linalg.svd(p - p.mean(axis=0), full_matrices=False)[2][2] for p in (disc[on], model)
-    )
-    n = int(on.sum())
-    tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (reach_m * np.sqrt(n))))
-    return bool(abs(measured_normal @ model_normal) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))
+    return _faces_within_tilt(disc[on], _plane_normal(model), noise_m, reach_m)
+
+
+def _plane_normal(points: np.ndarray) -> np.ndarray:
+    """(3,) unit: the normal of the plane fitted to points (k, 3), their direction of least spread."""
+    return np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][2]
+
+
+def _faces_within_tilt(points: np.ndarray, axis: np.ndarray, noise_m: float, patch_m: float) -> bool:
+    """Whether the plane fitted to points (k, 3) faces along axis (3,) unit (either way) within
+    SEEN_MAX_TILT_DEG, plus what noise_m tilts it: a plane fitted to k points over a disc of
+    radius patch_m has a slope std of 2 sigma / (r sqrt(k)), and SEEN_NOISE_SIGMAS of it is allowed."""
+    tilt_noise_deg = np.degrees(np.arctan(SEEN_NOISE_SIGMAS * 2.0 * noise_m / (patch_m * np.sqrt(len(points)))))
+    return bool(abs(_plane_normal(points) @ axis) >= np.cos(np.radians(SEEN_MAX_TILT_DEG + tilt_noise_deg)))

@@ -296,7 +296,8 @@ def clean_capture(
             if in_plane.sum() < params.wall_min_fraction * n_valid:
                 break
             inliers = in_plane
-            if box is not None and (side := box.wall_side(plane)) is not None:
+            side = None if box is None else box.wall_side(plane)
+            if box is not None and side is not None:
                 # A given box's wall reaches only as high as the box says (fit-bin measures it):
                 # in its plane above the rim lie the sides of parts heaped over it, and at a side
                 # with no wall (a heap on a table) a row of cups' sides is all there is.
@@ -306,7 +307,7 @@ def clean_capture(
                 or abs(plane[:3] @ floor[:3]) > WALL_MAX_COS_TO_FLOOR
                 or not _at_the_edge(pts[~in_plane], floor, plane, params.plane_threshold_m, _top_m(pts[inliers], floor))
                 or not _square_to(plane, walls)
-                or (box is not None and not box.is_wall(plane))
+                or (box is not None and (side is None or not box.has_wall(side)))
                 or not _long_and_low(pts[inliers], floor, plane, WALL_RUN_GAP_VOXELS * view.voxel_size_m)
             ):
                 search &= ~in_plane
